@@ -1,0 +1,150 @@
+"""A scripted expert that inserts the needle from privileged simulator state.
+
+It reads the true needle grasp, the entry and exit points and the needle's pose from the env (as the
+paper's demonstrator reads AMBF's state) and emits the same 10-dim pose actions a policy emits:
+
+1. ``approach``: carry the needle to ``approach_height`` above its throw pose, its plane through the
+   entry-exit line (tilted towards the arm's port), the tip above the entry point;
+2. ``descend``: lower it until the tip rests on the entry point;
+3. ``drive``: turn it about its own centre by the arc angle between entry and exit plus
+   ``protrusion_angle``, so the tip emerges from the exit point far enough to be grasped;
+4. ``hold``: stay there.
+
+Every step re-reads the phantom, so the expert servos to a moving phantom. It also stands in for the
+surgeon after a handover: ``reset`` with the env mid-episode works out the phase from the state (a
+needle already in tissue is driven on from its current angle). A needle the jaw has lost cannot be
+re-grasped by this expert; it then holds the arm still.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from lerobot_suture.sim.geometry import matrix_from_rotvec, pose_vector, rotvec_from_matrix
+
+PHASES = ("approach", "descend", "drive", "hold")
+
+
+@dataclass
+class ExpertConfig:
+    """Speeds and tolerances of the scripted expert (m, m/s, rad, rad/s).
+
+    Args:
+        approach_height: height of the needle centre above its throw pose before descending (m).
+        approach_speed: needle-centre speed during the approach (m/s).
+        approach_turn_rate: needle turning rate during the approach (rad/s).
+        descend_speed: needle-centre speed while lowering the tip onto the entry point (m/s).
+        drive_rate: turning rate about the needle centre while driving through tissue (rad/s).
+        protrusion_angle: how far past the exit point the needle is driven (rad of arc).
+        position_tolerance: distance to a waypoint that counts as reached (m).
+        angle_tolerance: angle to a waypoint orientation that counts as reached (rad).
+    """
+
+    approach_height: float = 0.012
+    approach_speed: float = 0.02
+    approach_turn_rate: float = 0.8
+    descend_speed: float = 0.01
+    drive_rate: float = 0.6
+    protrusion_angle: float = 0.5
+    position_tolerance: float = 0.0005
+    angle_tolerance: float = 0.03
+
+    def __post_init__(self):
+        for name in (
+            "approach_height",
+            "approach_speed",
+            "approach_turn_rate",
+            "descend_speed",
+            "drive_rate",
+            "protrusion_angle",
+            "position_tolerance",
+            "angle_tolerance",
+        ):
+            value = getattr(self, name)
+            if not (value > 0 and math.isfinite(value)):
+                raise ValueError(f"`{name}` must be a finite number > 0. Got {value}.")
+
+
+def _step_towards(position, rotation, goal_position, goal_rotation, max_distance, max_angle):
+    """The pose one bounded step from (position, rotation) towards the goal."""
+    delta = goal_position - position
+    distance = float(np.linalg.norm(delta))
+    if distance > max_distance:
+        delta *= max_distance / distance
+    rotvec = rotvec_from_matrix(rotation.T @ goal_rotation)
+    angle = float(np.linalg.norm(rotvec))
+    if angle > max_angle:
+        rotvec *= max_angle / angle
+    return position + delta, rotation @ matrix_from_rotvec(rotvec)
+
+
+class ScriptedExpert:
+    """Privileged needle-insertion expert; ``act(env)`` returns a (10,) float32 pose action."""
+
+    def __init__(self, config: ExpertConfig | None = None):
+        self.config = config or ExpertConfig()
+        self.phase: str | None = None
+        self.drive_angle = 0.0
+
+    def reset(self, env=None) -> None:
+        """Start over; the phase is worked out from the env's state at the next ``act``."""
+        self.phase = None
+        self.drive_angle = 0.0
+
+    def act(self, env) -> np.ndarray:
+        u = env.unwrapped
+        cfg = self.config
+        dt = u.control_dt
+        jaw_pos, jaw_rot = u.jaw_pose()
+        if not u.needle_grasped:
+            return pose_vector(jaw_pos, jaw_rot, 1.0).astype(np.float32)
+
+        frame = u.insertion_frame()
+        centre, rotation = u.needle_pose()
+        normal = u.phantom_rotation[:, 2]
+        if self.phase is None:
+            self._infer_phase(u, frame, rotation)
+
+        if self.phase == "approach":
+            goal = frame.centre + cfg.approach_height * normal
+            error = np.linalg.norm(goal - centre)
+            turn = np.linalg.norm(rotvec_from_matrix(rotation.T @ frame.start_rotation))
+            if error < cfg.position_tolerance and turn < cfg.angle_tolerance:
+                self.phase = "descend"
+            else:
+                target = _step_towards(
+                    centre, rotation, goal, frame.start_rotation, cfg.approach_speed * dt, cfg.approach_turn_rate * dt
+                )
+        if self.phase == "descend":
+            if np.linalg.norm(frame.centre - centre) < cfg.position_tolerance:
+                self.phase = "drive"
+            else:
+                target = _step_towards(
+                    centre, rotation, frame.centre, frame.start_rotation, cfg.descend_speed * dt, cfg.approach_turn_rate * dt
+                )
+        final_angle = frame.exit_angle + cfg.protrusion_angle
+        if self.phase == "drive":
+            self.drive_angle = min(final_angle, self.drive_angle + cfg.drive_rate * dt)
+            target = (frame.centre, frame.needle_rotation(self.drive_angle))
+            if self.drive_angle >= final_angle:
+                self.phase = "hold"
+        elif self.phase == "hold":
+            target = (frame.centre, frame.needle_rotation(final_angle))
+
+        needle_pos, needle_rot = target
+        grasp_pos, grasp_rot = u.grasp_in_jaw
+        target_jaw_rot = needle_rot @ grasp_rot.T
+        target_jaw_pos = needle_pos - target_jaw_rot @ grasp_pos
+        return pose_vector(target_jaw_pos, target_jaw_rot, 1.0).astype(np.float32)
+
+    def _infer_phase(self, u, frame, rotation) -> None:
+        if u.needle_in_tissue:
+            # Angle already driven: the needle's turn from the start orientation about its axis.
+            relative = frame.start_rotation.T @ rotation
+            self.drive_angle = max(0.0, -math.atan2(relative[1, 0], relative[0, 0]))
+            self.phase = "drive"
+        else:
+            self.phase = "approach"

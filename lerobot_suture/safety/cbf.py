@@ -1,0 +1,445 @@
+r"""Model-free control barrier function (CBF) on an ellipsoidal safe set around the wound.
+
+Pure numpy, no simulator. Every function takes the needle-tip position ``x`` as ``(3,)`` or
+``(..., 3)`` (metres, world frame) and broadcasts over the leading axes; single and batched calls
+run the same code. Velocities are in m/s, times in s.
+
+Barrier (the paper's Eq. for ``h``, Molnar et al. 2021)
+--------------------------------------------------------
+The safe set is the ellipsoid S = {x : h(x) >= 0} with centre ``c`` (m), semi-axes ``a`` (m) and an
+optional orientation ``R`` (3x3, world-from-ellipsoid; identity when omitted)::
+
+    D     = x - c                      # (..., 3) world
+    E     = R^T D                      # (..., 3) in the ellipsoid frame
+    h(x)  = 1 - sum_i E_i^2 / a_i^2    # 1 at the centre, 0 on the surface, < 0 outside
+    dh/dx = -2 R (E / a^2)             # (..., 3) 1/m
+    n(x)  = (dh/dx) / |dh/dx|          # unit inward normal
+
+The centre: there dh/dx = 0 and ``n`` is undefined. We define n = 0 wherever the scaled radius
+|E / a| is below 1e-12 (there h rounds to exactly 1.0 in float64): the constraint below reads
+0 >= -alpha, always true, so the filter passes the nominal velocity unchanged. This is exact for the
+continuous condition (dh/dt = dh/dx . v = 0 at the centre, whatever v).
+
+Continuous-time filter (the paper)
+----------------------------------
+The safe velocity must satisfy ``n . v_s >= -alpha h(x)``; the minimum-norm change of the nominal
+velocity ``v_n`` that does so (the solution of the QP min |v - v_n|^2 s.t. that one linear
+constraint) is the closed form::
+
+    v_s = v_n + max(-n . v_n - alpha h(x), 0) n          (:func:`filter_velocity`)
+
+Units: ``n`` is unit-free, so ``alpha h`` is a speed: the paper's ``alpha`` is 1/s times an
+implicit 1 m length scale. For a set a centimetre across it allows outward speeds of order
+``alpha`` m/s deep inside, i.e. it only binds right at the boundary.
+
+The discrete-time gap, and what we do about it (:func:`filter_velocity_discrete`)
+-------------------------------------------------------------------------------
+The env holds one Cartesian tip velocity for a whole control step ``dt`` (0.1 s) while physics runs
+at 2 ms. The continuous condition constrains only the rate at the start of the step; over the step a
+tangential velocity leaves a curved boundary (h drops by |A^-1 R^T v|^2 dt^2), and the paper's
+``alpha h`` allows an outward step of ``alpha h dt`` metres, larger than the ellipsoid. So the filter
+used in the env enforces the exact discrete-time CBF condition (Agrawal & Sreenath 2017) on the end
+point of the step, for a barrier tightened by a tracking margin::
+
+    h~(x)         = h(x) - h_m,        h_m = 1 - (1 - m / min(a))^2
+    h~(x + v dt) >= (1 - gamma) h~(x), gamma = min(alpha dt, 1)
+
+Why this keeps h >= 0 at every physics step: with perfect tracking the tip moves on the segment
+x -> x + v dt; h is concave (a negative semi-definite quadratic), so its minimum over the segment is
+at an end point, and both end points have h~ >= 0 once h~(x) >= 0 (induction over steps). The margin
+covers tracking error: {h~ >= 0} is the ellipsoid shrunk about its centre by the factor
+``rho = 1 - m / min(a)``, and a displacement of at most ``m`` metres changes the scaled radius
+|A^-1 R^T (x - c)| by at most ``m / min(a)``, so every point within ``m`` metres of the commanded
+segment is in S. (Shrinking each semi-axis by ``m`` instead would not be enough on an elongated
+ellipsoid.) Here ``alpha`` is a true rate in 1/s: h~ may decay by at most a factor ``1 - alpha dt`` per
+step, so the tip slows down geometrically as it approaches the tightened boundary.
+
+The condition is enforced in closed form, in two steps (no iterative solver: vectorized, microseconds):
+
+1. Linearize the end point, h~(x + v dt) ~ h~(x) + dt dh/dx . v, and apply the paper's closed form to
+   the resulting half-space ``n . v >= -gamma h~(x) / (dt |dh/dx|)`` (the unit-consistent form of
+   the paper's constraint), giving ``v_c``. At the centre there is no constraint (n = 0).
+2. Along ``v_c`` the end point is exactly quadratic, ``f(s) = h~(x + s v_c dt) = h~ + s b - s^2 q``
+   with ``b = dt dh/dx . v_c`` and ``q = dt^2 |A^-1 R^T v_c|^2``; take the largest step fraction
+   ``s`` in [0, 1] with ``f(s) >= (1 - gamma) h~(x)`` (a root of the quadratic) and return
+   ``v_s = s v_c``. Since q >= 0, a nominal velocity that already meets the exact condition also meets
+   the linearized one, so it is returned unchanged (minimal intervention). The result is not the exact
+   minimum-norm solution of the quadratic constraint; it differs only by the curvature term.
+
+If h~(x) < 0 (the tip is in the margin band or outside, from tracking error or because the filter was
+switched on there), the condition asks h~ to rise by ``gamma |h~|``; step 1 adds an inward component,
+and if step 2 cannot reach the target along ``v_c`` it takes the ``s`` that maximizes ``f``, so h~
+never decreases over the step.
+
+Filtering at the physics rate instead would need the env's inner loop to re-filter every 2 ms; the
+end-point condition needs nothing from the env but the control period.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+_CENTRE_R2 = 1e-24
+"""Squared scaled radius |E / a|^2 below which a point counts as the centre (h == 1.0 in float64)."""
+
+
+class CBFResult(NamedTuple):
+    """What a filter call did, per state.
+
+    Attributes:
+        v_safe: (..., 3) safe velocity (m/s), world frame.
+        h: (...,) barrier value at ``x`` for the safe set itself (no margin); < 0 outside.
+        intervened: (...,) bool, True where ``v_safe`` differs from the nominal velocity.
+        correction: (...,) speed (m/s) added along the inward normal by the closed form (>= 0).
+        step_scale: (...,) fraction in [0, 1] of the corrected velocity kept by the discrete-time
+            step-length limit (always 1 for :func:`filter_velocity`).
+    """
+
+    v_safe: np.ndarray
+    h: np.ndarray
+    intervened: np.ndarray
+    correction: np.ndarray
+    step_scale: np.ndarray
+
+
+# Shared pieces: one implementation of the geometry and of the closed form.
+
+
+def _to_frame(vec: np.ndarray, rotation: np.ndarray | None) -> np.ndarray:
+    """World -> ellipsoid frame, R^T vec, for vec (..., 3) and R (3, 3) or (..., 3, 3)."""
+    if rotation is None:
+        return vec
+    if rotation.ndim == 2:
+        return vec @ rotation  # (..., 3): row vector times R == (R^T vec)^T
+    return np.einsum("...ji,...j->...i", rotation, vec)
+
+
+def _to_world(vec: np.ndarray, rotation: np.ndarray | None) -> np.ndarray:
+    """Ellipsoid frame -> world, R vec."""
+    if rotation is None:
+        return vec
+    if rotation.ndim == 2:
+        return vec @ rotation.T
+    return np.einsum("...ij,...j->...i", rotation, vec)
+
+
+def _check_axes(axes) -> np.ndarray:
+    axes = np.asarray(axes, dtype=np.float64)
+    if axes.shape[-1:] != (3,):
+        raise ValueError(f"`axes` must have shape (3,) or (..., 3) (semi-axes in m). Got shape {axes.shape}.")
+    if not (axes > 0.0).all() or not np.isfinite(axes).all():
+        raise ValueError(f"`axes` must be > 0 and finite (semi-axes in m). Got {axes.tolist()}.")
+    return axes
+
+
+def _check_rotation(rotation) -> np.ndarray | None:
+    if rotation is None:
+        return None
+    rotation = np.asarray(rotation, dtype=np.float64)
+    if rotation.shape[-2:] != (3, 3):
+        raise ValueError(f"`rotation` must have shape (3, 3) or (..., 3, 3). Got shape {rotation.shape}.")
+    return rotation
+
+
+def _check_positive(name: str, value: float) -> float:
+    value = float(value)
+    if not value > 0.0 or not math.isfinite(value):
+        raise ValueError(f"`{name}` must be > 0 and finite. Got {value}.")
+    return value
+
+
+def _geometry(x, center, axes, rotation):
+    """Tip in the ellipsoid frame and the barrier's pieces.
+
+    Returns:
+        g_world: (..., 3) half the outward gradient, R (E / a^2) = -(dh/dx) / 2, world (1/m).
+        r2: (...,) squared scaled radius |E / a|^2, so h = 1 - r2.
+        inv_a2: (..., 3) 1 / a^2 (1/m^2).
+        rotation: the validated rotation or None.
+    """
+    axes = _check_axes(axes)
+    rotation = _check_rotation(rotation)
+    x = np.asarray(x, dtype=np.float64)
+    if x.shape[-1:] != (3,):
+        raise ValueError(f"`x` must have shape (3,) or (..., 3) (tip position in m). Got shape {x.shape}.")
+    e = _to_frame(x - np.asarray(center, dtype=np.float64), rotation)  # (..., 3)
+    inv_a2 = 1.0 / (axes * axes)  # (..., 3)
+    g = e * inv_a2  # (..., 3) ellipsoid frame
+    r2 = (e * g).sum(-1)  # (...,)
+    return _to_world(g, rotation), r2, inv_a2, rotation
+
+
+def _unit_inward(g_world: np.ndarray, r2: np.ndarray):
+    """Unit inward normal n = -g / |g| (..., 3), zero at the centre; also |g| (...,) and the centre mask."""
+    centre = r2 <= _CENTRE_R2
+    g_norm = np.sqrt((g_world * g_world).sum(-1))  # (...,)
+    n = g_world / np.where(centre, -1.0, -g_norm)[..., None]
+    return np.where(centre[..., None], 0.0, n), g_norm, centre
+
+
+def _halfspace_closed_form(v_nominal: np.ndarray, n: np.ndarray, rhs: np.ndarray):
+    """Minimum-norm velocity with n . v >= rhs for unit n: v_n + max(rhs - n . v_n, 0) n.
+
+    Returns ``v_nominal`` itself, bit for bit, where it already satisfies the constraint.
+    """
+    correction = np.maximum(rhs - (n * v_nominal).sum(-1), 0.0)  # (...,) m/s
+    return v_nominal + correction[..., None] * n, correction
+
+
+# Public API.
+
+
+def ellipsoid_h(x, center, axes, rotation=None) -> np.ndarray:
+    """Barrier value h = 1 - sum_i E_i^2 / a_i^2 with E = R^T (x - center).
+
+    Args:
+        x: (3,) or (..., 3) needle-tip position (m), world frame.
+        center: (3,) or (..., 3) ellipsoid centre (m), world frame.
+        axes: (3,) or (..., 3) semi-axes (m), all > 0, along the ellipsoid frame's axes.
+        rotation: optional (3, 3) or (..., 3, 3) world-from-ellipsoid rotation; identity if None.
+
+    Returns:
+        (...,) float64: 1 at the centre, 0 on the surface, negative outside.
+
+    Raises:
+        ValueError: if ``axes`` are not all positive and finite, or a shape is wrong.
+    """
+    _, r2, _, _ = _geometry(x, center, axes, rotation)
+    return 1.0 - r2
+
+
+def ellipsoid_grad_h(x, center, axes, rotation=None) -> np.ndarray:
+    """Gradient dh/dx = -2 R (E / a^2), (..., 3) in 1/m, world frame; zero at the centre."""
+    g_world, _, _, _ = _geometry(x, center, axes, rotation)
+    return -2.0 * g_world
+
+
+def inward_normal(x, center, axes, rotation=None) -> np.ndarray:
+    """Unit inward normal n = (dh/dx) / |dh/dx|, (..., 3) world frame.
+
+    At the centre (scaled radius below 1e-12, where the gradient vanishes) n is defined as the zero
+    vector, which makes the CBF constraint trivially satisfied there.
+
+    Args:
+        x, center, axes, rotation: as in :func:`ellipsoid_h`.
+    """
+    g_world, r2, _, _ = _geometry(x, center, axes, rotation)
+    n, _, _ = _unit_inward(g_world, r2)
+    return n
+
+
+def filter_velocity(x, v_nominal, center, axes, alpha: float, rotation=None) -> CBFResult:
+    """The paper's continuous-time closed form: v_s = v_n + max(-n . v_n - alpha h, 0) n.
+
+    ``v_s`` is the minimum-norm change of ``v_n`` with ``n . v_s >= -alpha h(x)``. It is defined outside
+    the set too (it then pushes inward at ``alpha |h|`` m/s). It does not account for holding ``v_s``
+    over a control step; for that use :func:`filter_velocity_discrete`.
+
+    Args:
+        x: (3,) or (..., 3) needle-tip position (m), world frame.
+        v_nominal: (3,) or (..., 3) nominal tip velocity (m/s), world frame.
+        center, axes, rotation: the ellipsoid, as in :func:`ellipsoid_h`.
+        alpha: class-K gain (> 0), 1/s in the paper's units (see the module docstring).
+
+    Returns:
+        :class:`CBFResult` (``step_scale`` is all ones).
+    """
+    alpha = _check_positive("alpha", alpha)
+    g_world, r2, _, _ = _geometry(x, center, axes, rotation)
+    h = 1.0 - r2
+    n, _, _ = _unit_inward(g_world, r2)
+    v_nominal = np.asarray(v_nominal, dtype=np.float64)
+    v_safe, correction = _halfspace_closed_form(v_nominal, n, -alpha * h)
+    return CBFResult(v_safe, h, correction > 0.0, correction, np.ones_like(h))
+
+
+def margin_level(margin: float, axes) -> np.ndarray:
+    """Barrier level h_m = 1 - (1 - margin / min(axes))^2 of the set tightened by ``margin`` metres.
+
+    Every point within ``margin`` metres of {h >= h_m} lies in {h >= 0}.
+
+    Args:
+        margin: tracking-error allowance (m), 0 <= margin < min(axes).
+        axes: (3,) or (..., 3) semi-axes (m).
+
+    Returns:
+        (...,) float64 in [0, 1).
+    """
+    axes = _check_axes(axes)
+    margin = float(margin)
+    a_min = axes.min(-1)
+    if not 0.0 <= margin or not (margin < a_min).all():
+        raise ValueError(f"`margin` must be in [0, min(axes)) m. Got {margin} with axes {axes.tolist()}.")
+    rho = 1.0 - margin / a_min
+    return 1.0 - rho * rho
+
+
+def filter_velocity_discrete(
+    x, v_nominal, center, axes, alpha: float, dt: float, margin: float = 0.0, rotation=None
+) -> CBFResult:
+    """Safe velocity to hold for a whole control step: h >= 0 along the step, not only at its start.
+
+    Enforces h~(x + v_s dt) >= (1 - gamma) h~(x) with h~ = h - :func:`margin_level`, gamma =
+    min(alpha dt, 1), by the paper's closed form on the linearized condition followed by an exact
+    step-length limit (see the module docstring for the math and why it is sufficient).
+
+    Args:
+        x: (3,) or (..., 3) needle-tip position at the start of the step (m), world frame.
+        v_nominal: (3,) or (..., 3) nominal tip velocity (m/s), world frame.
+        center, axes, rotation: the ellipsoid, as in :func:`ellipsoid_h`.
+        alpha: decay rate of the tightened barrier (1/s, > 0).
+        dt: control period over which ``v_safe`` is held (s, > 0).
+        margin: tracking-error allowance (m), 0 <= margin < min(axes).
+
+    Returns:
+        :class:`CBFResult`; ``h`` is the untightened barrier at ``x``.
+    """
+    alpha = _check_positive("alpha", alpha)
+    dt = _check_positive("dt", dt)
+    gamma = min(alpha * dt, 1.0)
+    g_world, r2, inv_a2, rotation = _geometry(x, center, axes, rotation)
+    h = 1.0 - r2
+    h_tight = h - margin_level(margin, axes)  # (...,)
+    n, g_norm, centre = _unit_inward(g_world, r2)
+    v_nominal = np.asarray(v_nominal, dtype=np.float64)
+
+    # 1. Closed form on the linearized end-point condition; dh/dx = 2 |g| n.
+    rhs = np.where(centre, -np.inf, -gamma * h_tight / (2.0 * dt * np.where(centre, 1.0, g_norm)))
+    v_c, correction = _halfspace_closed_form(v_nominal, n, rhs)
+
+    # 2. Exact end point along v_c: f(s) = h_tight + s b - s^2 q.
+    step = v_c * dt  # (..., 3) m
+    b = -2.0 * (g_world * step).sum(-1)  # (...,)
+    step_e = _to_frame(step, rotation)
+    q = (step_e * step_e * inv_a2).sum(-1)  # (...,) >= 0
+    positive_q = q > 0.0
+    q_safe = np.where(positive_q, q, 1.0)
+    s_peak = np.where(positive_q, np.clip(0.5 * b / q_safe, 0.0, 1.0), (b >= 0.0) * 1.0)
+    target = np.minimum((1.0 - gamma) * h_tight, h_tight + s_peak * (b - s_peak * q))
+    c = h_tight - target
+    root = np.sqrt(np.maximum(b * b + 4.0 * q * c, 0.0))
+    # Larger root of q s^2 - b s - c = 0, in the cancellation-free form for each sign of b.
+    den = root - b
+    s_root = np.where(b >= 0.0, (b + root) / (2.0 * q_safe), 2.0 * c / np.where(den > 0.0, den, 1.0))
+    s = np.where(h_tight + b - q >= target, 1.0, np.clip(s_root, 0.0, 1.0))  # (...,)
+    v_safe = s[..., None] * v_c
+    return CBFResult(v_safe, h, (correction > 0.0) | (s < 1.0), correction, s)
+
+
+def suture_ellipsoid_frame(entry_point, exit_point, surface_normal) -> tuple[np.ndarray, np.ndarray]:
+    """Centre and orientation of the safe ellipsoid for one suture throw.
+
+    The centre is midway between the entry and exit points; the ellipsoid's axes are (entry->exit
+    projected onto the tissue surface, lateral = normal x along, surface normal).
+
+    Args:
+        entry_point: (3,) world (m).
+        exit_point: (3,) world (m).
+        surface_normal: (3,) tissue surface normal pointing out of the tissue (any length > 0).
+
+    Returns:
+        (center (3,) m, rotation (3, 3) world-from-ellipsoid with columns along, lateral, normal).
+
+    Raises:
+        ValueError: if the entry->exit line has no component along the surface (points coincide, or
+            the line is along the normal).
+    """
+    entry_point = np.asarray(entry_point, dtype=np.float64)
+    exit_point = np.asarray(exit_point, dtype=np.float64)
+    normal = np.asarray(surface_normal, dtype=np.float64)
+    normal = normal / np.linalg.norm(normal)
+    chord = exit_point - entry_point
+    along = chord - (chord @ normal) * normal
+    length = float(np.linalg.norm(along))
+    if length < 1e-9:
+        raise ValueError(
+            "`entry_point` and `exit_point` must be apart along the tissue surface. "
+            f"Got entry {entry_point.tolist()}, exit {exit_point.tolist()}."
+        )
+    along = along / length
+    lateral = np.cross(normal, along)
+    return 0.5 * (entry_point + exit_point), np.column_stack([along, lateral, normal])
+
+
+# Configuration.
+
+
+@dataclass
+class CBFConfig:
+    """Configuration of the safety filter applied to the needle tip's velocity (draccus-compatible).
+
+    Defaults: the safe ellipsoid has semi-axes 16 x 8 x 10 mm around the midpoint of an 18 mm
+    entry-exit pair. A nominal throw (10 mm needle radius, 5.6 mm deep, plane tilted 30 degrees, tip
+    protruding 5 mm past the exit point) reaches a scaled radius of about 0.81, inside the set
+    tightened by the default 1 mm margin (scale 0.875); see ``tests/test_cbf.py``.
+
+    Args:
+        enabled: Apply the filter. When False, :class:`~lerobot_suture.safety.cbf_wrapper.CBFActionWrapper`
+            only monitors (reports ``h`` and the activation state) and passes velocities through.
+        alpha: Barrier rate (1/s, > 0). With ``discrete`` the tightened barrier may decay by at most a
+            factor ``1 - alpha * control_dt`` per control step; without it this is the paper's alpha.
+        semi_axis_along: Semi-axis (m, > 0) along the entry->exit line.
+        semi_axis_lateral: Semi-axis (m, > 0) across the wound, in the tissue surface.
+        semi_axis_normal: Semi-axis (m, > 0) along the tissue surface normal.
+        margin: Tracking-error allowance (m), in [0, min semi-axis): the commanded tip stays this far
+            inside the ellipsoid (discrete mode only; activation also waits until the tip is this far in).
+        discrete: Enforce the discrete-time condition with the step-length limit
+            (:func:`filter_velocity_discrete`, keeps h >= 0 at every physics step). False applies the
+            paper's continuous-time closed form only (:func:`filter_velocity`), for comparison.
+    """
+
+    # Switch.
+    enabled: bool = False
+    # Barrier.
+    alpha: float = 5.0
+    semi_axis_along: float = 0.016
+    semi_axis_lateral: float = 0.008
+    semi_axis_normal: float = 0.010
+    # Discrete-time enforcement.
+    margin: float = 0.001
+    discrete: bool = True
+
+    def __post_init__(self):
+        if not isinstance(self.enabled, bool):
+            raise ValueError(f"`enabled` must be a bool. Got {self.enabled!r}.")
+        if not isinstance(self.discrete, bool):
+            raise ValueError(f"`discrete` must be a bool. Got {self.discrete!r}.")
+        for name in ("alpha", "semi_axis_along", "semi_axis_lateral", "semi_axis_normal", "margin"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+                raise ValueError(f"`{name}` must be a finite number. Got {value!r}.")
+        for name in ("alpha", "semi_axis_along", "semi_axis_lateral", "semi_axis_normal"):
+            value = getattr(self, name)
+            if not value > 0:
+                raise ValueError(f"`{name}` must be > 0. Got {value}.")
+        smallest = min(self.semi_axis_along, self.semi_axis_lateral, self.semi_axis_normal)
+        if not 0 <= self.margin < smallest:
+            raise ValueError(f"`margin` must be in [0, {smallest}) m (the smallest semi-axis). Got {self.margin}.")
+
+    @property
+    def semi_axes(self) -> np.ndarray:
+        """(3,) semi-axes (m): along, lateral, normal."""
+        return np.array([self.semi_axis_along, self.semi_axis_lateral, self.semi_axis_normal])
+
+    @property
+    def margin_level(self) -> float:
+        """Barrier level of the tightened set, :func:`margin_level` (unit-free)."""
+        return float(margin_level(self.margin, self.semi_axes))
+
+    def filter(self, x, v_nominal, center, rotation, dt: float) -> CBFResult:
+        """Apply the configured filter (discrete or continuous) on the configured ellipsoid.
+
+        Args:
+            x: (3,) or (..., 3) tip position (m). v_nominal: same shape, m/s.
+            center: (3,) ellipsoid centre (m). rotation: (3, 3) world-from-ellipsoid or None.
+            dt: control period (s), used in discrete mode.
+        """
+        if self.discrete:
+            return filter_velocity_discrete(
+                x, v_nominal, center, self.semi_axes, self.alpha, dt, self.margin, rotation
+            )
+        return filter_velocity(x, v_nominal, center, self.semi_axes, self.alpha, rotation)

@@ -1,0 +1,40 @@
+"""Headless rendering: pick a MuJoCo GL backend that works, and say what to do when none does."""
+
+from __future__ import annotations
+
+import os
+import sys
+
+_FIX = (
+    "Install an OpenGL backend for headless rendering (Debian/Ubuntu: `apt-get install libegl1 "
+    "libgl1-mesa-dri` for EGL, or `libosmesa6` for OSMesa) and set MUJOCO_GL=egl (or osmesa); on a "
+    "desktop with a display, MUJOCO_GL=glfw."
+)
+
+
+def select_gl_backend() -> str:
+    """Set ``MUJOCO_GL`` before MuJoCo is imported, when the user has not chosen one.
+
+    Linux without a display gets EGL (Mesa's llvmpipe renders on the CPU); elsewhere MuJoCo's own
+    default (GLFW) is kept. Returns the backend in force.
+    """
+    backend = os.environ.get("MUJOCO_GL")
+    if backend:
+        return backend
+    if sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):
+        os.environ["MUJOCO_GL"] = "egl"
+        # PyOpenGL must agree with MuJoCo on the platform.
+        os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+        return "egl"
+    return "glfw"
+
+
+def make_renderer(model, height: int, width: int):
+    """A ``mujoco.Renderer``, with an error that names the fix when no GL backend works."""
+    import mujoco
+
+    try:
+        return mujoco.Renderer(model, height=height, width=width)
+    except Exception as exc:  # noqa: BLE001 - any GL failure gets the same actionable message
+        backend = os.environ.get("MUJOCO_GL", "<unset>")
+        raise RuntimeError(f"MuJoCo could not open a rendering context (MUJOCO_GL={backend}): {exc}. {_FIX}") from exc

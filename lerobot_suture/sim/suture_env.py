@@ -1,0 +1,613 @@
+"""Needle insertion with a da Vinci-style instrument arm, in MuJoCo (Gymnasium env).
+
+## Description
+A patient-side manipulator (PSM: remote centre of motion at the port, outer yaw and pitch,
+insertion, instrument roll, wrist pitch and yaw, a jaw) holds a semicircular suture needle
+(radius 0.010 m) over a suture phantom: a tissue pad with a wound line and two marked points on
+either side of it. The needle must enter the tissue at the entry point and emerge at the exit point
+by turning about its own centre, and protrude far enough to be grasped. An endoscope looks at the
+work site. The phantom's pose changes between episodes, so a visuomotor policy must servo to it.
+
+Physics runs at ``physics_dt`` = 0.002 s; the policy acts at ``control_dt`` = 0.1 s (10 Hz), so
+one env step is 50 physics steps.
+
+## Action Space
+``Box(10,)``, float32: the target pose of the needle holder (the jaw tip frame ``jaw_tip``) at the
+end of the control step, in the world frame.
+
+=====  ================================================  ==============  ====
+index  meaning                                           range           unit
+=====  ================================================  ==============  ====
+0-2    jaw tip position x, y, z                          see ``WORKSPACE``  m
+3-5    first column of the jaw rotation matrix           [-1, 1]         --
+6-8    second column of the jaw rotation matrix          [-1, 1]         --
+9      jaw closure (1 closed on the needle, < 0.5 opens  [0, 1]          --
+       and releases it)
+=====  ================================================  ==============  ====
+
+The env turns the action into a Cartesian velocity command (reach the target in one control step,
+speed-limited), expresses it at the needle tip while the needle is held, passes the needle tip's
+linear velocity through ``tip_velocity_filter`` (the one point where a safety filter such as the CBF
+acts), maps the twist to joint velocities by damped differential inverse kinematics at the needle
+tip, and the arm's velocity actuators track those at physics rate. Values outside the action space
+are clipped; a wrong shape, NaN or inf raise ``ValueError``.
+
+## Observation Space
+``obs_type="pixels_agent_pos"`` (default, the paper's): ``{"pixels": {"endoscope": (H, W, 3) uint8},
+"agent_pos": (10,) float32}`` where ``agent_pos`` is the measured jaw pose in the action's layout.
+``obs_type="state"``: ``{"agent_pos", "environment_state"}`` with no image, for fast
+low-dimensional experiments; ``obs_type="pixels_agent_pos_state"``: all three.
+``environment_state`` (18,) float32 is privileged: entry point (3), exit point (3), needle centre
+(3), needle rotation first two columns (6), needle tip (3).
+
+## Rewards
+1.0 on the step the insertion succeeds, else 0.0 (``info["reward_success"]``).
+
+## Starting State
+The phantom's position is uniform within ``PHANTOM_RANGE_XY`` of the nominal one and its yaw within
+``PHANTOM_YAW_RANGE``; the grasp angle on the needle within ``GRASP_ANGLE_RANGE`` of the nominal, its
+offset along the jaw and its roll slightly; the arm starts near its home pose above the site. All
+randomness comes from ``self.np_random`` (seeded by ``reset(seed=...)``).
+
+## Episode End
+Terminated on success: the tip entered within ``ENTRY_TOLERANCE`` of the entry point, emerged within
+``EXIT_TOLERANCE`` of the exit point, protrudes at least ``MIN_PROTRUSION`` beyond it and the needle
+still spans the wound. Truncated by the registered ``max_episode_steps`` (100 = 10 s).
+
+## Arguments
+=======================  ======================  ===============================================
+argument                 default                 meaning
+=======================  ======================  ===============================================
+``obs_type``             ``"pixels_agent_pos"``  observation layout (see above)
+``image_size``           ``96``                  endoscope image side (px): small for CPU training
+``render_mode``          ``"rgb_array"``         only ``rgb_array``
+``render_size``          ``256``                 side (px) of ``render()`` frames (videos)
+``scenario``             ``"nominal"``           perturbation scenario (``scenarios.SCENARIOS``)
+``scenario_onset_step``  ``None``                onset step (None: the scenario's default)
+``scenario_magnitude``   ``None``                magnitude (None: the scenario's default)
+``record_tip_trace``     ``False``               step physics one at a time and return the needle
+                                                 tip after every physics step in
+                                                 ``info["needle_tip_trace"]`` (slower)
+=======================  ======================  ===============================================
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from pathlib import Path
+
+import gymnasium as gym
+import mujoco
+import numpy as np
+from gymnasium import spaces
+
+from lerobot_suture.sim import controller, tissue
+from lerobot_suture.sim.geometry import (
+    NEEDLE_RADIUS,
+    InsertionFrame,
+    grasp_transform,
+    insertion_frame,
+    matrix_from_rot6,
+    needle_arc_points,
+    pose_vector,
+    quat_from_matrix,
+    rot6_from_matrix,
+    rotation_about_z,
+)
+from lerobot_suture.sim.rendering import make_renderer
+from lerobot_suture.sim.scenarios import Scenario, ScenarioConfig
+
+SCENE_XML = Path(__file__).parent / "assets" / "scene.xml"
+
+OBS_TYPES = ("pixels_agent_pos", "state", "pixels_agent_pos_state")
+CONTROL_DT = 0.1
+"""Control period (s): 10 Hz, the dataset's fps."""
+
+# Workspace of the jaw tip (m, world): the action-space bounds of the position.
+WORKSPACE_LOW = np.array([-0.05, -0.06, 0.0])
+WORKSPACE_HIGH = np.array([0.05, 0.04, 0.08])
+
+# Phantom placement (m, rad): nominal pose of the top-surface centre, and the training range.
+PHANTOM_NOMINAL = np.array([0.0, 0.0, 0.01])
+PHANTOM_RANGE_XY = 0.010
+PHANTOM_YAW_RANGE = 0.25
+
+# Grasp (rad, m): the jaw holds the needle near its tail; the expert reads the true grasp.
+GRASP_ANGLE = math.radians(165.0)
+GRASP_ANGLE_RANGE = math.radians(4.0)
+GRASP_OFFSET_RANGE = 0.0005
+GRASP_ROLL_RANGE = 0.05
+NEEDLE_TILT = math.radians(30.0)
+"""Tilt of the needle's plane from the tissue normal during a throw, towards the arm's port."""
+
+# Endoscope viewpoint of the training data: spherical about the work site (rad, m).
+ENDOSCOPE_TARGET = np.array([0.0, 0.0, 0.012])
+ENDOSCOPE_AZIMUTH = math.radians(90.0)
+ENDOSCOPE_ELEVATION = math.radians(52.0)
+ENDOSCOPE_DISTANCE = 0.13
+
+# Controller: reach the target pose in one control step, within these speeds.
+TIME_TO_TARGET = CONTROL_DT
+MAX_LINEAR_SPEED = 0.05  # m/s
+MAX_ANGULAR_SPEED = 2.0  # rad/s
+IK_DAMPING = 0.01
+IK_LINEAR_WEIGHT = 10.0  # 0.1 m of tip motion weighs as much as 1 rad of turn
+
+# Tissue: viscous resistance to off-arc motion of the needle (N per m/s, N m per rad/s).
+TISSUE_DAMPING = 2.0
+TISSUE_ROTATIONAL_DAMPING = 0.0001
+
+# Success (m): in the manner of the Surgical Robotics Challenge's needle-insertion scoring.
+ENTRY_TOLERANCE = 0.002
+EXIT_TOLERANCE = 0.002
+MIN_PROTRUSION = 0.003
+
+_ARM_JOINTS = ("outer_yaw", "outer_pitch", "insertion", "instrument_roll", "wrist_pitch", "wrist_yaw")
+_JAW_OPEN_ANGLE = 0.6  # rad, the jaw joint's range
+_N_ARC_POINTS = 13
+
+
+class SutureEnv(gym.Env):
+    metadata = {"render_modes": ["rgb_array"], "render_fps": int(round(1.0 / CONTROL_DT))}
+
+    def __init__(
+        self,
+        obs_type: str = "pixels_agent_pos",
+        image_size: int = 96,
+        render_mode: str | None = "rgb_array",
+        render_size: int = 256,
+        scenario: str = "nominal",
+        scenario_onset_step: int | None = None,
+        scenario_magnitude: float | None = None,
+        record_tip_trace: bool = False,
+    ):
+        if obs_type not in OBS_TYPES:
+            raise ValueError(f"`obs_type` must be one of {OBS_TYPES}. Got {obs_type!r}.")
+        if not 16 <= int(image_size) <= 640:
+            raise ValueError(f"`image_size` must be in [16, 640] px. Got {image_size}.")
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"`render_mode` must be 'rgb_array' or None. Got {render_mode!r}.")
+        if not 16 <= int(render_size) <= 640:
+            raise ValueError(f"`render_size` must be in [16, 640] px. Got {render_size}.")
+        self.obs_type = obs_type
+        self.image_size = int(image_size)
+        self.render_mode = render_mode
+        self.render_size = int(render_size)
+        self.record_tip_trace = bool(record_tip_trace)
+        self.scenario = Scenario(
+            ScenarioConfig(name=scenario, onset_step=scenario_onset_step, magnitude=scenario_magnitude)
+        )
+
+        self.model = mujoco.MjModel.from_xml_path(str(SCENE_XML))
+        self.data = mujoco.MjData(self.model)
+        self.physics_dt = float(self.model.opt.timestep)
+        self.control_dt = CONTROL_DT
+        self.n_substeps = int(round(self.control_dt / self.physics_dt))
+
+        m = self.model
+        self._arm_dofs = np.array([m.joint(n).dofadr[0] for n in _ARM_JOINTS])
+        self._arm_qpos = np.array([m.joint(n).qposadr[0] for n in _ARM_JOINTS])
+        self._arm_ctrl_limit = np.array([m.actuator(n).ctrlrange[1] for n in _ARM_JOINTS])
+        self._arm_ctrl = np.array([m.actuator(n).id for n in _ARM_JOINTS])
+        self._jaw_ctrl = m.actuator("jaw").id
+        self._jaw_qpos = m.joint("jaw").qposadr[0]
+        self._jaw_body = m.body("jaw").id
+        self._jaw_site = m.site("jaw_tip").id
+        self._needle_body = m.body("needle").id
+        self._needle_qpos = m.joint("needle").qposadr[0]
+        self._needle_dof = m.joint("needle").dofadr[0]
+        self._phantom_mocap = m.body("phantom").mocapid[0]
+        self._camera = m.camera("endoscope").id
+        self._entry_local = m.site("entry_point").pos.copy()
+        self._exit_local = m.site("exit_point").pos.copy()
+        self._arc_local = needle_arc_points(_N_ARC_POINTS)
+        self._tip_local = self._arc_local[0]
+
+        self.action_space = spaces.Box(
+            low=np.concatenate([WORKSPACE_LOW, -np.ones(6), [0.0]]).astype(np.float32),
+            high=np.concatenate([WORKSPACE_HIGH, np.ones(6), [1.0]]).astype(np.float32),
+            dtype=np.float32,
+        )
+        obs_spaces: dict[str, spaces.Space] = {}
+        if "pixels" in obs_type:
+            obs_spaces["pixels"] = spaces.Dict(
+                {
+                    "endoscope": spaces.Box(
+                        0, 255, (self.image_size, self.image_size, 3), dtype=np.uint8
+                    )
+                }
+            )
+        obs_spaces["agent_pos"] = spaces.Box(-np.inf, np.inf, (10,), dtype=np.float32)
+        if obs_type in ("state", "pixels_agent_pos_state"):
+            obs_spaces["environment_state"] = spaces.Box(-np.inf, np.inf, (18,), dtype=np.float32)
+        self.observation_space = spaces.Dict(obs_spaces)
+
+        self.tip_velocity_filter: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
+        """None or f(needle_tip_pos (3,) m, v_nominal (3,) m/s) -> v_safe (3,) m/s; called once per
+        control step while the needle is held, before inverse kinematics."""
+
+        self._renderer = None
+        self._video_renderer = None
+        self._home_qpos = self._solve_home_pose()
+        self._reset_state()
+
+    # ------------------------------------------------------------------ privileged state
+    @property
+    def step_index(self) -> int:
+        """Control steps taken since reset."""
+        return self._step_index
+
+    @property
+    def phantom_position(self) -> np.ndarray:
+        """(3,) centre of the tissue pad's top surface, world (m)."""
+        return self._phantom_pos
+
+    @property
+    def phantom_yaw(self) -> float:
+        return self._phantom_yaw
+
+    @property
+    def phantom_rotation(self) -> np.ndarray:
+        """(3, 3) world-from-phantom rotation; phantom z is the tissue normal, x runs entry->exit."""
+        return self._phantom_rot
+
+    @property
+    def entry_point(self) -> np.ndarray:
+        return self._phantom_pos + self._phantom_rot @ self._entry_local
+
+    @property
+    def exit_point(self) -> np.ndarray:
+        return self._phantom_pos + self._phantom_rot @ self._exit_local
+
+    @property
+    def needle_grasped(self) -> bool:
+        return self._grasped
+
+    @property
+    def needle_in_tissue(self) -> bool:
+        return self._in_tissue
+
+    @property
+    def needle_touched_tissue(self) -> bool:
+        return self._first_in_tissue_step is not None
+
+    @property
+    def first_in_tissue_step(self) -> int | None:
+        return self._first_in_tissue_step
+
+    @property
+    def grasp_in_jaw(self) -> tuple[np.ndarray, np.ndarray]:
+        """The needle's pose in the jaw-tip frame: (position (3,) m, rotation (3, 3))."""
+        return self._grasp_pos, self._grasp_rot
+
+    @property
+    def needle_tip_pos(self) -> np.ndarray:
+        return self.needle_pose()[0] + self.needle_pose()[1] @ self._tip_local
+
+    def jaw_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """Measured jaw-tip pose, world: (position (3,) m, rotation (3, 3))."""
+        d = self.data
+        return d.site_xpos[self._jaw_site].copy(), d.site_xmat[self._jaw_site].reshape(3, 3).copy()
+
+    def needle_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """Needle centre and orientation, world: (position (3,) m, rotation (3, 3))."""
+        if self._grasped:
+            p, r = self.jaw_pose()
+            return p + r @ self._grasp_pos, r @ self._grasp_rot
+        d = self.data
+        return d.xpos[self._needle_body].copy(), d.xmat[self._needle_body].reshape(3, 3).copy()
+
+    def insertion_frame(self) -> InsertionFrame:
+        """Where the needle must be to pass from the current entry point to the exit point."""
+        return insertion_frame(self.entry_point, self.exit_point, self._phantom_rot[:, 2], NEEDLE_TILT)
+
+    # ------------------------------------------------------------------ scenario hooks
+    def release_needle(self) -> None:
+        """The jaw loses the needle: it keeps its current velocity and falls under gravity."""
+        if not self._grasped:
+            return
+        centre, rot = self.needle_pose()
+        self._set_needle_free_pose(centre, rot)
+        # Carry the jaw's velocity into the needle's free joint.
+        vel = np.zeros(6)
+        mujoco.mj_objectVelocity(self.model, self.data, mujoco.mjtObj.mjOBJ_BODY, self._jaw_body, vel, 0)
+        self.data.qvel[self._needle_dof : self._needle_dof + 3] = vel[3:] + np.cross(
+            vel[:3], centre - self.data.xpos[self._jaw_body]
+        )
+        self.data.qvel[self._needle_dof + 3 : self._needle_dof + 6] = rot.T @ vel[:3]
+        self.model.body_gravcomp[self._needle_body] = 0.0
+        self._grasped = False
+
+    def set_phantom_pose(self, position: np.ndarray, yaw: float) -> None:
+        """Move the phantom (mocap) to ``position`` (3,) m with ``yaw`` rad about the world z axis."""
+        self._phantom_pos = np.asarray(position, dtype=np.float64).copy()
+        self._phantom_yaw = float(yaw)
+        self._phantom_rot = rotation_about_z(self._phantom_yaw)
+        self.data.mocap_pos[self._phantom_mocap] = self._phantom_pos
+        self.data.mocap_quat[self._phantom_mocap] = quat_from_matrix(self._phantom_rot)
+
+    def clip_to_phantom_range(self, xy: np.ndarray) -> np.ndarray:
+        """Clip a phantom (x, y) position (m) into the training range."""
+        return np.clip(xy, PHANTOM_NOMINAL[:2] - PHANTOM_RANGE_XY, PHANTOM_NOMINAL[:2] + PHANTOM_RANGE_XY)
+
+    def set_endoscope_viewpoint(self, azimuth_offset: float = 0.0, elevation_offset: float = 0.0) -> None:
+        """Place the endoscope on its sphere about the work site, offset from the training view (rad)."""
+        az = ENDOSCOPE_AZIMUTH + azimuth_offset
+        el = ENDOSCOPE_ELEVATION + elevation_offset
+        pos = ENDOSCOPE_TARGET + ENDOSCOPE_DISTANCE * np.array(
+            [math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)]
+        )
+        forward = ENDOSCOPE_TARGET - pos
+        forward /= np.linalg.norm(forward)
+        right = np.cross(forward, [0.0, 0.0, 1.0])
+        right /= np.linalg.norm(right)
+        up = np.cross(right, forward)
+        self.model.cam_pos[self._camera] = pos
+        self.model.cam_quat[self._camera] = quat_from_matrix(np.column_stack([right, up, -forward]))
+
+    # ------------------------------------------------------------------ gym API
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        rng = self.np_random
+        self._reset_state()
+        mujoco.mj_resetData(self.model, self.data)
+        self.model.body_gravcomp[self._needle_body] = 1.0
+        self.set_endoscope_viewpoint()
+
+        xy = PHANTOM_NOMINAL[:2] + rng.uniform(-PHANTOM_RANGE_XY, PHANTOM_RANGE_XY, size=2)
+        self.set_phantom_pose(np.array([xy[0], xy[1], PHANTOM_NOMINAL[2]]), rng.uniform(-1, 1) * PHANTOM_YAW_RANGE)
+        self._grasp_pos, self._grasp_rot = grasp_transform(
+            GRASP_ANGLE + rng.uniform(-1, 1) * GRASP_ANGLE_RANGE,
+            rng.uniform(-1, 1) * GRASP_OFFSET_RANGE,
+            rng.uniform(-1, 1) * GRASP_ROLL_RANGE,
+        )
+        qpos = self._home_qpos + rng.uniform(-1, 1, size=len(_ARM_JOINTS)) * np.array(
+            [0.03, 0.03, 0.002, 0.05, 0.03, 0.03]
+        )
+        self.data.qpos[self._arm_qpos] = qpos
+        self.data.qpos[self._jaw_qpos] = 0.0
+        mujoco.mj_forward(self.model, self.data)
+        self._snap_needle_to_jaw()
+        self.scenario.reset(self)
+        self._update_tissue_state(first=True)
+        return self._observation(), self._info(success=False, v_nominal=np.zeros(3), v_command=np.zeros(3))
+
+    def step(self, action):
+        target = self._validated_action(action)
+        self.scenario.before_step(self)
+        d, m = self.data, self.model
+
+        jaw_closure = float(target[9])
+        if jaw_closure < 0.5 and self._grasped:
+            self.release_needle()
+        d.ctrl[self._jaw_ctrl] = (1.0 - jaw_closure) * _JAW_OPEN_ANGLE
+
+        jaw_pos, jaw_rot = self.jaw_pose()
+        linear, angular = controller.pose_velocity_command(
+            jaw_pos,
+            jaw_rot,
+            target[:3],
+            matrix_from_rot6(target[3:9]),
+            TIME_TO_TARGET,
+            MAX_LINEAR_SPEED,
+            MAX_ANGULAR_SPEED,
+        )
+        if self._grasped:
+            point = jaw_pos + jaw_rot @ (self._grasp_pos + self._grasp_rot @ self._tip_local)
+            v_nominal = controller.point_velocity(linear, angular, jaw_pos, point)
+            v_command = v_nominal
+            if self.tip_velocity_filter is not None:
+                v_command = np.asarray(self.tip_velocity_filter(point.copy(), v_nominal.copy()), dtype=np.float64)
+                if v_command.shape != (3,) or not np.all(np.isfinite(v_command)):
+                    raise ValueError(
+                        f"`tip_velocity_filter` must return a finite (3,) velocity. Got {v_command!r}."
+                    )
+        else:
+            point, v_nominal = jaw_pos, linear
+            v_command = linear
+
+        jacp = np.zeros((3, m.nv))
+        jacr = np.zeros((3, m.nv))
+        mujoco.mj_jac(m, d, jacp, jacr, point, self._jaw_body)
+        jacobian = np.vstack([IK_LINEAR_WEIGHT * jacp[:, self._arm_dofs], jacr[:, self._arm_dofs]])
+        twist = np.concatenate([IK_LINEAR_WEIGHT * v_command, angular])
+        qdot = controller.damped_least_squares(jacobian, twist, IK_DAMPING)
+        # Scale uniformly so the direction of motion survives the actuator limits.
+        scale = float(np.max(np.abs(qdot) / self._arm_ctrl_limit))
+        if scale > 1.0:
+            qdot /= scale
+        d.ctrl[self._arm_ctrl] = qdot
+
+        d.qfrc_applied[:] = 0.0
+        if self._grasped and self._in_tissue:
+            d.qfrc_applied[self._arm_dofs] = self._tissue_resistance(jaw_pos, jaw_rot, linear, angular, jacp, jacr)
+
+        trace = None
+        if self.record_tip_trace:
+            trace = np.empty((self.n_substeps, 3))
+            for k in range(self.n_substeps):
+                mujoco.mj_step(m, d)
+                trace[k] = self.needle_tip_pos
+        else:
+            mujoco.mj_step(m, d, nstep=self.n_substeps)
+        if self._grasped:
+            self._snap_needle_to_jaw()
+
+        self._step_index += 1
+        self._update_tissue_state()
+        success = self._is_success()
+        reward = 1.0 if success else 0.0
+        info = self._info(success=success, v_nominal=v_nominal, v_command=v_command)
+        if trace is not None:
+            info["needle_tip_trace"] = trace
+        return self._observation(), reward, success, False, info
+
+    def render(self):
+        if self.render_mode != "rgb_array":
+            return None
+        if self._video_renderer is None:
+            self._video_renderer = make_renderer(self.model, self.render_size, self.render_size)
+        mujoco.mj_kinematics(self.model, self.data)
+        self._video_renderer.update_scene(self.data, camera=self._camera)
+        return self._video_renderer.render()
+
+    def close(self):
+        for r in (self._renderer, self._video_renderer):
+            if r is not None:
+                r.close()
+        self._renderer = self._video_renderer = None
+
+    # ------------------------------------------------------------------ internals
+    def _reset_state(self) -> None:
+        self._step_index = 0
+        self._grasped = True
+        self._in_tissue = False
+        self._tip_inside = False
+        self._first_in_tissue_step: int | None = None
+        self._entry_location: np.ndarray | None = None
+        self._exit_location: np.ndarray | None = None
+        self._entry_error = math.nan
+        self._exit_error = math.nan
+        self._strain = 0.0
+        self._prev_tip_local: np.ndarray | None = None
+        self._prev_needle_local: tuple[np.ndarray, np.ndarray] | None = None
+        self._phantom_pos = PHANTOM_NOMINAL.copy()
+        self._phantom_yaw = 0.0
+        self._phantom_rot = np.eye(3)
+        self._grasp_pos, self._grasp_rot = grasp_transform(GRASP_ANGLE, 0.0, 0.0)
+
+    def _validated_action(self, action) -> np.ndarray:
+        a = np.asarray(action, dtype=np.float64)
+        if a.shape != (10,):
+            raise ValueError(
+                f"action must have shape (10,) (jaw position 3, rotation columns 6, jaw 1). Got shape {a.shape}."
+            )
+        if not np.all(np.isfinite(a)):
+            bad = np.flatnonzero(~np.isfinite(a)).tolist()
+            raise ValueError(f"action contains NaN or inf at indices {bad}: {a.tolist()}.")
+        return np.clip(a, self.action_space.low, self.action_space.high)
+
+    def _solve_home_pose(self) -> np.ndarray:
+        """Arm joints that hold the nominal needle 25 mm above the nominal throw (kinematic IK)."""
+        self._reset_state()
+        frame = self.insertion_frame()
+        centre = frame.centre + np.array([0.0, 0.0, 0.025])
+        target_rot = frame.start_rotation @ self._grasp_rot.T
+        target_pos = centre - target_rot @ self._grasp_pos
+        d, m = self.data, self.model
+        mujoco.mj_resetData(m, d)
+        jacp, jacr = np.zeros((3, m.nv)), np.zeros((3, m.nv))
+        lo, hi = m.jnt_range[[m.joint(n).id for n in _ARM_JOINTS]].T
+        for _ in range(200):
+            mujoco.mj_kinematics(m, d)
+            mujoco.mj_comPos(m, d)  # the Jacobian needs the dof frames
+            p, r = self.jaw_pose()
+            lin, ang = controller.pose_velocity_command(p, r, target_pos, target_rot, 1.0, 1.0, 1.0)
+            mujoco.mj_jac(m, d, jacp, jacr, p, self._jaw_body)
+            jac = np.vstack([IK_LINEAR_WEIGHT * jacp[:, self._arm_dofs], jacr[:, self._arm_dofs]])
+            qdot = controller.damped_least_squares(jac, np.concatenate([IK_LINEAR_WEIGHT * lin, ang]), IK_DAMPING)
+            d.qpos[self._arm_qpos] = np.clip(d.qpos[self._arm_qpos] + 0.5 * qdot, lo, hi)
+        return d.qpos[self._arm_qpos].copy()
+
+    def _set_needle_free_pose(self, centre: np.ndarray, rotation: np.ndarray) -> None:
+        q = self._needle_qpos
+        self.data.qpos[q : q + 3] = centre
+        self.data.qpos[q + 3 : q + 7] = quat_from_matrix(rotation)
+
+    def _snap_needle_to_jaw(self) -> None:
+        """Kinematic grasp: the held needle moves rigidly with the jaw."""
+        centre, rot = self.needle_pose()
+        self._set_needle_free_pose(centre, rot)
+        self.data.qvel[self._needle_dof : self._needle_dof + 6] = 0.0
+
+    def _tissue_resistance(self, jaw_pos, jaw_rot, linear, angular, jacp, jacr) -> np.ndarray:
+        """Generalized arm forces resisting the commanded off-arc motion of the needle in tissue."""
+        centre = jaw_pos + jaw_rot @ self._grasp_pos
+        axis = jaw_rot @ self._grasp_rot[:, 2]
+        v_centre = controller.point_velocity(linear, angular, jaw_pos, centre)
+        w_off = angular - (angular @ axis) * axis
+        force = -TISSUE_DAMPING * v_centre
+        torque = -TISSUE_ROTATIONAL_DAMPING * w_off
+        # The force acts at the needle centre: shift the linear Jacobian from the control point.
+        jac_centre = jacp[:, self._arm_dofs] + np.cross(
+            jacr[:, self._arm_dofs].T, (centre - self.needle_tip_pos)
+        ).T
+        return jac_centre.T @ force + jacr[:, self._arm_dofs].T @ torque
+
+    def _update_tissue_state(self, first: bool = False) -> None:
+        centre, rot = self.needle_pose()
+        inv = self._phantom_rot.T
+        centre_local = inv @ (centre - self._phantom_pos)
+        rot_local = inv @ rot
+        arc = centre_local + self._arc_local @ rot_local.T  # (n, 3) phantom frame
+        inside = tissue.inside_pad(arc)
+        tip_local = arc[0]
+        was_in_tissue = self._in_tissue
+        self._in_tissue = bool(inside.any())
+        if self._in_tissue and self._first_in_tissue_step is None:
+            self._first_in_tissue_step = self._step_index
+        tip_inside = bool(inside[0])
+        if not first and self._prev_tip_local is not None:
+            if tip_inside and not self._tip_inside and self._entry_location is None:
+                self._entry_location = tissue.surface_crossing(self._prev_tip_local, tip_local)
+                self._entry_error = float(np.linalg.norm(self._entry_location[:2] - self._entry_local[:2]))
+            elif not tip_inside and self._tip_inside and self._entry_location is not None:
+                if self._exit_location is None:
+                    self._exit_location = tissue.surface_crossing(self._prev_tip_local, tip_local)
+                    self._exit_error = float(np.linalg.norm(self._exit_location[:2] - self._exit_local[:2]))
+            if (self._in_tissue or was_in_tissue) and self._prev_needle_local is not None:
+                translation, rotation = tissue.off_arc_motion(
+                    *self._prev_needle_local, centre_local, rot_local, NEEDLE_RADIUS
+                )
+                self._strain += translation + rotation
+        self._tip_inside = tip_inside
+        self._prev_tip_local = tip_local
+        self._prev_needle_local = (centre_local, rot_local)
+        self._tip_world = self._phantom_pos + self._phantom_rot @ tip_local
+
+    def _protrusion(self) -> float:
+        if self._exit_location is None or self._tip_inside:
+            return 0.0
+        return float(np.linalg.norm(self._prev_tip_local - self._exit_location))
+
+    def _is_success(self) -> bool:
+        return bool(
+            self._entry_error <= ENTRY_TOLERANCE
+            and self._exit_error <= EXIT_TOLERANCE
+            and self._protrusion() >= MIN_PROTRUSION
+            and self._in_tissue
+        )
+
+    def _observation(self) -> dict:
+        jaw_pos, jaw_rot = self.jaw_pose()
+        closure = 1.0 - self.data.qpos[self._jaw_qpos] / _JAW_OPEN_ANGLE
+        obs: dict = {"agent_pos": pose_vector(jaw_pos, jaw_rot, closure).astype(np.float32)}
+        if "pixels" in self.obs_type:
+            if self._renderer is None:
+                self._renderer = make_renderer(self.model, self.image_size, self.image_size)
+            mujoco.mj_kinematics(self.model, self.data)
+            self._renderer.update_scene(self.data, camera=self._camera)
+            obs["pixels"] = {"endoscope": self._renderer.render().copy()}
+        if self.obs_type in ("state", "pixels_agent_pos_state"):
+            centre, rot = self.needle_pose()
+            obs["environment_state"] = np.concatenate(
+                [self.entry_point, self.exit_point, centre, rot6_from_matrix(rot), self._tip_world]
+            ).astype(np.float32)
+        return obs
+
+    def _info(self, success: bool, v_nominal: np.ndarray, v_command: np.ndarray) -> dict:
+        return {
+            "is_success": success,
+            "reward_success": 1.0 if success else 0.0,
+            "entry_error_m": self._entry_error,
+            "exit_error_m": self._exit_error,
+            "protrusion_m": self._protrusion(),
+            "tissue_strain": self._strain,
+            "needle_tip_pos": self._tip_world.copy(),
+            "needle_in_tissue": self._in_tissue,
+            "needle_grasped": self._grasped,
+            "perturbed": self.scenario.perturbed,
+            "tip_velocity_nominal": np.asarray(v_nominal, dtype=np.float64).copy(),
+            "tip_velocity_command": np.asarray(v_command, dtype=np.float64).copy(),
+        }

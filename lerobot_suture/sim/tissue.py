@@ -1,0 +1,67 @@
+"""The tissue model: where the needle is in the phantom, and how far it strays off its own arc.
+
+Pure numpy. The phantom frame has its origin at the centre of the tissue pad's top surface, z the
+surface normal, x the entry->exit direction. A needle moving only along its own arc (rotating about
+its centre and axis) slides through the holes it made; any other motion of the needle while in
+tissue (its centre moving, or turning about any other axis) cuts and stretches tissue. We measure
+that off-arc motion (metres of tissue displacement) and the env applies a viscous resistance to it.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+PAD_HALF_SIZE = np.array([0.03, 0.02, 0.005])
+"""Half extents of the tissue pad (m), as ``tissue_pad`` in ``assets/scene.xml``; top at z = 0."""
+
+
+def inside_pad(points_phantom: np.ndarray) -> np.ndarray:
+    """Which points (phantom frame, (..., 3), m) lie inside the tissue pad; bool (...)."""
+    p = points_phantom
+    return (
+        (np.abs(p[..., 0]) <= PAD_HALF_SIZE[0])
+        & (np.abs(p[..., 1]) <= PAD_HALF_SIZE[1])
+        & (p[..., 2] <= 0.0)
+        & (p[..., 2] >= -2.0 * PAD_HALF_SIZE[2])
+    )
+
+
+def surface_crossing(previous: np.ndarray, current: np.ndarray) -> np.ndarray:
+    """Point where the segment previous -> current (phantom frame, m) crosses the top surface z = 0."""
+    dz = current[2] - previous[2]
+    if abs(dz) < 1e-12:
+        return current.copy()
+    t = min(1.0, max(0.0, -previous[2] / dz))
+    return previous + t * (current - previous)
+
+
+def off_arc_motion(
+    centre_before: np.ndarray,
+    rotation_before: np.ndarray,
+    centre_after: np.ndarray,
+    rotation_after: np.ndarray,
+    radius: float,
+) -> tuple[float, float]:
+    """Off-arc motion of the needle between two poses, both relative to the phantom.
+
+    Args:
+        centre_before, centre_after: (3,) needle centre in the phantom frame (m).
+        rotation_before, rotation_after: (3, 3) needle orientation in the phantom frame.
+        radius: needle radius (m), converting off-axis rotation into tissue displacement.
+
+    Returns:
+        (translation (m), rotation (m)): the centre's displacement, and ``radius`` times the part
+        of the relative rotation angle about axes other than the needle's own axis.
+    """
+    translation = float(np.linalg.norm(centre_after - centre_before))
+    delta = rotation_before.T @ rotation_after  # in the needle's own frame
+    cos = min(1.0, max(-1.0, (np.trace(delta) - 1.0) * 0.5))
+    angle = math.acos(cos)
+    if angle < 1e-9:
+        return translation, 0.0
+    axis = np.array([delta[2, 1] - delta[1, 2], delta[0, 2] - delta[2, 0], delta[1, 0] - delta[0, 1]])
+    norm = np.linalg.norm(axis)
+    off_axis_fraction = math.hypot(axis[0], axis[1]) / norm if norm > 1e-12 else 1.0
+    return translation, radius * angle * off_axis_fraction
