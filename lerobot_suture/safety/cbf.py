@@ -78,17 +78,19 @@ end-point condition needs nothing from the env but the control period.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
+_ORIGIN = np.zeros(3)
 _CENTRE_R2 = 1e-24
 """Squared scaled radius |E / a|^2 below which a point counts as the centre (h == 1.0 in float64)."""
 
 
 class CBFResult(NamedTuple):
-    """What a filter call did, per state.
+    """What a filter call did, per state (Python scalars for a single (3,) state).
 
     Attributes:
         v_safe: (..., 3) safe velocity (m/s), world frame.
@@ -100,49 +102,131 @@ class CBFResult(NamedTuple):
     """
 
     v_safe: np.ndarray
-    h: np.ndarray
-    intervened: np.ndarray
-    correction: np.ndarray
-    step_scale: np.ndarray
+    h: Any
+    intervened: Any
+    correction: Any
+    step_scale: Any
 
 
-# Shared pieces: one implementation of the geometry and of the closed form.
+# One implementation of the math, written on vector components (each a float or a numpy array) and
+# a table of the four non-arithmetic operations it needs. A single (3,) state runs it on Python
+# floats (a few microseconds); batches run it on numpy arrays. The two give identical bits: both are
+# the same sequence of IEEE double operations.
 
 
-def _to_frame(vec: np.ndarray, rotation: np.ndarray | None) -> np.ndarray:
-    """World -> ellipsoid frame, R^T vec, for vec (..., 3) and R (3, 3) or (..., 3, 3)."""
-    if rotation is None:
-        return vec
-    if rotation.ndim == 2:
-        return vec @ rotation  # (..., 3): row vector times R == (R^T vec)^T
-    return np.einsum("...ji,...j->...i", rotation, vec)
+class _Ops(NamedTuple):
+    sqrt: Callable
+    where: Callable
+    maximum: Callable
+    minimum: Callable
 
 
-def _to_world(vec: np.ndarray, rotation: np.ndarray | None) -> np.ndarray:
-    """Ellipsoid frame -> world, R vec."""
-    if rotation is None:
-        return vec
-    if rotation.ndim == 2:
-        return vec @ rotation.T
-    return np.einsum("...ij,...j->...i", rotation, vec)
+_FLOAT_OPS = _Ops(math.sqrt, lambda cond, a, b: a if cond else b, max, min)
+_ARRAY_OPS = _Ops(np.sqrt, np.where, np.maximum, np.minimum)
 
 
-def _check_axes(axes) -> np.ndarray:
-    axes = np.asarray(axes, dtype=np.float64)
-    if axes.shape[-1:] != (3,):
-        raise ValueError(f"`axes` must have shape (3,) or (..., 3) (semi-axes in m). Got shape {axes.shape}.")
-    if not (axes > 0.0).all() or not np.isfinite(axes).all():
-        raise ValueError(f"`axes` must be > 0 and finite (semi-axes in m). Got {axes.tolist()}.")
-    return axes
+def _dot(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
-def _check_rotation(rotation) -> np.ndarray | None:
-    if rotation is None:
-        return None
-    rotation = np.asarray(rotation, dtype=np.float64)
-    if rotation.shape[-2:] != (3, 3):
-        raise ValueError(f"`rotation` must have shape (3, 3) or (..., 3, 3). Got shape {rotation.shape}.")
-    return rotation
+def _to_frame(r, v):
+    """World -> ellipsoid frame, R^T v (r: rows of R, or None for identity)."""
+    if r is None:
+        return v
+    return (
+        r[0][0] * v[0] + r[1][0] * v[1] + r[2][0] * v[2],
+        r[0][1] * v[0] + r[1][1] * v[1] + r[2][1] * v[2],
+        r[0][2] * v[0] + r[1][2] * v[1] + r[2][2] * v[2],
+    )
+
+
+def _to_world(r, v):
+    """Ellipsoid frame -> world, R v."""
+    if r is None:
+        return v
+    return (_dot(r[0], v), _dot(r[1], v), _dot(r[2], v))
+
+
+def _barrier_terms(x, c, a, r):
+    """g = R (E / a^2) = -(dh/dx) / 2 in the world frame (1/m), r2 = |E / a|^2 (h = 1 - r2), 1 / a^2."""
+    e = _to_frame(r, (x[0] - c[0], x[1] - c[1], x[2] - c[2]))  # tip in the ellipsoid frame (m)
+    inv_a2 = (1.0 / (a[0] * a[0]), 1.0 / (a[1] * a[1]), 1.0 / (a[2] * a[2]))
+    g = (e[0] * inv_a2[0], e[1] * inv_a2[1], e[2] * inv_a2[2])
+    return _to_world(r, g), _dot(e, g), inv_a2
+
+
+def _inward_normal(ops, g, r2):
+    """Unit inward normal -g / |g| (zero at the centre), |g|, and the centre mask."""
+    centre = r2 <= _CENTRE_R2
+    g_norm = ops.sqrt(_dot(g, g))
+    scale = ops.where(centre, 0.0, -1.0 / ops.where(centre, 1.0, g_norm))
+    return (g[0] * scale, g[1] * scale, g[2] * scale), g_norm, centre
+
+
+def _closed_form(ops, v, n, rhs):
+    """Minimum-norm velocity with n . v >= rhs for unit n: v + max(rhs - n . v, 0) n.
+
+    Returns ``v`` itself, bit for bit, where it already satisfies the constraint.
+    """
+    correction = ops.maximum(rhs - _dot(n, v), 0.0)  # m/s
+    return (v[0] + correction * n[0], v[1] + correction * n[1], v[2] + correction * n[2]), correction
+
+
+def _margin_level(ops, margin, a):
+    rho = 1.0 - margin / ops.minimum(ops.minimum(a[0], a[1]), a[2])
+    return 1.0 - rho * rho
+
+
+def _continuous(ops, x, v, c, a, r, alpha):
+    g, r2, _ = _barrier_terms(x, c, a, r)
+    h = 1.0 - r2
+    n, _, _ = _inward_normal(ops, g, r2)
+    v_safe, correction = _closed_form(ops, v, n, -alpha * h)
+    return v_safe, h, correction > 0.0, correction, 1.0
+
+
+def _discrete(ops, x, v, c, a, r, alpha, dt, margin):
+    gamma = min(alpha * dt, 1.0)
+    g, r2, inv_a2 = _barrier_terms(x, c, a, r)
+    h = 1.0 - r2
+    h_tight = h - _margin_level(ops, margin, a)
+    n, g_norm, centre = _inward_normal(ops, g, r2)
+    # 1. Closed form on the linearized end-point condition dt dh/dx . v >= -gamma h_tight, dh/dx = 2|g| n.
+    rhs = ops.where(centre, -math.inf, -gamma * h_tight / (2.0 * dt * ops.where(centre, 1.0, g_norm)))
+    v_c, correction = _closed_form(ops, v, n, rhs)
+    # 2. Exact end point along v_c: f(s) = h_tight + s b - s^2 q.
+    step = (v_c[0] * dt, v_c[1] * dt, v_c[2] * dt)  # m
+    b = -2.0 * _dot(g, step)
+    step_e = _to_frame(r, step)
+    q = (
+        step_e[0] * step_e[0] * inv_a2[0]
+        + step_e[1] * step_e[1] * inv_a2[1]
+        + step_e[2] * step_e[2] * inv_a2[2]
+    )
+    positive_q = q > 0.0
+    q_safe = ops.where(positive_q, q, 1.0)
+    s_peak = ops.where(
+        positive_q, ops.minimum(ops.maximum(0.5 * b / q_safe, 0.0), 1.0), ops.where(b >= 0.0, 1.0, 0.0)
+    )
+    target = ops.minimum((1.0 - gamma) * h_tight, h_tight + s_peak * (b - s_peak * q))
+    slack = h_tight - target
+    root = ops.sqrt(ops.maximum(b * b + 4.0 * q * slack, 0.0))
+    # Larger root of q s^2 - b s - slack = 0, in the cancellation-free form for each sign of b.
+    den = root - b
+    s_root = ops.where(b >= 0.0, (b + root) / (2.0 * q_safe), 2.0 * slack / ops.where(den > 0.0, den, 1.0))
+    s = ops.where(h_tight + b - q >= target, 1.0, ops.minimum(ops.maximum(s_root, 0.0), 1.0))
+    v_safe = (s * v_c[0], s * v_c[1], s * v_c[2])
+    return v_safe, h, (correction > 0.0) | (s < 1.0), correction, s
+
+
+# Input handling: validation and the float / array dispatch.
+
+
+def _vec3(name: str, value) -> np.ndarray:
+    value = np.asarray(value, dtype=np.float64)
+    if value.shape[-1:] != (3,):
+        raise ValueError(f"`{name}` must have shape (3,) or (..., 3). Got shape {value.shape}.")
+    return value
 
 
 def _check_positive(name: str, value: float) -> float:
@@ -152,48 +236,61 @@ def _check_positive(name: str, value: float) -> float:
     return value
 
 
-def _geometry(x, center, axes, rotation):
-    """Tip in the ellipsoid frame and the barrier's pieces.
+def _prepare(x, v, center, axes, rotation, margin=None):
+    """Validate; return (ops, batch shape or None for a single state, components of x, v, c, a, rows of R)."""
+    x = _vec3("x", x)
+    center = _vec3("center", center)
+    axes = _vec3("axes", axes)
+    arrays = (x, center, axes) if v is None else (x, center, axes, _vec3("v_nominal", v))
+    if rotation is not None:
+        rotation = np.asarray(rotation, dtype=np.float64)
+        if rotation.shape[-2:] != (3, 3):
+            raise ValueError(f"`rotation` must have shape (3, 3) or (..., 3, 3). Got shape {rotation.shape}.")
+    single = max(arr.ndim for arr in arrays) == 1 and (rotation is None or rotation.ndim == 2)
+    if single:
+        a_list = axes.tolist()
+        a_min, a_max = min(a_list), max(a_list)
+    else:
+        a_min, a_max = axes.min(), axes.max()
+    if not (a_min > 0.0 and a_max < math.inf):
+        raise ValueError(f"`axes` must be > 0 and finite (semi-axes in m). Got {axes.tolist()}.")
+    if margin is not None and not 0.0 <= margin < a_min:
+        raise ValueError(f"`margin` must be in [0, min(axes)) m. Got {margin} with axes {axes.tolist()}.")
+    # Shared (3,) parameters become Python floats in both modes.
+    comps = [arr.tolist() if arr.ndim == 1 else (arr[..., 0], arr[..., 1], arr[..., 2]) for arr in arrays]
+    if rotation is None:
+        rows = None
+    elif rotation.ndim == 2:
+        rows = rotation.tolist()
+    else:
+        rows = [[rotation[..., i, j] for j in range(3)] for i in range(3)]
+    if single:
+        return _FLOAT_OPS, None, comps, rows
+    shapes = [arr.shape[:-1] for arr in arrays]
+    if rotation is not None:
+        shapes.append(rotation.shape[:-2])
+    return _ARRAY_OPS, np.broadcast_shapes(*shapes), comps, rows
 
-    Returns:
-        g_world: (..., 3) half the outward gradient, R (E / a^2) = -(dh/dx) / 2, world (1/m).
-        r2: (...,) squared scaled radius |E / a|^2, so h = 1 - r2.
-        inv_a2: (..., 3) 1 / a^2 (1/m^2).
-        rotation: the validated rotation or None.
-    """
-    axes = _check_axes(axes)
-    rotation = _check_rotation(rotation)
-    x = np.asarray(x, dtype=np.float64)
-    if x.shape[-1:] != (3,):
-        raise ValueError(f"`x` must have shape (3,) or (..., 3) (tip position in m). Got shape {x.shape}.")
-    e = _to_frame(x - np.asarray(center, dtype=np.float64), rotation)  # (..., 3)
-    inv_a2 = 1.0 / (axes * axes)  # (..., 3)
-    g = e * inv_a2  # (..., 3) ellipsoid frame
-    r2 = (e * g).sum(-1)  # (...,)
-    return _to_world(g, rotation), r2, inv_a2, rotation
 
-
-def _unit_inward(g_world: np.ndarray, r2: np.ndarray):
-    """Unit inward normal n = -g / |g| (..., 3), zero at the centre; also |g| (...,) and the centre mask."""
-    centre = r2 <= _CENTRE_R2
-    g_norm = np.sqrt((g_world * g_world).sum(-1))  # (...,)
-    n = g_world / np.where(centre, -1.0, -g_norm)[..., None]
-    return np.where(centre[..., None], 0.0, n), g_norm, centre
-
-
-def _halfspace_closed_form(v_nominal: np.ndarray, n: np.ndarray, rhs: np.ndarray):
-    """Minimum-norm velocity with n . v >= rhs for unit n: v_n + max(rhs - n . v_n, 0) n.
-
-    Returns ``v_nominal`` itself, bit for bit, where it already satisfies the constraint.
-    """
-    correction = np.maximum(rhs - (n * v_nominal).sum(-1), 0.0)  # (...,) m/s
-    return v_nominal + correction[..., None] * n, correction
+def _result(batch_shape, v_safe, h, intervened, correction, step_scale) -> CBFResult:
+    if batch_shape is None:
+        return CBFResult(np.array(v_safe), h, bool(intervened), correction, step_scale)
+    out = np.empty(batch_shape + (3,))
+    out[..., 0], out[..., 1], out[..., 2] = v_safe
+    zeros = np.zeros(batch_shape)
+    return CBFResult(
+        out,
+        h + zeros,
+        np.broadcast_to(intervened, batch_shape).copy(),
+        correction + zeros,
+        step_scale + zeros,
+    )
 
 
 # Public API.
 
 
-def ellipsoid_h(x, center, axes, rotation=None) -> np.ndarray:
+def ellipsoid_h(x, center, axes, rotation=None):
     """Barrier value h = 1 - sum_i E_i^2 / a_i^2 with E = R^T (x - center).
 
     Args:
@@ -203,19 +300,24 @@ def ellipsoid_h(x, center, axes, rotation=None) -> np.ndarray:
         rotation: optional (3, 3) or (..., 3, 3) world-from-ellipsoid rotation; identity if None.
 
     Returns:
-        (...,) float64: 1 at the centre, 0 on the surface, negative outside.
+        (...,) float64 array (a float for a single state): 1 at the centre, 0 on the surface,
+        negative outside.
 
     Raises:
         ValueError: if ``axes`` are not all positive and finite, or a shape is wrong.
     """
-    _, r2, _, _ = _geometry(x, center, axes, rotation)
-    return 1.0 - r2
+    ops, batch_shape, (x, c, a), rows = _prepare(x, None, center, axes, rotation)
+    _, r2, _ = _barrier_terms(x, c, a, rows)
+    return 1.0 - r2 if batch_shape is None else 1.0 - r2 + np.zeros(batch_shape)
 
 
 def ellipsoid_grad_h(x, center, axes, rotation=None) -> np.ndarray:
     """Gradient dh/dx = -2 R (E / a^2), (..., 3) in 1/m, world frame; zero at the centre."""
-    g_world, _, _, _ = _geometry(x, center, axes, rotation)
-    return -2.0 * g_world
+    ops, batch_shape, (x, c, a), rows = _prepare(x, None, center, axes, rotation)
+    g, _, _ = _barrier_terms(x, c, a, rows)
+    out = np.empty((batch_shape or ()) + (3,))
+    out[..., 0], out[..., 1], out[..., 2] = (-2.0 * g[0], -2.0 * g[1], -2.0 * g[2])
+    return out
 
 
 def inward_normal(x, center, axes, rotation=None) -> np.ndarray:
@@ -227,9 +329,12 @@ def inward_normal(x, center, axes, rotation=None) -> np.ndarray:
     Args:
         x, center, axes, rotation: as in :func:`ellipsoid_h`.
     """
-    g_world, r2, _, _ = _geometry(x, center, axes, rotation)
-    n, _, _ = _unit_inward(g_world, r2)
-    return n
+    ops, batch_shape, (x, c, a), rows = _prepare(x, None, center, axes, rotation)
+    g, r2, _ = _barrier_terms(x, c, a, rows)
+    n, _, _ = _inward_normal(ops, g, r2)
+    out = np.empty((batch_shape or ()) + (3,))
+    out[..., 0], out[..., 1], out[..., 2] = n
+    return out
 
 
 def filter_velocity(x, v_nominal, center, axes, alpha: float, rotation=None) -> CBFResult:
@@ -247,17 +352,17 @@ def filter_velocity(x, v_nominal, center, axes, alpha: float, rotation=None) -> 
 
     Returns:
         :class:`CBFResult` (``step_scale`` is all ones).
+
+    Raises:
+        ValueError: for non-positive ``alpha`` or ``axes``, or a wrong shape.
     """
     alpha = _check_positive("alpha", alpha)
-    g_world, r2, _, _ = _geometry(x, center, axes, rotation)
-    h = 1.0 - r2
-    n, _, _ = _unit_inward(g_world, r2)
-    v_nominal = np.asarray(v_nominal, dtype=np.float64)
-    v_safe, correction = _halfspace_closed_form(v_nominal, n, -alpha * h)
-    return CBFResult(v_safe, h, correction > 0.0, correction, np.ones_like(h))
+    ops, batch_shape, (x, c, a, v), rows = _prepare(x, v_nominal, center, axes, rotation)
+    out = _continuous(ops, x, v, c, a, rows, alpha)
+    return _result(batch_shape, *out)
 
 
-def margin_level(margin: float, axes) -> np.ndarray:
+def margin_level(margin: float, axes):
     """Barrier level h_m = 1 - (1 - margin / min(axes))^2 of the set tightened by ``margin`` metres.
 
     Every point within ``margin`` metres of {h >= h_m} lies in {h >= 0}.
@@ -267,15 +372,10 @@ def margin_level(margin: float, axes) -> np.ndarray:
         axes: (3,) or (..., 3) semi-axes (m).
 
     Returns:
-        (...,) float64 in [0, 1).
+        (...,) float64 in [0, 1) (a float for (3,) axes).
     """
-    axes = _check_axes(axes)
-    margin = float(margin)
-    a_min = axes.min(-1)
-    if not 0.0 <= margin or not (margin < a_min).all():
-        raise ValueError(f"`margin` must be in [0, min(axes)) m. Got {margin} with axes {axes.tolist()}.")
-    rho = 1.0 - margin / a_min
-    return 1.0 - rho * rho
+    ops, _, (_, _, a), _ = _prepare(_ORIGIN, None, _ORIGIN, axes, None, margin=float(margin))
+    return _margin_level(ops, float(margin), a)
 
 
 def filter_velocity_discrete(
@@ -297,37 +397,17 @@ def filter_velocity_discrete(
 
     Returns:
         :class:`CBFResult`; ``h`` is the untightened barrier at ``x``.
+
+    Raises:
+        ValueError: for non-positive ``alpha``, ``dt`` or ``axes``, a ``margin`` outside
+            [0, min(axes)), or a wrong shape.
     """
     alpha = _check_positive("alpha", alpha)
     dt = _check_positive("dt", dt)
-    gamma = min(alpha * dt, 1.0)
-    g_world, r2, inv_a2, rotation = _geometry(x, center, axes, rotation)
-    h = 1.0 - r2
-    h_tight = h - margin_level(margin, axes)  # (...,)
-    n, g_norm, centre = _unit_inward(g_world, r2)
-    v_nominal = np.asarray(v_nominal, dtype=np.float64)
-
-    # 1. Closed form on the linearized end-point condition; dh/dx = 2 |g| n.
-    rhs = np.where(centre, -np.inf, -gamma * h_tight / (2.0 * dt * np.where(centre, 1.0, g_norm)))
-    v_c, correction = _halfspace_closed_form(v_nominal, n, rhs)
-
-    # 2. Exact end point along v_c: f(s) = h_tight + s b - s^2 q.
-    step = v_c * dt  # (..., 3) m
-    b = -2.0 * (g_world * step).sum(-1)  # (...,)
-    step_e = _to_frame(step, rotation)
-    q = (step_e * step_e * inv_a2).sum(-1)  # (...,) >= 0
-    positive_q = q > 0.0
-    q_safe = np.where(positive_q, q, 1.0)
-    s_peak = np.where(positive_q, np.clip(0.5 * b / q_safe, 0.0, 1.0), (b >= 0.0) * 1.0)
-    target = np.minimum((1.0 - gamma) * h_tight, h_tight + s_peak * (b - s_peak * q))
-    c = h_tight - target
-    root = np.sqrt(np.maximum(b * b + 4.0 * q * c, 0.0))
-    # Larger root of q s^2 - b s - c = 0, in the cancellation-free form for each sign of b.
-    den = root - b
-    s_root = np.where(b >= 0.0, (b + root) / (2.0 * q_safe), 2.0 * c / np.where(den > 0.0, den, 1.0))
-    s = np.where(h_tight + b - q >= target, 1.0, np.clip(s_root, 0.0, 1.0))  # (...,)
-    v_safe = s[..., None] * v_c
-    return CBFResult(v_safe, h, (correction > 0.0) | (s < 1.0), correction, s)
+    margin = float(margin)
+    ops, batch_shape, (x, c, a, v), rows = _prepare(x, v_nominal, center, axes, rotation, margin=margin)
+    out = _discrete(ops, x, v, c, a, rows, alpha, dt, margin)
+    return _result(batch_shape, *out)
 
 
 def suture_ellipsoid_frame(entry_point, exit_point, surface_normal) -> tuple[np.ndarray, np.ndarray]:
@@ -418,7 +498,9 @@ class CBFConfig:
                 raise ValueError(f"`{name}` must be > 0. Got {value}.")
         smallest = min(self.semi_axis_along, self.semi_axis_lateral, self.semi_axis_normal)
         if not 0 <= self.margin < smallest:
-            raise ValueError(f"`margin` must be in [0, {smallest}) m (the smallest semi-axis). Got {self.margin}.")
+            raise ValueError(
+                f"`margin` must be in [0, {smallest}) m (the smallest semi-axis). Got {self.margin}."
+            )
 
     @property
     def semi_axes(self) -> np.ndarray:

@@ -125,7 +125,7 @@ NEEDLE_TILT = math.radians(30.0)
 ENDOSCOPE_TARGET = np.array([0.0, 0.0, 0.012])
 ENDOSCOPE_AZIMUTH = math.radians(90.0)
 ENDOSCOPE_ELEVATION = math.radians(52.0)
-ENDOSCOPE_DISTANCE = 0.13
+ENDOSCOPE_DISTANCE = 0.105
 
 # Controller: reach the target pose in one control step, within these speeds.
 TIME_TO_TARGET = CONTROL_DT
@@ -146,6 +146,7 @@ MIN_PROTRUSION = 0.003
 _ARM_JOINTS = ("outer_yaw", "outer_pitch", "insertion", "instrument_roll", "wrist_pitch", "wrist_yaw")
 _JAW_OPEN_ANGLE = 0.6  # rad, the jaw joint's range
 _N_ARC_POINTS = 13
+_NEEDLE_CONTACT_BIT = 2  # the needle geoms' contype in scene.xml
 
 
 class SutureEnv(gym.Env):
@@ -199,6 +200,7 @@ class SutureEnv(gym.Env):
         self._needle_dof = m.joint("needle").dofadr[0]
         self._phantom_mocap = m.body("phantom").mocapid[0]
         self._camera = m.camera("endoscope").id
+        self._pad_geom = m.geom("tissue_pad").id
         self._entry_local = m.site("entry_point").pos.copy()
         self._exit_local = m.site("exit_point").pos.copy()
         self._arc_local = needle_arc_points(_N_ARC_POINTS)
@@ -317,6 +319,9 @@ class SutureEnv(gym.Env):
         )
         self.data.qvel[self._needle_dof + 3 : self._needle_dof + 6] = rot.T @ vel[:3]
         self.model.body_gravcomp[self._needle_body] = 0.0
+        if not self._in_tissue:
+            # A needle lost above the phantom lands on it (one inside tissue would be expelled).
+            self._set_pad_collides_with_needle(True)
         self._grasped = False
 
     def set_phantom_pose(self, position: np.ndarray, yaw: float) -> None:
@@ -353,6 +358,7 @@ class SutureEnv(gym.Env):
         self._reset_state()
         mujoco.mj_resetData(self.model, self.data)
         self.model.body_gravcomp[self._needle_body] = 1.0
+        self._set_pad_collides_with_needle(False)
         self.set_endoscope_viewpoint()
 
         xy = PHANTOM_NOMINAL[:2] + rng.uniform(-PHANTOM_RANGE_XY, PHANTOM_RANGE_XY, size=2)
@@ -448,7 +454,7 @@ class SutureEnv(gym.Env):
             return None
         if self._video_renderer is None:
             self._video_renderer = make_renderer(self.model, self.render_size, self.render_size)
-        mujoco.mj_kinematics(self.model, self.data)
+        self._update_render_poses()
         self._video_renderer.update_scene(self.data, camera=self._camera)
         return self._video_renderer.render()
 
@@ -459,6 +465,17 @@ class SutureEnv(gym.Env):
         self._renderer = self._video_renderer = None
 
     # ------------------------------------------------------------------ internals
+    def _set_pad_collides_with_needle(self, collides: bool) -> None:
+        bit = _NEEDLE_CONTACT_BIT if collides else 0
+        self.model.geom_conaffinity[self._pad_geom] = bit
+        # MuJoCo's broad phase filters on the per-body union of the geoms' bits too.
+        self.model.body_conaffinity[self.model.geom_bodyid[self._pad_geom]] = bit
+
+    def _update_render_poses(self) -> None:
+        # The held needle was snapped and the camera may have moved after MuJoCo's last forward pass.
+        mujoco.mj_kinematics(self.model, self.data)
+        mujoco.mj_camlight(self.model, self.data)
+
     def _reset_state(self) -> None:
         self._step_index = 0
         self._grasped = True
@@ -586,7 +603,7 @@ class SutureEnv(gym.Env):
         if "pixels" in self.obs_type:
             if self._renderer is None:
                 self._renderer = make_renderer(self.model, self.image_size, self.image_size)
-            mujoco.mj_kinematics(self.model, self.data)
+            self._update_render_poses()
             self._renderer.update_scene(self.data, camera=self._camera)
             obs["pixels"] = {"endoscope": self._renderer.render().copy()}
         if self.obs_type in ("state", "pixels_agent_pos_state"):

@@ -1,0 +1,102 @@
+"""``SutureEnvConfig``: the needle-insertion env as LeRobot's env type ``suture``."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from lerobot.configs import FeatureType, PolicyFeature
+from lerobot.envs.configs import EnvConfig
+from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
+
+import lerobot_suture  # registers the gym id
+from lerobot_suture.safety.cbf import CBFConfig
+from lerobot_suture.sim.scenarios import SCENARIOS
+from lerobot_suture.sim.suture_env import OBS_TYPES
+
+ENDOSCOPE_KEY = "pixels/endoscope"
+ENVIRONMENT_STATE_DIM = 18
+
+
+@EnvConfig.register_subclass("suture")
+@dataclass
+class SutureEnvConfig(EnvConfig):
+    """MuJoCo needle insertion with a da Vinci-style arm (see ``lerobot_suture.sim.suture_env``).
+
+    Args:
+        task: gym id within the ``lerobot_suture`` namespace.
+        fps: control rate (Hz); fixed by the env at 10.
+        episode_length: max control steps per episode.
+        obs_type: ``pixels_agent_pos`` (endoscope + state, the paper's), ``state`` (state and
+            privileged environment state, no image) or ``pixels_agent_pos_state`` (all three).
+        image_size: endoscope image side (px).
+        render_size: side (px) of the frames ``render()`` returns (eval videos).
+        scenario: perturbation scenario, one of ``lerobot_suture.sim.scenarios.SCENARIOS``.
+        scenario_onset_step: onset (control steps); None takes the scenario's default.
+        scenario_magnitude: magnitude (rad or m); None takes the scenario's default.
+        cbf: the control barrier function safety filter (``--env.cbf.enabled=true``).
+    """
+
+    task: str | None = "NeedleInsertion-v0"
+    fps: int = 10
+    episode_length: int = 100
+    obs_type: str = "pixels_agent_pos"
+    image_size: int = 96
+    render_size: int = 256
+    scenario: str = "nominal"
+    scenario_onset_step: int | None = None
+    scenario_magnitude: float | None = None
+    cbf: CBFConfig = field(default_factory=CBFConfig)
+    features: dict[str, PolicyFeature] = field(
+        default_factory=lambda: {
+            ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(10,)),
+            "agent_pos": PolicyFeature(type=FeatureType.STATE, shape=(10,)),
+        }
+    )
+    features_map: dict[str, str] = field(
+        default_factory=lambda: {
+            ACTION: ACTION,
+            "agent_pos": OBS_STATE,
+            "environment_state": OBS_ENV_STATE,
+            ENDOSCOPE_KEY: f"{OBS_IMAGES}.endoscope",
+        }
+    )
+
+    def __post_init__(self):
+        if self.fps != 10:
+            raise ValueError(f"`fps` must be 10 (the env's control rate). Got {self.fps}.")
+        if self.obs_type not in OBS_TYPES:
+            raise ValueError(f"`obs_type` must be one of {OBS_TYPES}. Got {self.obs_type!r}.")
+        if self.scenario not in SCENARIOS:
+            raise ValueError(f"`scenario` must be one of {SCENARIOS}. Got {self.scenario!r}.")
+        if self.episode_length < 1:
+            raise ValueError(f"`episode_length` must be >= 1. Got {self.episode_length}.")
+        if "pixels" in self.obs_type:
+            self.features[ENDOSCOPE_KEY] = PolicyFeature(
+                type=FeatureType.VISUAL, shape=(self.image_size, self.image_size, 3)
+            )
+        if self.obs_type in ("state", "pixels_agent_pos_state"):
+            self.features["environment_state"] = PolicyFeature(
+                type=FeatureType.ENV, shape=(ENVIRONMENT_STATE_DIM,)
+            )
+
+    @property
+    def package_name(self) -> str:
+        return "lerobot_suture"
+
+    @property
+    def gym_id(self) -> str:
+        return f"lerobot_suture/{self.task}"
+
+    @property
+    def gym_kwargs(self) -> dict:
+        return {
+            "obs_type": self.obs_type,
+            "image_size": self.image_size,
+            "render_mode": "rgb_array",
+            "render_size": self.render_size,
+            "scenario": self.scenario,
+            "scenario_onset_step": self.scenario_onset_step,
+            "scenario_magnitude": self.scenario_magnitude,
+            "max_episode_steps": self.episode_length,
+            "cbf": self.cbf if self.cbf.enabled else None,
+        }

@@ -1,0 +1,37 @@
+"""``lerobot-suture SUBCOMMAND --flag=value ...``: one entry point, LeRobot-style flags per subcommand."""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import sys
+
+# subcommand -> (module with `main(argv)`, one-line help)
+SUBCOMMANDS = {
+    "demo": ("lerobot_suture.demo", "run the main job at a small default and write figures"),
+}
+
+
+def _usage() -> str:
+    lines = ["usage: lerobot-suture SUBCOMMAND [--flag=value ...]", "", "subcommands:"]
+    lines += [f"  {name:14s} {help_}" for name, (_, help_) in SUBCOMMANDS.items()]
+    lines += ["", "`lerobot-suture SUBCOMMAND --help` lists a subcommand's flags."]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> None:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help"):
+        print(_usage())
+        return
+    name, rest = argv[0], argv[1:]
+    if name not in SUBCOMMANDS:
+        print(f"lerobot-suture: unknown subcommand {name!r}.\n\n{_usage()}", file=sys.stderr)
+        raise SystemExit(2)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    module = importlib.import_module(SUBCOMMANDS[name][0])
+    module.main(rest)
+
+
+if __name__ == "__main__":
+    main()
