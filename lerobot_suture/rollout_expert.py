@@ -28,7 +28,7 @@ class ExpertEpisode:
 
     def summary(self) -> dict:
         def finite(x: float) -> float | None:
-            return None if math.isnan(x) else float(x)
+            return float(x) if math.isfinite(x) else None
 
         return {
             "seed": self.seed,

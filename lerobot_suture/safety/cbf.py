@@ -121,7 +121,12 @@ class _Ops(NamedTuple):
     minimum: Callable
 
 
-_FLOAT_OPS = _Ops(math.sqrt, lambda cond, a, b: a if cond else b, max, min)
+_FLOAT_OPS = _Ops(
+    math.sqrt,
+    lambda cond, a, b: a if cond else b,
+    lambda a, b: b if b > a else a,  # NaN in ``a`` propagates, as in np.maximum (``b`` is never NaN)
+    lambda a, b: b if b < a else a,
+)
 _ARRAY_OPS = _Ops(np.sqrt, np.where, np.maximum, np.minimum)
 
 
@@ -246,7 +251,13 @@ def _prepare(x, v, center, axes, rotation, margin=None):
         rotation = np.asarray(rotation, dtype=np.float64)
         if rotation.shape[-2:] != (3, 3):
             raise ValueError(f"`rotation` must have shape (3, 3) or (..., 3, 3). Got shape {rotation.shape}.")
-    single = max(arr.ndim for arr in arrays) == 1 and (rotation is None or rotation.ndim == 2)
+    single = (
+        x.ndim == 1
+        and center.ndim == 1
+        and axes.ndim == 1
+        and (v is None or arrays[3].ndim == 1)
+        and (rotation is None or rotation.ndim == 2)
+    )
     if single:
         a_list = axes.tolist()
         a_min, a_max = min(a_list), max(a_list)
@@ -469,7 +480,9 @@ class CBFConfig:
             inside the ellipsoid (discrete mode only; activation also waits until the tip is this far in).
         discrete: Enforce the discrete-time condition with the step-length limit
             (:func:`filter_velocity_discrete`, keeps h >= 0 at every physics step). False applies the
-            paper's continuous-time closed form only (:func:`filter_velocity`), for comparison.
+            paper's continuous-time closed form only (:func:`filter_velocity`), for comparison: held
+            for a 0.1 s step it can leave the set, and once outside its inward push of ``alpha |h|`` m/s
+            ignores the step length and can overshoot.
     """
 
     # Switch.

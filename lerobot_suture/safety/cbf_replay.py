@@ -268,11 +268,17 @@ def plot_replay(replay: CBFReplay, center, axes, rotation, out_path, title: str 
 
     ax_v = fig.add_subplot(1, 3, 3)
     t_steps = replay.time
-    for vel, color, label in ((replay.v_desired, "red", "desired $V_d$"), (replay.v_safe, "blue", "safe $V_s$")):
+    for vel, color, label in (
+        (replay.v_desired, "red", "desired $V_d$"),
+        (replay.v_safe, "blue", "safe $V_s$"),
+    ):
         speed = np.linalg.norm(vel, axis=1) * mm
         ax_v.step(t_steps, np.append(speed, speed[-1]), where="post", color=color, label=label)
     ax_v.plot(
-        replay.time_fine, np.linalg.norm(replay.v_actual, axis=1) * mm, color="orange", label="actual $V_{curr}$"
+        replay.time_fine,
+        np.linalg.norm(replay.v_actual, axis=1) * mm,
+        color="orange",
+        label="actual $V_{curr}$",
     )
     ax_v.set_xlabel("time (s)")
     ax_v.set_ylabel("speed (mm/s)")

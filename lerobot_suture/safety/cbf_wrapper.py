@@ -69,7 +69,8 @@ class CBFActionWrapper(gym.Wrapper):
         base = env.unwrapped
         if not hasattr(base, "tip_velocity_filter"):
             raise TypeError(
-                f"CBFActionWrapper needs an env with a `tip_velocity_filter` hook (SutureEnv); got {type(base)}."
+                "CBFActionWrapper needs an env with a `tip_velocity_filter` hook (SutureEnv); "
+                f"got {type(base).__name__}."
             )
         self.config = CBFConfig(enabled=True) if config is None else config
         self._axes = self.config.semi_axes

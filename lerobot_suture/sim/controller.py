@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from lerobot_suture.sim.geometry import rotvec_from_matrix
+from lerobot_suture.sim.geometry import cross3, rotvec_from_matrix
 
 
 def pose_velocity_command(
@@ -37,7 +37,7 @@ def pose_velocity_command(
 
 def point_velocity(linear: np.ndarray, angular: np.ndarray, origin: np.ndarray, point: np.ndarray):
     """Velocity (3,) m/s of ``point`` rigidly attached to a frame at ``origin`` moving with the twist."""
-    return linear + np.cross(angular, point - origin)
+    return linear + cross3(angular, point - origin)
 
 
 def damped_least_squares(jacobian: np.ndarray, twist: np.ndarray, damping: float) -> np.ndarray:

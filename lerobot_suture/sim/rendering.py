@@ -12,6 +12,9 @@ _FIX = (
 )
 
 
+_state = {"imported_too_early": False}
+
+
 def select_gl_backend() -> str:
     """Set ``MUJOCO_GL`` before MuJoCo is imported, when the user has not chosen one.
 
@@ -21,6 +24,9 @@ def select_gl_backend() -> str:
     backend = os.environ.get("MUJOCO_GL")
     if backend:
         return backend
+    if "mujoco" in sys.modules:
+        # MuJoCo picks its GL backend when first imported; too late to choose for it.
+        _state["imported_too_early"] = True
     if sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):
         os.environ["MUJOCO_GL"] = "egl"
         # PyOpenGL must agree with MuJoCo on the platform.
@@ -37,4 +43,12 @@ def make_renderer(model, height: int, width: int):
         return mujoco.Renderer(model, height=height, width=width)
     except Exception as exc:  # noqa: BLE001 - any GL failure gets the same actionable message
         backend = os.environ.get("MUJOCO_GL", "<unset>")
-        raise RuntimeError(f"MuJoCo could not open a rendering context (MUJOCO_GL={backend}): {exc}. {_FIX}") from exc
+        hint = (
+            " `mujoco` was imported before `lerobot_suture`, so MuJoCo chose its GL backend before "
+            "ours: set MUJOCO_GL=egl in the environment, or import lerobot_suture first."
+            if _state["imported_too_early"]
+            else ""
+        )
+        raise RuntimeError(
+            f"MuJoCo could not open a rendering context (MUJOCO_GL={backend}): {exc}.{hint} {_FIX}"
+        ) from exc

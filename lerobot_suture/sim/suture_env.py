@@ -86,6 +86,7 @@ from lerobot_suture.sim import controller, tissue
 from lerobot_suture.sim.geometry import (
     NEEDLE_RADIUS,
     InsertionFrame,
+    cross3,
     grasp_transform,
     insertion_frame,
     matrix_from_rot6,
@@ -147,6 +148,11 @@ _ARM_JOINTS = ("outer_yaw", "outer_pitch", "insertion", "instrument_roll", "wris
 _JAW_OPEN_ANGLE = 0.6  # rad, the jaw joint's range
 _N_ARC_POINTS = 13
 _NEEDLE_CONTACT_BIT = 2  # the needle geoms' contype in scene.xml
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """Matrix of ``w -> cross(v, w)``."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 class SutureEnv(gym.Env):
@@ -285,7 +291,8 @@ class SutureEnv(gym.Env):
 
     @property
     def needle_tip_pos(self) -> np.ndarray:
-        return self.needle_pose()[0] + self.needle_pose()[1] @ self._tip_local
+        centre, rotation = self.needle_pose()
+        return centre + rotation @ self._tip_local
 
     def jaw_pose(self) -> tuple[np.ndarray, np.ndarray]:
         """Measured jaw-tip pose, world: (position (3,) m, rotation (3, 3))."""
@@ -314,7 +321,7 @@ class SutureEnv(gym.Env):
         # Carry the jaw's velocity into the needle's free joint.
         vel = np.zeros(6)
         mujoco.mj_objectVelocity(self.model, self.data, mujoco.mjtObj.mjOBJ_BODY, self._jaw_body, vel, 0)
-        self.data.qvel[self._needle_dof : self._needle_dof + 3] = vel[3:] + np.cross(
+        self.data.qvel[self._needle_dof : self._needle_dof + 3] = vel[3:] + cross3(
             vel[:3], centre - self.data.xpos[self._jaw_body]
         )
         self.data.qvel[self._needle_dof + 3 : self._needle_dof + 6] = rot.T @ vel[:3]
@@ -484,8 +491,8 @@ class SutureEnv(gym.Env):
         self._first_in_tissue_step: int | None = None
         self._entry_location: np.ndarray | None = None
         self._exit_location: np.ndarray | None = None
-        self._entry_error = math.nan
-        self._exit_error = math.nan
+        self._entry_error = math.inf  # until the tip has entered
+        self._exit_error = math.inf
         self._strain = 0.0
         self._prev_tip_local: np.ndarray | None = None
         self._prev_needle_local: tuple[np.ndarray, np.ndarray] | None = None
@@ -547,9 +554,7 @@ class SutureEnv(gym.Env):
         force = -TISSUE_DAMPING * v_centre
         torque = -TISSUE_ROTATIONAL_DAMPING * w_off
         # The force acts at the needle centre: shift the linear Jacobian from the control point.
-        jac_centre = jacp[:, self._arm_dofs] + np.cross(
-            jacr[:, self._arm_dofs].T, (centre - self.needle_tip_pos)
-        ).T
+        jac_centre = jacp[:, self._arm_dofs] - _skew(centre - self.needle_tip_pos) @ jacr[:, self._arm_dofs]
         return jac_centre.T @ force + jacr[:, self._arm_dofs].T @ torque
 
     def _update_tissue_state(self, first: bool = False) -> None:

@@ -1,0 +1,49 @@
+# lerobot-suture: `make demo` runs the main job on a small default; `make test` runs the tests.
+# Both set up first (`make install`): a .venv with Python >= 3.12, the three distributions in
+# editable mode with test extras, and the system libraries headless rendering needs.
+
+SHELL := /bin/bash
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+PYTHON ?= $(shell command -v python3.12 || command -v python3)
+APT_PACKAGES := libegl1 libgl1-mesa-dri libglib2.0-0
+export MUJOCO_GL ?= egl
+export PYOPENGL_PLATFORM ?= egl
+
+.PHONY: install test test-slow demo bench lint clean
+
+install: $(STAMP)
+
+$(STAMP): pyproject.toml envs/pyproject.toml policies/pyproject.toml
+	@missing=""; for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing system packages:$$missing"; \
+	  SUDO=$$([ "$$(id -u)" = 0 ] || echo sudo); \
+	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq $$missing; \
+	fi
+	@test -x $(BIN)/python || { \
+	  $(PYTHON) -c 'import sys; sys.exit(sys.version_info < (3, 12))' || \
+	    { echo "Python >= 3.12 is required (found $$($(PYTHON) --version)); set PYTHON=/path/to/python3.12"; exit 1; }; \
+	  $(PYTHON) -m venv $(VENV); }
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -e ".[test]" -e ./envs -e ./policies
+	@touch $(STAMP)
+
+test: install
+	$(BIN)/python -m pytest
+
+test-slow: install
+	$(BIN)/python -m pytest -m slow
+
+demo: install
+	$(BIN)/lerobot-suture demo
+
+bench: install
+	for b in benchmarks/*.py; do echo "== $$b"; $(BIN)/python $$b; done
+
+lint: install
+	$(BIN)/ruff check lerobot_suture envs policies tests benchmarks
+
+clean:
+	rm -rf $(VENV) outputs .pytest_cache

@@ -1,0 +1,244 @@
+"""The needle-insertion env: scene, Gymnasium contract, determinism, scenarios, bad input, expert."""
+
+from __future__ import annotations
+
+import inspect
+import re
+import warnings
+
+import gymnasium as gym
+import mujoco
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import lerobot_suture
+from lerobot_suture.expert import ScriptedExpert
+from lerobot_suture.sim import suture_env
+from lerobot_suture.sim.geometry import pose_vector
+from lerobot_suture.sim.scenarios import SCENARIOS, ScenarioConfig
+from lerobot_suture.sim.suture_env import SCENE_XML, SutureEnv
+
+
+def make(**kwargs) -> gym.Env:
+    kwargs.setdefault("obs_type", "state")
+    return gym.make(lerobot_suture.ENV_ID, disable_env_checker=True, **kwargs)
+
+
+def run_expert(env: gym.Env, seed: int, max_steps: int = 100):
+    expert = ScriptedExpert()
+    obs, info = env.reset(seed=seed)
+    expert.reset(env)
+    history = [(obs, info)]
+    for _ in range(max_steps):
+        obs, _, terminated, truncated, info = env.step(expert.act(env))
+        history.append((obs, info))
+        if terminated or truncated:
+            break
+    return history
+
+
+def test_scene_compiles_and_steps_under_noise_without_warnings():
+    model = mujoco.MjModel.from_xml_path(str(SCENE_XML))
+    data = mujoco.MjData(model)
+    rng = np.random.default_rng(0)
+    data.qpos[model.joint("insertion").qposadr[0]] = 0.08
+    for _ in range(500):
+        data.ctrl[:] = rng.uniform(-0.2, 0.2, model.nu) * model.actuator_ctrlrange[:, 1]
+        mujoco.mj_step(model, data)
+    assert all(w.lastinfo == 0 and w.number == 0 for w in data.warning), "MuJoCo raised a warning"
+    assert np.all(np.isfinite(data.qpos))
+
+
+def test_registered_with_time_limit_and_render_fps():
+    spec = gym.spec(lerobot_suture.ENV_ID)
+    assert spec.max_episode_steps == lerobot_suture.registration.MAX_EPISODE_STEPS
+    assert SutureEnv.metadata["render_fps"] == 10
+
+
+@pytest.mark.parametrize("obs_type", ["state", "pixels_agent_pos"])
+def test_gymnasium_env_checker(obs_type):
+    env = SutureEnv(obs_type=obs_type, image_size=32, render_size=32)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the checker warns about unbounded observation boxes
+        check_env(env, skip_render_check=False)
+    env.close()
+
+
+def test_observation_layout_and_render():
+    env = SutureEnv(obs_type="pixels_agent_pos_state", image_size=48, render_size=64)
+    obs, _ = env.reset(seed=1)
+    assert obs["pixels"]["endoscope"].shape == (48, 48, 3) and obs["pixels"]["endoscope"].dtype == np.uint8
+    assert obs["pixels"]["endoscope"].std() > 5, "endoscope image is blank"
+    assert obs["agent_pos"].shape == (10,) and obs["agent_pos"].dtype == np.float32
+    assert obs["environment_state"].shape == (18,)
+    np.testing.assert_allclose(obs["environment_state"][:3], env.entry_point, atol=1e-6)
+    frame = env.render()
+    assert frame.shape == (64, 64, 3) and frame.dtype == np.uint8
+    # agent_pos is the measured jaw pose in the action's layout.
+    p, r = env.jaw_pose()
+    np.testing.assert_allclose(obs["agent_pos"], pose_vector(p, r, 1.0), atol=1e-5)
+    env.close()
+
+
+def test_same_seed_same_trajectory():
+    a = run_expert(make(obs_type="pixels_agent_pos", image_size=32), seed=7, max_steps=30)
+    b = run_expert(make(obs_type="pixels_agent_pos", image_size=32), seed=7, max_steps=30)
+    assert len(a) == len(b)
+    for (obs_a, info_a), (obs_b, info_b) in zip(a, b, strict=True):
+        np.testing.assert_array_equal(obs_a["agent_pos"], obs_b["agent_pos"])
+        np.testing.assert_array_equal(obs_a["pixels"]["endoscope"], obs_b["pixels"]["endoscope"])
+        np.testing.assert_array_equal(info_a["needle_tip_pos"], info_b["needle_tip_pos"])
+    c = run_expert(make(obs_type="pixels_agent_pos", image_size=32), seed=8, max_steps=1)
+    assert not np.array_equal(a[0][0]["agent_pos"], c[0][0]["agent_pos"])
+
+
+def test_reset_randomizes_phantom_within_training_range():
+    env = SutureEnv(obs_type="state")
+    positions, yaws = [], []
+    for seed in range(20):
+        env.reset(seed=seed)
+        positions.append(env.phantom_position[:2].copy())
+        yaws.append(env.phantom_yaw)
+    positions = np.array(positions)
+    assert np.all(np.abs(positions - suture_env.PHANTOM_NOMINAL[:2]) <= suture_env.PHANTOM_RANGE_XY + 1e-12)
+    assert np.all(np.abs(yaws) <= suture_env.PHANTOM_YAW_RANGE + 1e-12)
+    assert positions.std(axis=0).min() > 1e-3
+
+
+@pytest.mark.parametrize(
+    "action, message",
+    [
+        (np.zeros(9), "shape"),
+        (np.zeros((2, 10)), "shape"),
+        (np.r_[np.zeros(9), np.nan], "NaN"),
+        (np.r_[np.inf, np.zeros(9)], "inf"),
+    ],
+)
+def test_bad_actions_raise_clearly(action, message):
+    env = SutureEnv(obs_type="state")
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=message):
+        env.step(action)
+
+
+def test_degenerate_rotation_raises_and_out_of_range_is_clipped():
+    env = SutureEnv(obs_type="state")
+    env.reset(seed=0)
+    p, r = env.jaw_pose()
+    parallel = pose_vector(p, r, 1.0)
+    parallel[6:9] = parallel[3:6]
+    with pytest.raises(ValueError, match="parallel"):
+        env.step(parallel)
+    far = pose_vector(p + np.array([0.0, 0.0, 10.0]), r, 1.0)
+    _, _, _, _, info = env.step(far)  # clipped to the workspace, no error
+    assert np.all(np.isfinite(info["needle_tip_pos"]))
+
+
+def test_bad_constructor_arguments_raise():
+    with pytest.raises(ValueError, match="obs_type"):
+        SutureEnv(obs_type="pixels")
+    with pytest.raises(ValueError, match="scenario"):
+        SutureEnv(scenario="earthquake")
+    with pytest.raises(ValueError, match="scenario_onset_step"):
+        ScenarioConfig(name="needle_drop", onset_step=-1)
+
+
+def test_arguments_table_matches_signature():
+    doc = suture_env.__doc__
+    table = doc[doc.index("## Arguments") :]
+    documented = dict(re.findall(r"^``(\w+)``\s+(``\S*?``)\s", table, flags=re.M))
+    signature = inspect.signature(SutureEnv.__init__).parameters
+    assert set(documented) == set(signature) - {"self"}
+    for name, default in documented.items():
+        assert default.strip("`") == repr(signature[name].default).replace("'", '"'), name
+
+
+def test_expert_inserts_the_needle():
+    env = make()
+    successes = 0
+    for seed in range(5):
+        _, info = run_expert(env, seed)[-1]
+        successes += info["is_success"]
+        assert info["entry_error_m"] <= suture_env.ENTRY_TOLERANCE
+        assert info["exit_error_m"] <= suture_env.EXIT_TOLERANCE
+        assert info["needle_in_tissue"] and info["needle_grasped"]
+    assert successes == 5
+
+
+@pytest.mark.parametrize("scenario", [s for s in SCENARIOS if s != "nominal"])
+def test_every_scenario_runs_and_its_perturbation_happens(scenario):
+    env = make(scenario=scenario)
+    history = run_expert(env, seed=3)
+    perturbed = [info["perturbed"] for _, info in history]
+    assert any(perturbed), f"{scenario}: the perturbation never began"
+    onset = perturbed.index(True)
+    assert all(perturbed[onset:]), "perturbed must stay True once the perturbation began"
+    u = env.unwrapped
+    if scenario == "needle_drop":
+        # history[k] is the info of control step k - 1; the drop happens at the start of step onset_step.
+        assert onset == ScenarioConfig(name=scenario).onset_step + 1
+        assert not history[-1][1]["needle_grasped"] and not history[-1][1]["is_success"]
+        # The needle falls and comes to rest on the phantom or the table.
+        assert 0.0 <= history[-1][1]["needle_tip_pos"][2] < 0.015
+    if scenario == "camera_moved":
+        assert onset == 0
+        assert np.linalg.norm(u.model.cam_pos[u.model.camera("endoscope").id] - SutureEnv().model.cam_pos[0]) > 0.01
+    if scenario in ("phantom_servo", "phantom_moved_after_insertion"):
+        entry_track = np.array([obs["environment_state"][:3] for obs, _ in history])
+        assert np.ptp(entry_track, axis=0).max() > 1e-3, "the phantom did not move"
+    if scenario == "phantom_moved_after_insertion":
+        assert onset >= u.first_in_tissue_step
+
+
+def test_needle_tip_trace_follows_physics_steps():
+    env = SutureEnv(obs_type="state", record_tip_trace=True)
+    env.reset(seed=0)
+    expert = ScriptedExpert()
+    expert.reset(env)
+    _, _, _, _, info = env.step(expert.act(env))
+    trace = info["needle_tip_trace"]
+    assert trace.shape == (env.n_substeps, 3)
+    np.testing.assert_allclose(trace[-1], info["needle_tip_pos"], atol=1e-9)
+
+
+def test_velocity_filter_is_called_with_the_tip_and_its_output_commanded():
+    env = SutureEnv(obs_type="state")
+    env.reset(seed=0)
+    calls = []
+
+    def stop(tip, v_nominal):
+        calls.append((tip, v_nominal))
+        return np.zeros(3)
+
+    env.tip_velocity_filter = stop
+    expert = ScriptedExpert()
+    expert.reset(env)
+    tip_before = env.needle_tip_pos.copy()
+    _, _, _, _, info = env.step(expert.act(env))
+    assert len(calls) == 1
+    np.testing.assert_allclose(calls[0][0], tip_before, atol=1e-4)
+    np.testing.assert_array_equal(info["tip_velocity_command"], np.zeros(3))
+    assert np.linalg.norm(info["tip_velocity_nominal"]) > 0
+    assert np.linalg.norm(env.needle_tip_pos - tip_before) < 2e-4
+    env.tip_velocity_filter = lambda tip, v: np.full(3, np.nan)
+    with pytest.raises(ValueError, match="tip_velocity_filter"):
+        env.step(expert.act(env))
+
+
+def test_off_arc_motion_in_tissue_raises_strain():
+    """Pulling the held needle sideways while it is in tissue strains the tissue; driving does not."""
+    env = make()
+    history = run_expert(env, seed=2)
+    nominal_strain = history[-1][1]["tissue_strain"]
+    env.reset(seed=2)
+    expert = ScriptedExpert()
+    expert.reset(env)
+    u = env.unwrapped
+    while not u.needle_in_tissue or expert.drive_angle < 0.5:
+        env.step(expert.act(env))
+    p, r = u.jaw_pose()
+    lateral = u.phantom_rotation[:, 1]
+    for _ in range(5):
+        _, _, _, _, info = env.step(pose_vector(p + 0.01 * lateral, r, 1.0))
+    assert info["tissue_strain"] > 5 * max(nominal_strain, 1e-4)
