@@ -1,0 +1,74 @@
+"""The LeRobot env plugin: discovered by name, built by lerobot's own factory, vectorized."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import draccus
+import numpy as np
+import pytest
+from lerobot.envs.configs import EnvConfig
+from lerobot.envs.factory import make_env
+from lerobot.envs.utils import env_to_policy_features, preprocess_observation
+from lerobot.utils.import_utils import register_third_party_plugins
+
+
+@pytest.fixture(scope="module")
+def suture_config_cls():
+    register_third_party_plugins()
+    assert "suture" in EnvConfig.get_known_choices(), "lerobot did not discover lerobot_env_suture"
+    return EnvConfig.get_choice_class("suture")
+
+
+def test_policy_features_from_env_config(suture_config_cls):
+    cfg = suture_config_cls(image_size=32)
+    features = env_to_policy_features(cfg)
+    assert features["observation.images.endoscope"].shape == (3, 32, 32)
+    assert features["observation.state"].shape == (10,)
+    assert features["action"].shape == (10,)
+    state_cfg = suture_config_cls(obs_type="state")
+    assert env_to_policy_features(state_cfg)["observation.environment_state"].shape == (18,)
+    assert "observation.images.endoscope" not in env_to_policy_features(state_cfg)
+
+
+def test_cli_flags_parse_nested_cbf_and_scenario(suture_config_cls):
+    @dataclass
+    class EvalLike:  # how lerobot-eval nests the env config
+        env: EnvConfig
+
+    cfg = draccus.parse(
+        EvalLike,
+        args=["--env.type=suture", "--env.scenario=needle_drop", "--env.cbf.enabled=true", "--env.cbf.alpha=3.0"],
+    ).env
+    assert isinstance(cfg, suture_config_cls)
+    assert cfg.scenario == "needle_drop" and cfg.cbf.enabled and cfg.cbf.alpha == 3.0
+    assert cfg.gym_kwargs["cbf"] is cfg.cbf
+    assert suture_config_cls().gym_kwargs["cbf"] is None
+
+
+def test_bad_config_values_raise(suture_config_cls):
+    with pytest.raises(ValueError, match="scenario"):
+        suture_config_cls(scenario="earthquake")
+    with pytest.raises(ValueError, match="obs_type"):
+        suture_config_cls(obs_type="pixels")
+
+
+def test_async_vector_env_through_lerobot_factory(suture_config_cls):
+    cfg = suture_config_cls(image_size=32, render_size=32, episode_length=3)
+    envs = make_env(cfg, n_envs=2, use_async_envs=True)
+    vec = envs["suture"][0]
+    try:
+        assert vec.call("_max_episode_steps") == (3, 3)
+        obs, _ = vec.reset(seed=[0, 1])
+        batch = preprocess_observation(obs)
+        assert batch["observation.images.endoscope"].shape == (2, 3, 32, 32)
+        assert batch["observation.state"].shape == (2, 10)
+        action = obs["agent_pos"].astype(np.float32)  # hold the current pose
+        for _ in range(3):
+            obs, _, terminated, truncated, info = vec.step(action)
+        assert truncated.all()
+        assert "final_info" in info and "is_success" in info["final_info"]
+        frames = vec.call("render")
+        assert frames[0].shape == (32, 32, 3)
+    finally:
+        vec.close()
