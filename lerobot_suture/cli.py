@@ -9,6 +9,8 @@ import sys
 # subcommand -> (module with `main(argv)`, one-line help)
 SUBCOMMANDS = {
     "demo": ("lerobot_suture.demo", "run the main job at a small default and write figures"),
+    "record": ("lerobot_suture.datasets.record", "record expert insertions as a LeRobotDataset"),
+    "push": ("lerobot_suture.datasets.hub", "push a recorded dataset to the Hugging Face Hub"),
 }
 
 

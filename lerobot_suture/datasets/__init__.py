@@ -1,0 +1,20 @@
+"""Expert needle-insertion datasets in LeRobot's format: record, split, inspect, push.
+
+- :mod:`~lerobot_suture.datasets.record`: ``lerobot-suture record`` (``RecordConfig``, ``record``,
+  ``regenerate_episode``).
+- :mod:`~lerobot_suture.datasets.split`: the train/validation split and the episodes' seeds
+  (``train_episodes``, ``validation_episodes``, ``validation_seeds``); no LeRobot import.
+- :mod:`~lerobot_suture.datasets.card`: the dataset card from ``datasets/card_template.md``.
+- :mod:`~lerobot_suture.datasets.hub`: ``push_dataset`` and ``lerobot-suture push``.
+- :mod:`~lerobot_suture.datasets.metadata`: ``meta/suture_episodes.json`` and the recording checkpoint.
+"""
+
+from lerobot_suture.datasets.split import (
+    episode_seeds,
+    split_episodes,
+    train_episodes,
+    validation_episodes,
+    validation_seeds,
+)
+
+__all__ = ["episode_seeds", "split_episodes", "train_episodes", "validation_episodes", "validation_seeds"]

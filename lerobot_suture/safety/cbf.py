@@ -1,11 +1,13 @@
 r"""Model-free control barrier function (CBF) on an ellipsoidal safe set around the wound.
 
 Pure numpy, no simulator. Every function takes the needle-tip position ``x`` as ``(3,)`` or
-``(..., 3)`` (metres, world frame) and broadcasts over the leading axes; single and batched calls
-run the same code. Velocities are in m/s, times in s.
+``(..., 3)`` (metres, world frame) and broadcasts over the leading axes. Velocities are in m/s, times
+in s. The formulas are written once, on vector components: a single (3,) state evaluates them on
+Python floats (microseconds per call), a batch on numpy arrays (millions of states per second); both
+are the same sequence of IEEE operations and give identical bits.
 
-Barrier (the paper's Eq. for ``h``, Molnar et al. 2021)
---------------------------------------------------------
+Barrier (the paper's ellipsoid)
+-------------------------------
 The safe set is the ellipsoid S = {x : h(x) >= 0} with centre ``c`` (m), semi-axes ``a`` (m) and an
 optional orientation ``R`` (3x3, world-from-ellipsoid; identity when omitted)::
 
@@ -20,8 +22,8 @@ The centre: there dh/dx = 0 and ``n`` is undefined. We define n = 0 wherever the
 0 >= -alpha, always true, so the filter passes the nominal velocity unchanged. This is exact for the
 continuous condition (dh/dt = dh/dx . v = 0 at the centre, whatever v).
 
-Continuous-time filter (the paper)
-----------------------------------
+Continuous-time filter (the paper, after Molnar et al. 2021)
+------------------------------------------------------------
 The safe velocity must satisfy ``n . v_s >= -alpha h(x)``; the minimum-norm change of the nominal
 velocity ``v_n`` that does so (the solution of the QP min |v - v_n|^2 s.t. that one linear
 constraint) is the closed form::
@@ -37,7 +39,8 @@ The discrete-time gap, and what we do about it (:func:`filter_velocity_discrete`
 The env holds one Cartesian tip velocity for a whole control step ``dt`` (0.1 s) while physics runs
 at 2 ms. The continuous condition constrains only the rate at the start of the step; over the step a
 tangential velocity leaves a curved boundary (h drops by |A^-1 R^T v|^2 dt^2), and the paper's
-``alpha h`` allows an outward step of ``alpha h dt`` metres, larger than the ellipsoid. So the filter
+``alpha h`` allows an outward step of ``alpha h dt`` metres, for alpha of order 1/s far more than the
+size of a centimetre ellipsoid. So the filter
 used in the env enforces the exact discrete-time CBF condition (Agrawal & Sreenath 2017) on the end
 point of the step, for a barrier tightened by a tracking margin::
 
@@ -46,13 +49,16 @@ point of the step, for a barrier tightened by a tracking margin::
 
 Why this keeps h >= 0 at every physics step: with perfect tracking the tip moves on the segment
 x -> x + v dt; h is concave (a negative semi-definite quadratic), so its minimum over the segment is
-at an end point, and both end points have h~ >= 0 once h~(x) >= 0 (induction over steps). The margin
-covers tracking error: {h~ >= 0} is the ellipsoid shrunk about its centre by the factor
+at an end point, and both end points have h~ >= 0 once h~(x) >= 0 (then by induction over steps).
+The margin covers tracking error: {h~ >= 0} is the ellipsoid shrunk about its centre by the factor
 ``rho = 1 - m / min(a)``, and a displacement of at most ``m`` metres changes the scaled radius
-|A^-1 R^T (x - c)| by at most ``m / min(a)``, so every point within ``m`` metres of the commanded
-segment is in S. (Shrinking each semi-axis by ``m`` instead would not be enough on an elongated
-ellipsoid.) Here ``alpha`` is a true rate in 1/s: h~ may decay by at most a factor ``1 - alpha dt`` per
-step, so the tip slows down geometrically as it approaches the tightened boundary.
+|A^-1 R^T (x - c)| by at most ``m / min(a)``, so every point within ``m`` metres of such a commanded
+segment is in S: h >= 0 at every physics step as long as the tip tracks the command to within ``m``.
+(Shrinking each semi-axis by ``m`` instead would not be enough on an elongated ellipsoid.) A step that
+starts in the margin band because of tracking error is handled by the recovery rule below.
+
+Here ``alpha`` is a true rate in 1/s: h~ may decay by at most a factor ``1 - alpha dt`` per step, so
+the tip slows down geometrically as it approaches the tightened boundary.
 
 The condition is enforced in closed form, in two steps (no iterative solver: vectorized, microseconds):
 
@@ -138,18 +144,18 @@ def _to_frame(r, v):
     """World -> ellipsoid frame, R^T v (r: rows of R, or None for identity)."""
     if r is None:
         return v
-    return (
-        r[0][0] * v[0] + r[1][0] * v[1] + r[2][0] * v[2],
-        r[0][1] * v[0] + r[1][1] * v[1] + r[2][1] * v[2],
-        r[0][2] * v[0] + r[1][2] * v[1] + r[2][2] * v[2],
-    )
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = r
+    v0, v1, v2 = v
+    return (r00 * v0 + r10 * v1 + r20 * v2, r01 * v0 + r11 * v1 + r21 * v2, r02 * v0 + r12 * v1 + r22 * v2)
 
 
 def _to_world(r, v):
     """Ellipsoid frame -> world, R v."""
     if r is None:
         return v
-    return (_dot(r[0], v), _dot(r[1], v), _dot(r[2], v))
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = r
+    v0, v1, v2 = v
+    return (r00 * v0 + r01 * v1 + r02 * v2, r10 * v0 + r11 * v1 + r12 * v2, r20 * v0 + r21 * v1 + r22 * v2)
 
 
 def _barrier_terms(x, c, a, r):
@@ -227,13 +233,6 @@ def _discrete(ops, x, v, c, a, r, alpha, dt, margin):
 # Input handling: validation and the float / array dispatch.
 
 
-def _vec3(name: str, value) -> np.ndarray:
-    value = np.asarray(value, dtype=np.float64)
-    if value.shape[-1:] != (3,):
-        raise ValueError(f"`{name}` must have shape (3,) or (..., 3). Got shape {value.shape}.")
-    return value
-
-
 def _check_positive(name: str, value: float) -> float:
     value = float(value)
     if not value > 0.0 or not math.isfinite(value):
@@ -241,34 +240,43 @@ def _check_positive(name: str, value: float) -> float:
     return value
 
 
+_NAMES = ("x", "center", "axes", "v_nominal")
+
+
 def _prepare(x, v, center, axes, rotation, margin=None):
-    """Validate; return (ops, batch shape or None for a single state, components of x, v, c, a, rows of R)."""
-    x = _vec3("x", x)
-    center = _vec3("center", center)
-    axes = _vec3("axes", axes)
-    arrays = (x, center, axes) if v is None else (x, center, axes, _vec3("v_nominal", v))
+    """Validate; return (ops, batch shape or None for one state, components of x, c, a[, v], rows of R)."""
+    arrays = [np.asarray(x, dtype=np.float64), np.asarray(center, dtype=np.float64)]
+    arrays.append(np.asarray(axes, dtype=np.float64))
+    if v is not None:
+        arrays.append(np.asarray(v, dtype=np.float64))
     if rotation is not None:
         rotation = np.asarray(rotation, dtype=np.float64)
-        if rotation.shape[-2:] != (3, 3):
-            raise ValueError(f"`rotation` must have shape (3, 3) or (..., 3, 3). Got shape {rotation.shape}.")
     single = (
-        x.ndim == 1
-        and center.ndim == 1
-        and axes.ndim == 1
-        and (v is None or arrays[3].ndim == 1)
-        and (rotation is None or rotation.ndim == 2)
+        arrays[0].shape == arrays[1].shape == arrays[2].shape == (3,)
+        and (v is None or arrays[3].shape == (3,))
+        and (rotation is None or rotation.shape == (3, 3))
     )
-    if single:
-        a_list = axes.tolist()
-        a_min, a_max = min(a_list), max(a_list)
+    if single:  # the common case of one state, kept cheap
+        comps = [arr.tolist() for arr in arrays]
+        a0, a1, a2 = comps[2]
+        axes_ok = 0.0 < a0 < math.inf and 0.0 < a1 < math.inf and 0.0 < a2 < math.inf  # False for NaN
+        a_min = min(comps[2])
     else:
-        a_min, a_max = axes.min(), axes.max()
-    if not (a_min > 0.0 and a_max < math.inf):
-        raise ValueError(f"`axes` must be > 0 and finite (semi-axes in m). Got {axes.tolist()}.")
+        for name, arr in zip(_NAMES, arrays, strict=False):
+            if arr.shape[-1:] != (3,):
+                raise ValueError(f"`{name}` must have shape (3,) or (..., 3). Got shape {arr.shape}.")
+        if rotation is not None and rotation.shape[-2:] != (3, 3):
+            raise ValueError(f"`rotation` must have shape (3, 3) or (..., 3, 3). Got shape {rotation.shape}.")
+        # Shared (3,) parameters become Python floats here too.
+        comps = [arr.tolist() if arr.ndim == 1 else (arr[..., 0], arr[..., 1], arr[..., 2]) for arr in arrays]
+        axes_ok = bool(((arrays[2] > 0.0) & (arrays[2] < math.inf)).all())
+        a_min = arrays[2].min()
+    if not axes_ok:
+        raise ValueError(f"`axes` must be > 0 and finite (semi-axes in m). Got {arrays[2].tolist()}.")
     if margin is not None and not 0.0 <= margin < a_min:
-        raise ValueError(f"`margin` must be in [0, min(axes)) m. Got {margin} with axes {axes.tolist()}.")
-    # Shared (3,) parameters become Python floats in both modes.
-    comps = [arr.tolist() if arr.ndim == 1 else (arr[..., 0], arr[..., 1], arr[..., 2]) for arr in arrays]
+        raise ValueError(
+            f"`margin` must be in [0, min(axes)) m. Got {margin} with axes {arrays[2].tolist()}."
+        )
     if rotation is None:
         rows = None
     elif rotation.ndim == 2:

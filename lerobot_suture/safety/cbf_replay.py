@@ -25,6 +25,9 @@ from matplotlib.figure import Figure
 
 from lerobot_suture.safety.cbf import ellipsoid_h, filter_velocity, filter_velocity_discrete, margin_level
 
+_H_PLOT_FLOOR = -2.0
+"""Lower limit of the h axis in the figure."""
+
 
 @dataclass(frozen=True)
 class CBFReplay:
@@ -244,7 +247,7 @@ def plot_replay(replay: CBFReplay, center, axes, rotation, out_path, title: str 
     ax3d.plot(act[:, 0], act[:, 1], act[:, 2], color="blue", linewidth=1.5, label="safe (CBF)")
     ax3d.scatter(*ref[0], color="black", s=15, label="start")
     span = np.concatenate([ref, act, np.stack([ex, ey, ez], -1).reshape(-1, 3) * mm])
-    ax3d.set_box_aspect(np.maximum(np.ptp(span, axis=0), 1e-6))
+    ax3d.set_box_aspect(np.maximum(np.ptp(span, axis=0), 1e-6), zoom=0.85)
     ax3d.set_xlabel("x (mm)")
     ax3d.set_ylabel("y (mm)")
     ax3d.set_zlabel("z (mm)")
@@ -260,6 +263,10 @@ def plot_replay(replay: CBFReplay, center, axes, rotation, out_path, title: str 
     k0 = replay.activation_index
     if k0 is not None:
         ax_h.axvline(replay.time[k0], color="green", linestyle=":", linewidth=1, label="CBF on")
+    h_floor = min(float(replay.h_reference.min()), float(np.nanmin(replay.h_actual)))
+    if h_floor < _H_PLOT_FLOOR:  # far outside the set h is very negative; keep the boundary readable
+        ax_h.set_ylim(_H_PLOT_FLOOR, 1.05)
+        ax_h.text(0.01, 0.01, f"clipped below {_H_PLOT_FLOOR:g}", transform=ax_h.transAxes, fontsize="small")
     ax_h.set_xlabel("time (s)")
     ax_h.set_ylabel("h(x)")
     ax_h.set_title("Barrier function")

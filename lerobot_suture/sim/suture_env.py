@@ -119,6 +119,9 @@ GRASP_ANGLE = math.radians(165.0)
 GRASP_ANGLE_RANGE = math.radians(4.0)
 GRASP_OFFSET_RANGE = 0.0005
 GRASP_ROLL_RANGE = 0.05
+ARM_START_NOISE = np.array([0.03, 0.03, 0.002, 0.05, 0.03, 0.03])
+"""Half-range of the uniform noise on the arm's start joints (rad; m for insertion), in the order
+outer yaw, outer pitch, insertion, instrument roll, wrist pitch, wrist yaw."""
 NEEDLE_TILT = math.radians(30.0)
 """Tilt of the needle's plane from the tissue normal during a throw, towards the arm's port."""
 
@@ -375,9 +378,7 @@ class SutureEnv(gym.Env):
             rng.uniform(-1, 1) * GRASP_OFFSET_RANGE,
             rng.uniform(-1, 1) * GRASP_ROLL_RANGE,
         )
-        qpos = self._home_qpos + rng.uniform(-1, 1, size=len(_ARM_JOINTS)) * np.array(
-            [0.03, 0.03, 0.002, 0.05, 0.03, 0.03]
-        )
+        qpos = self._home_qpos + rng.uniform(-1, 1, size=len(_ARM_JOINTS)) * ARM_START_NOISE
         self.data.qpos[self._arm_qpos] = qpos
         self.data.qpos[self._jaw_qpos] = 0.0
         mujoco.mj_forward(self.model, self.data)

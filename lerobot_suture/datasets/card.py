@@ -1,0 +1,178 @@
+"""The dataset card (``README.md``) of a recorded dataset, from ``datasets/card_template.md``.
+
+Our template renders the card's description; LeRobot's own card builder
+(``lerobot.datasets.utils.create_lerobot_dataset_card``, the one ``LeRobotDataset.push_to_hub`` uses)
+wraps it with the YAML header (license, tags, ``task_categories``), the LeRobot badge, the
+``meta/info.json`` structure and the citation. ``write_dataset_card`` saves the same card locally that
+``push_to_hub`` uploads, so what a user reads offline is what the Hub shows.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from lerobot_suture.datasets import metadata
+
+PAPER_TITLE = "Safe Uncertainty-Aware Learning of Robotic Suturing"
+PAPER_URL = "https://arxiv.org/abs/2505.16596"
+CITATION_BIBTEX = """@article{empleo2025safe,
+  title   = {Safe Uncertainty-Aware Learning of Robotic Suturing},
+  author  = {Empleo, Wilbert Peter and Kim, Yitaek and Kim, Hansoul and
+             Savarimuthu, Thiusius Rajeeth and Iturrate, I{\\~n}igo},
+  journal = {arXiv preprint arXiv:2505.16596},
+  year    = {2025}
+}"""
+HOMEPAGE: str | None = None
+"""The project's home page for the card's "Homepage" line (None: LeRobot's placeholder)."""
+LICENSE = "apache-2.0"
+"""Hub license identifier of the datasets we record (Apache-2.0, as the code)."""
+TAGS = ["lerobot-suture", "surgical-robotics", "suturing", "needle-insertion", "simulation", "mujoco"]
+"""Hub tags added to LeRobot's own ``LeRobot`` tag."""
+TEMPLATE_NAME = "card_template.md"
+
+_DESCRIPTIONS = {
+    "observation.images.endoscope": "endoscope RGB image",
+    "observation.state": "measured jaw-tip pose (pose layout below)",
+    "observation.environment_state": "privileged: entry, exit, needle centre (m), needle rotation "
+    "columns, needle tip (m)",
+    "action": "target jaw-tip pose at the end of the control step",
+    "next.reward": "1 on the step the insertion succeeds",
+    "next.success": "the insertion succeeded after this action",
+    "next.done": "the episode ended after this action",
+    "timestamp": "time since the episode start (s)",
+    "frame_index": "frame in the episode",
+    "episode_index": "episode",
+    "index": "frame in the dataset",
+    "task_index": "task (one task)",
+}
+
+
+def default_template_path() -> Path:
+    """``datasets/card_template.md`` of the lerobot-suture source tree."""
+    return Path(__file__).resolve().parents[2] / "datasets" / TEMPLATE_NAME
+
+
+def _index_range(indices: list[int]) -> str:
+    if not indices:
+        return "none"
+    return f"{indices[0]}-{indices[-1]}" if len(indices) > 1 else str(indices[0])
+
+
+def render_description(root: str | Path, template_path: str | Path | None = None) -> str:
+    """Render the card template for the dataset at ``root`` (Markdown).
+
+    Args:
+        root: dataset root (with ``meta/info.json`` and the episode log).
+        template_path: Jinja2 template; None: :func:`default_template_path`.
+
+    Raises:
+        FileNotFoundError: the template is missing (an installed wheel without the source tree).
+    """
+    import jinja2
+
+    from lerobot_suture.sim import geometry
+    from lerobot_suture.sim import suture_env as se
+
+    path = Path(template_path) if template_path is not None else default_template_path()
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"The dataset card template {path} is missing: run from a lerobot-suture source checkout "
+            "(`pip install -e .`), or pass the template's path."
+        )
+    root = Path(root)
+    info = metadata.read_json(root / metadata.INFO_PATH)
+    log = metadata.read_episode_log(root)
+    lengths = [e["length"] for e in log["episodes"]] or [0]
+    reasons: dict[str, int] = {}
+    for d in log["discarded"]:
+        reasons[d["reason"]] = reasons.get(d["reason"], 0) + 1
+    train, val = log["splits"]["train"], log["splits"]["val"]
+    features = [
+        {
+            "key": key,
+            "dtype": ft["dtype"],
+            "shape": str(tuple(ft["shape"])),
+            "description": _DESCRIPTIONS.get(key, ""),
+        }
+        for key, ft in info["features"].items()
+    ]
+    env_kwargs = log["env_kwargs"]
+    context = {
+        "paper_title": PAPER_TITLE,
+        "paper_url": PAPER_URL,
+        "codebase_version": info["codebase_version"],
+        "repo_id": log["repo_id"],
+        "task": log["task"],
+        "fps": log["fps"],
+        "gym_id": log["gym_id"],
+        "max_episode_steps": log["max_episode_steps"],
+        "obs_type": env_kwargs["obs_type"],
+        "image_size": env_kwargs["image_size"],
+        "scenario": env_kwargs["scenario"],
+        "num_episodes": len(log["episodes"]),
+        "num_frames": info["total_frames"],
+        "mean_length": sum(lengths) / len(lengths),
+        "min_length": min(lengths),
+        "max_length": max(lengths),
+        "num_discarded": len(log["discarded"]),
+        "discard_reasons": ", ".join(f"{n} {r}" for r, n in sorted(reasons.items())),
+        "needle_radius_mm": f"{geometry.NEEDLE_RADIUS * 1e3:g}",
+        "entry_tolerance_mm": f"{se.ENTRY_TOLERANCE * 1e3:g}",
+        "exit_tolerance_mm": f"{se.EXIT_TOLERANCE * 1e3:g}",
+        "min_protrusion_mm": f"{se.MIN_PROTRUSION * 1e3:g}",
+        "phantom_range_mm": f"{se.PHANTOM_RANGE_XY * 1e3:g}",
+        "phantom_yaw_rad": f"{se.PHANTOM_YAW_RANGE:g}",
+        "phantom_yaw_deg": f"{math.degrees(se.PHANTOM_YAW_RANGE):.1f}",
+        "grasp_angle_deg": f"{math.degrees(se.GRASP_ANGLE_RANGE):g}",
+        "grasp_nominal_deg": f"{math.degrees(se.GRASP_ANGLE):g}",
+        "grasp_offset_mm": f"{se.GRASP_OFFSET_RANGE * 1e3:g}",
+        "grasp_roll_rad": f"{se.GRASP_ROLL_RANGE:g}",
+        "arm_start_noise": ", ".join(f"{x:g}" for x in se.ARM_START_NOISE),
+        "expert_class": log["expert"]["class"],
+        "expert_config": log["expert"]["config"],
+        "n_train": len(train),
+        "n_val": len(val),
+        "train_range": _index_range(train),
+        "val_range": _index_range(val),
+        "val_fraction": log["val_fraction"],
+        "features": features,
+        "command": log["command"],
+        "versions": log["versions"],
+    }
+    env = jinja2.Environment(undefined=jinja2.StrictUndefined, keep_trailing_newline=True)
+    return env.from_string(path.read_text()).render(**context)
+
+
+def card_kwargs(root: str | Path, template_path: str | Path | None = None) -> dict:
+    """Keyword arguments for ``LeRobotDataset.push_to_hub`` / ``create_lerobot_dataset_card``."""
+    kwargs = {
+        "license": LICENSE,
+        "dataset_description": render_description(root, template_path),
+        "paper": f"[{PAPER_TITLE}]({PAPER_URL})",
+        "citation_bibtex": CITATION_BIBTEX,
+    }
+    if HOMEPAGE:
+        kwargs["url"] = HOMEPAGE
+    return kwargs
+
+
+def make_dataset_card(root: str | Path, template_path: str | Path | None = None):
+    """The ``huggingface_hub.DatasetCard`` that ``push_to_hub`` uploads for the dataset at ``root``."""
+    from lerobot.datasets.io_utils import load_info
+    from lerobot.datasets.utils import create_lerobot_dataset_card
+
+    log = metadata.read_episode_log(root)
+    return create_lerobot_dataset_card(
+        tags=list(TAGS),
+        dataset_info=load_info(Path(root)),
+        repo_id=log["repo_id"],
+        **card_kwargs(root, template_path),
+    )
+
+
+def write_dataset_card(root: str | Path, template_path: str | Path | None = None) -> Path:
+    """Write the dataset card to ``root/README.md``; returns its path."""
+    path = Path(root) / "README.md"
+    make_dataset_card(root, template_path).save(path)
+    return path

@@ -1,0 +1,432 @@
+"""A recorded expert dataset works with LeRobot's own tools: load, decode, train, visualize, push.
+
+One tiny dataset (3 episodes, 32 px, with a checkpoint so it spans two files) is recorded once per
+session through the same code as ``lerobot-suture record``. The Hub is offline (conftest); push tests
+stop at the HTTP calls, which are replaced.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import subprocess
+import sys
+import types
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from lerobot_suture.datasets import metadata
+from lerobot_suture.datasets.record import (
+    ACTION_KEY,
+    ENV_STATE_KEY,
+    IMAGE_KEY,
+    STATE_KEY,
+    TASK,
+    RecordConfig,
+    record,
+    regenerate_episode,
+)
+from lerobot_suture.datasets.split import (
+    episode_seeds,
+    split_episodes,
+    train_episodes,
+    validation_episodes,
+    validation_seeds,
+)
+from lerobot_suture.datasets.video import resolve_video_backend
+
+REPO_ID = "suture-tests/tiny_expert"
+IMAGE_SIZE = 32
+NUM_EPISODES = 3
+
+
+@pytest.fixture(scope="session")
+def tiny(tmp_path_factory):
+    """The tiny dataset's RecordSummary (``.root`` is the dataset root)."""
+    root = tmp_path_factory.mktemp("datasets") / "tiny_expert"
+    cfg = RecordConfig(
+        repo_id=REPO_ID,
+        root=str(root),
+        num_episodes=NUM_EPISODES,
+        val_fraction=0.25,
+        obs_type="pixels_agent_pos_state",
+        image_size=IMAGE_SIZE,
+        checkpoint_every=2,
+    )
+    return record(cfg)
+
+
+@pytest.fixture(scope="session")
+def backend() -> str:
+    return resolve_video_backend()
+
+
+def _load(root, backend, **kwargs):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    return LeRobotDataset(REPO_ID, root=root, video_backend=backend, **kwargs)
+
+
+def _tree_digest(root: Path) -> dict[str, str]:
+    return {
+        p.relative_to(root).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file()
+    }
+
+
+# ------------------------------------------------------------------------------------------ loading
+def test_loads_offline_with_the_right_features_and_counts(tiny, backend):
+    assert os.environ["HF_HUB_OFFLINE"] == "1"
+    ds = _load(tiny.root, backend)
+    log = metadata.read_episode_log(tiny.root)
+    assert ds.num_episodes == NUM_EPISODES == len(log["episodes"])
+    assert ds.num_frames == sum(e["length"] for e in log["episodes"]) == tiny.num_frames
+    assert ds.fps == 10
+    assert ds.meta.info.codebase_version == "v3.0"
+    assert ds.meta.robot_type == "psm"
+    features = ds.features
+    assert features[IMAGE_KEY]["dtype"] == "video"
+    assert tuple(features[IMAGE_KEY]["shape"]) == (IMAGE_SIZE, IMAGE_SIZE, 3)
+    assert tuple(features[STATE_KEY]["shape"]) == (10,)
+    assert tuple(features[ACTION_KEY]["shape"]) == (10,)
+    assert tuple(features[ENV_STATE_KEY]["shape"]) == (18,)
+    item = ds[0]
+    assert item[IMAGE_KEY].shape == (3, IMAGE_SIZE, IMAGE_SIZE)
+    assert item[IMAGE_KEY].dtype == torch.float32
+    assert item["task"] == TASK
+    # The dataset spans two data files (a checkpoint after 2 episodes) and reads as one.
+    assert len(list((tiny.root / "data").rglob("*.parquet"))) == 2
+    assert sorted({int(i) for i in ds.hf_dataset["episode_index"]}) == list(range(NUM_EPISODES))
+
+
+def test_frames_are_the_expert_episode_regenerated_from_its_seed(tiny, backend):
+    episode = 2
+    ds = _load(tiny.root, backend, episodes=[episode])
+    regenerated = regenerate_episode(tiny.root, episode)
+    n = len(ds)
+    assert n == len(regenerated[ACTION_KEY])
+    actions = torch.stack([ds[i][ACTION_KEY] for i in range(n)]).numpy()
+    states = torch.stack([ds[i][STATE_KEY] for i in range(n)]).numpy()
+    np.testing.assert_array_equal(actions, regenerated[ACTION_KEY])
+    np.testing.assert_array_equal(states, regenerated[STATE_KEY])
+    # Video is lossy: decoded frames are close to the rendered ones, not equal.
+    decoded = ds[n - 1][IMAGE_KEY].permute(1, 2, 0).numpy() * 255.0
+    rendered = regenerated[IMAGE_KEY][n - 1].astype(np.float64)
+    assert np.abs(decoded - rendered).mean() < 12.0
+    assert bool(ds[n - 1]["next.success"]) and bool(ds[n - 1]["next.done"])
+    assert not bool(ds[0]["next.done"])
+
+
+def test_video_backend_is_one_that_loads_here(tiny):
+    chosen = resolve_video_backend()
+    try:
+        import torchcodec  # noqa: F401
+
+        loads = True
+    except (ImportError, OSError, RuntimeError):
+        loads = False
+    assert chosen == ("torchcodec" if loads else "pyav")
+    with pytest.raises(ValueError, match="video_backend"):
+        resolve_video_backend("ffmpeg")
+    # Every frame of an episode decodes with it.
+    ds = _load(tiny.root, chosen, episodes=[0])
+    frames = torch.stack([ds[i][IMAGE_KEY] for i in range(len(ds))])
+    assert frames.shape[1:] == (3, IMAGE_SIZE, IMAGE_SIZE)
+    assert 0.0 <= float(frames.min()) and float(frames.max()) <= 1.0 and float(frames.std()) > 0.01
+
+
+# --------------------------------------------------------------------------------- seeds and split
+def test_episode_log_records_seeds_split_and_survives_finalize(tiny):
+    log = metadata.read_episode_log(tiny.root)
+    assert episode_seeds(tiny.root) == [0, 1, 2]  # the expert succeeds on the first seeds
+    assert log["next_seed"] == 3 and log["discarded"] == []
+    assert log["env_kwargs"] == {
+        "obs_type": "pixels_agent_pos_state",
+        "image_size": IMAGE_SIZE,
+        "scenario": "nominal",
+    }
+    assert train_episodes(tiny.root) == [0, 1] and validation_episodes(tiny.root) == [2]
+    assert validation_seeds(tiny.root) == [2]
+    assert (tiny.train_episodes, tiny.val_episodes) == ([0, 1], [2])
+    assert not (tiny.root / metadata.CHECKPOINT_PATH).exists()  # the recording finished cleanly
+    info = json.loads((tiny.root / "meta" / "info.json").read_text())
+    assert info["splits"] == {"train": "0:2", "val": "2:3"}
+    assert log["command"].startswith("lerobot-suture record --repo_id=suture-tests/tiny_expert")
+
+
+def test_lerobot_eval_split_holds_out_exactly_the_validation_episodes(tiny, backend):
+    """`lerobot-train --dataset.eval_split=<val_fraction>` trains on our train split, evaluates on val."""
+    from types import SimpleNamespace
+
+    from lerobot.configs.default import DatasetConfig
+    from lerobot.datasets.factory import make_train_eval_datasets
+
+    no_deltas = SimpleNamespace(
+        reward_delta_indices=None, action_delta_indices=None, observation_delta_indices=None
+    )
+    dataset_cfg = DatasetConfig(repo_id=REPO_ID, root=str(tiny.root), eval_split=0.25, video_backend=backend)
+    cfg = SimpleNamespace(dataset=dataset_cfg, trainable_config=no_deltas, tolerance_s=1e-4)
+    train_ds, eval_ds = make_train_eval_datasets(cfg)
+    assert train_ds.episodes == train_episodes(tiny.root)
+    assert eval_ds.episodes == validation_episodes(tiny.root)
+
+
+@pytest.mark.parametrize(
+    "n, fraction, expected_val",
+    [(133, 0.25, 34), (100, 0.25, 25), (3, 0.25, 1), (10, 0.0, 0), (1, 0.5, 1)],
+)
+def test_split_matches_lerobot_eval_split(n, fraction, expected_val):
+    import math
+
+    train, val = split_episodes(n, fraction)
+    assert len(val) == expected_val == math.ceil(n * fraction)
+    assert train + val == list(range(n))
+
+
+def test_split_rejects_bad_fraction():
+    with pytest.raises(ValueError, match="val_fraction"):
+        split_episodes(10, 1.0)
+
+
+# -------------------------------------------------------------------------------------------- card
+def test_dataset_card_says_what_the_dataset_is(tiny):
+    card = (tiny.root / "README.md").read_text()
+    log = metadata.read_episode_log(tiny.root)
+    for needle in (
+        "license: apache-2.0",
+        "- lerobot-suture",
+        "- LeRobot",
+        "Safe Uncertainty-Aware Learning of Robotic Suturing",
+        "arXiv:2505.16596",
+        TASK,
+        "phantom yaw",
+        "±10 mm",
+        "ScriptedExpert",
+        "| train | 2 | 0-1 |",
+        "| val | 1 | 2 |",
+        "--dataset.eval_split=0.25",
+        "`observation.images.endoscope` | video | (32, 32, 3)",
+        "`observation.environment_state` | float32 | (18,)",
+        log["command"],
+        "License: Apache-2.0",
+    ):
+        assert needle in card, needle
+    assert "{{" not in card and "{%" not in card
+
+
+# ---------------------------------------------------------------------------------- lerobot tools
+def test_lerobot_train_runs_on_the_train_split(tiny, backend, tmp_path):
+    """The real `lerobot-train` command: a tiny diffusion policy, 2 steps on the train episodes, CPU."""
+    episodes = ",".join(str(i) for i in train_episodes(tiny.root))
+    cmd = [
+        str(Path(sys.executable).parent / "lerobot-train"),
+        f"--dataset.repo_id={REPO_ID}",
+        f"--dataset.root={tiny.root}",
+        f"--dataset.episodes=[{episodes}]",
+        f"--dataset.video_backend={backend}",
+        "--policy.type=diffusion",
+        "--policy.device=cpu",
+        "--policy.pretrained_backbone_weights=null",
+        "--policy.use_group_norm=true",
+        "--policy.push_to_hub=false",
+        "--policy.down_dims=[32,64]",
+        "--policy.horizon=8",
+        "--policy.n_action_steps=4",
+        "--policy.n_obs_steps=2",
+        "--batch_size=2",
+        "--steps=2",
+        "--num_workers=0",
+        "--save_checkpoint=false",
+        f"--output_dir={tmp_path / 'train'}",
+    ]
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "WANDB_MODE": "disabled", "OMP_NUM_THREADS": "2"}
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0, out[-4000:]
+    assert "dataset.num_episodes=2" in out and "End of training" in out, out[-4000:]
+
+
+def _fake_rerun(saved: dict) -> tuple[types.ModuleType, types.ModuleType]:
+    """A stand-in for rerun-sdk (not installed here) that records what lerobot-dataset-viz logs."""
+    rr = types.ModuleType("rerun")
+    rrb = types.ModuleType("rerun.blueprint")
+
+    class Entity:
+        def __init__(self, *args, **kwargs):
+            self.args, self.kwargs = args, kwargs
+
+        def compress(self):
+            return self
+
+    for name in ("Image", "Scalars", "DepthImage", "SeriesLines"):
+        setattr(rr, name, type(name, (Entity,), {}))
+    for name in ("Spatial2DView", "TimeSeriesView", "Blueprint", "Grid"):
+        setattr(rrb, name, type(name, (Entity,), {}))
+    rr.components = types.SimpleNamespace(Colormap=types.SimpleNamespace(Viridis="viridis"))
+    rr.blueprint = rrb
+    logged: list[tuple[str, object]] = []
+    rr.init = lambda *a, **k: None
+    rr.set_time = lambda *a, **k: None
+    rr.log = lambda key, entity=None, *a, **k: logged.append((key, entity if entity is not None else a[0]))
+
+    def save(path):
+        images = [e for k, e in logged if k == IMAGE_KEY]
+        saved.update(images=images, keys=sorted({k for k, _ in logged}))
+        Path(path).write_text(json.dumps({"frames": len(images)}))
+
+    rr.save = save
+    return rr, rrb
+
+
+def test_lerobot_dataset_viz_opens_an_episode(tiny, tmp_path, monkeypatch):
+    """`lerobot-dataset-viz --save 1` (its main(), as the console script runs it) writes the episode."""
+    import lerobot.utils.import_utils as import_utils
+    from lerobot.scripts import lerobot_dataset_viz as viz
+
+    saved: dict = {}
+    try:
+        import rerun  # noqa: F401
+
+        real = True
+    except ImportError:  # rerun-sdk is LeRobot's optional `viz` extra
+        real = False
+        rr, rrb = _fake_rerun(saved)
+        monkeypatch.setitem(sys.modules, "rerun", rr)
+        monkeypatch.setitem(sys.modules, "rerun.blueprint", rrb)
+        monkeypatch.setitem(import_utils._require_package_cache, "rerun", True)
+    episode = 1
+    argv = [
+        "lerobot-dataset-viz",
+        "--repo-id",
+        REPO_ID,
+        "--root",
+        str(tiny.root),
+        "--episode-index",
+        str(episode),
+    ]
+    argv += ["--save", "1", "--output-dir", str(tmp_path), "--num-workers", "0", "--batch-size", "16"]
+    monkeypatch.setattr(sys, "argv", argv)
+    viz.main()
+    rrd = tmp_path / f"{REPO_ID.replace('/', '_')}_episode_{episode}.rrd"
+    assert rrd.is_file() and rrd.stat().st_size > 0
+    if not real:
+        length = metadata.read_episode_log(tiny.root)["episodes"][episode]["length"]
+        assert len(saved["images"]) == length
+        assert saved["images"][0].args[0].shape == (IMAGE_SIZE, IMAGE_SIZE, 3)
+        assert {"action", "state", "next.done", "next.reward", "next.success"} <= set(saved["keys"])
+
+
+# --------------------------------------------------------------------------------------------- hub
+@pytest.fixture
+def online_without_token(monkeypatch, tmp_path):
+    """The Hub switched on (conftest switches it off) and no token anywhere."""
+    from huggingface_hub import constants
+
+    monkeypatch.setattr(constants, "HF_HUB_OFFLINE", False)
+    monkeypatch.setattr(constants, "HF_TOKEN_PATH", str(tmp_path / "no_token"))
+    monkeypatch.delenv("HF_TOKEN", raising=False)
+    monkeypatch.delenv("HUGGING_FACE_HUB_TOKEN", raising=False)
+
+
+def test_push_without_token_fails_fast_and_keeps_the_dataset(tiny, online_without_token):
+    from lerobot_suture.datasets.hub import HubPushError, push_dataset
+
+    before = _tree_digest(tiny.root)
+    with pytest.raises(HubPushError, match="No Hugging Face token: log in with `hf auth login`"):
+        push_dataset(REPO_ID, tiny.root)
+    assert _tree_digest(tiny.root) == before
+
+
+def test_push_in_offline_mode_says_so(tiny):
+    from lerobot_suture.datasets.hub import HubPushError, push_dataset
+
+    with pytest.raises(HubPushError, match="HF_HUB_OFFLINE is set"):
+        push_dataset(REPO_ID, tiny.root)
+
+
+def test_push_command_reports_errors(tiny, capsys):
+    from lerobot_suture.datasets import hub
+
+    with pytest.raises(SystemExit) as exit_:
+        hub.main(["--repo_id=not-a-repo-id"])
+    assert exit_.value.code == 2 and "USER/NAME" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_:
+        hub.main([f"--repo_id={REPO_ID}", f"--root={tiny.root}"])
+    assert exit_.value.code == 1 and "HF_HUB_OFFLINE is set" in capsys.readouterr().err
+
+
+def test_push_without_network_fails_fast_and_keeps_the_dataset(tiny, online_without_token, monkeypatch):
+    import httpx
+    from huggingface_hub import HfApi
+
+    from lerobot_suture.datasets.hub import HubPushError, push_dataset
+
+    monkeypatch.setenv("HF_TOKEN", "hf_test_token")
+
+    def unreachable(self, *args, **kwargs):
+        raise httpx.ConnectError("[Errno -3] Temporary failure in name resolution")
+
+    monkeypatch.setattr(HfApi, "whoami", unreachable)
+    before = _tree_digest(tiny.root)
+    with pytest.raises(HubPushError, match="Cannot reach the Hugging Face Hub"):
+        push_dataset(REPO_ID, tiny.root)
+    assert _tree_digest(tiny.root) == before
+
+
+def test_push_uses_lerobot_push_to_hub_with_tags_and_card(tiny, online_without_token, monkeypatch):
+    """Everything up to the HTTP calls runs; those are recorded instead of sent."""
+    import httpx
+    from huggingface_hub import DatasetCard, HfApi
+
+    from lerobot_suture.datasets.hub import HubPushError, push_dataset
+
+    monkeypatch.setenv("HF_TOKEN", "hf_test_token")
+    calls: dict[str, list] = {}
+
+    def recorder(name, result=None):
+        def call(self, *args, **kwargs):
+            calls.setdefault(name, []).append(kwargs)
+            return result
+
+        return call
+
+    monkeypatch.setattr(
+        HfApi, "whoami", recorder("whoami", {"name": "someone", "orgs": [{"name": "suture-tests"}]})
+    )
+    for name in ("create_repo", "upload_folder", "create_tag", "delete_tag", "create_branch"):
+        monkeypatch.setattr(HfApi, name, recorder(name))
+    pushed_cards = []
+    monkeypatch.setattr(DatasetCard, "push_to_hub", lambda self, **kw: pushed_cards.append((str(self), kw)))
+
+    before = _tree_digest(tiny.root)
+    url = push_dataset(REPO_ID, tiny.root, private=True)
+    assert url == f"https://huggingface.co/datasets/{REPO_ID}"
+    assert calls["create_repo"][0]["repo_id"] == REPO_ID and calls["create_repo"][0]["private"] is True
+    upload = calls["upload_folder"][0]
+    assert Path(upload["folder_path"]) == tiny.root and upload["repo_type"] == "dataset"
+    assert calls["create_tag"][0]["tag"] == "v3.0"
+    card, kwargs = pushed_cards[0]
+    assert kwargs["repo_id"] == REPO_ID
+    assert "- lerobot-suture" in card and "Safe Uncertainty-Aware Learning of Robotic Suturing" in card
+    assert card.strip() == (tiny.root / "README.md").read_text().strip()  # the local card is the Hub's
+    assert _tree_digest(tiny.root) == before
+
+    # An upload that breaks off leaves the local dataset as it was and says how to retry.
+    def broken_upload(self, *args, **kwargs):
+        raise httpx.ReadTimeout("The read operation timed out")
+
+    monkeypatch.setattr(HfApi, "upload_folder", broken_upload)
+    with pytest.raises(HubPushError, match="intact; push it later with `lerobot-suture push"):
+        push_dataset(REPO_ID, tiny.root)
+    assert _tree_digest(tiny.root) == before
+
+    # A namespace the token cannot write to is refused before anything is uploaded.
+    calls.clear()
+    with pytest.raises(HubPushError, match="cannot write to 'elsewhere'"):
+        push_dataset("elsewhere/tiny_expert", tiny.root)
+    assert "upload_folder" not in calls
