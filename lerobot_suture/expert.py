@@ -116,14 +116,24 @@ class ScriptedExpert:
                 self.phase = "descend"
             else:
                 target = _step_towards(
-                    centre, rotation, goal, frame.start_rotation, cfg.approach_speed * dt, cfg.approach_turn_rate * dt
+                    centre,
+                    rotation,
+                    goal,
+                    frame.start_rotation,
+                    cfg.approach_speed * dt,
+                    cfg.approach_turn_rate * dt,
                 )
         if self.phase == "descend":
             if np.linalg.norm(frame.centre - centre) < cfg.position_tolerance:
                 self.phase = "drive"
             else:
                 target = _step_towards(
-                    centre, rotation, frame.centre, frame.start_rotation, cfg.descend_speed * dt, cfg.approach_turn_rate * dt
+                    centre,
+                    rotation,
+                    frame.centre,
+                    frame.start_rotation,
+                    cfg.descend_speed * dt,
+                    cfg.approach_turn_rate * dt,
                 )
         final_angle = frame.exit_angle + cfg.protrusion_angle
         if self.phase == "drive":

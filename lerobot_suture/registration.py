@@ -33,7 +33,9 @@ def make_suture_env(cbf=None, **kwargs) -> gym.Env:
     if isinstance(cbf, dict):
         cbf = CBFConfig(**cbf)
     if not isinstance(cbf, CBFConfig):
-        raise ValueError(f"`cbf` must be a CBFConfig, a dict of its fields, or None. Got {type(cbf).__name__}.")
+        raise ValueError(
+            f"`cbf` must be a CBFConfig, a dict of its fields, or None. Got {type(cbf).__name__}."
+        )
     return CBFActionWrapper(env, cbf)
 
 

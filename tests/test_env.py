@@ -183,7 +183,10 @@ def test_every_scenario_runs_and_its_perturbation_happens(scenario):
         assert 0.0 <= history[-1][1]["needle_tip_pos"][2] < 0.015
     if scenario == "camera_moved":
         assert onset == 0
-        assert np.linalg.norm(u.model.cam_pos[u.model.camera("endoscope").id] - SutureEnv().model.cam_pos[0]) > 0.01
+        assert (
+            np.linalg.norm(u.model.cam_pos[u.model.camera("endoscope").id] - SutureEnv().model.cam_pos[0])
+            > 0.01
+        )
     if scenario in ("phantom_servo", "phantom_moved_after_insertion"):
         entry_track = np.array([obs["environment_state"][:3] for obs, _ in history])
         assert np.ptp(entry_track, axis=0).max() > 1e-3, "the phantom did not move"

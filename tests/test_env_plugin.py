@@ -38,7 +38,12 @@ def test_cli_flags_parse_nested_cbf_and_scenario(suture_config_cls):
 
     cfg = draccus.parse(
         EvalLike,
-        args=["--env.type=suture", "--env.scenario=needle_drop", "--env.cbf.enabled=true", "--env.cbf.alpha=3.0"],
+        args=[
+            "--env.type=suture",
+            "--env.scenario=needle_drop",
+            "--env.cbf.enabled=true",
+            "--env.cbf.alpha=3.0",
+        ],
     ).env
     assert isinstance(cfg, suture_config_cls)
     assert cfg.scenario == "needle_drop" and cfg.cbf.enabled and cfg.cbf.alpha == 3.0

@@ -89,8 +89,7 @@ class ScenarioConfig:
             raise ValueError(f"`scenario_magnitude` must be finite and >= 0. Got {self.magnitude}.")
         if self.glide_steps < 1 or self.period_steps < 1:
             raise ValueError(
-                f"`glide_steps` and `period_steps` must be >= 1. Got {self.glide_steps}, "
-                f"{self.period_steps}."
+                f"`glide_steps` and `period_steps` must be >= 1. Got {self.glide_steps}, {self.period_steps}."
             )
 
 
@@ -120,7 +119,9 @@ class Scenario:
         elif cfg.name == "camera_moved":
             if step >= cfg.onset_step and not self.perturbed:
                 # Orbit the endoscope sideways and lower it: a viewpoint never seen in training.
-                env.set_endoscope_viewpoint(azimuth_offset=cfg.magnitude, elevation_offset=-0.25 * cfg.magnitude)
+                env.set_endoscope_viewpoint(
+                    azimuth_offset=cfg.magnitude, elevation_offset=-0.25 * cfg.magnitude
+                )
                 self.perturbed = True
         elif cfg.name == "phantom_servo":
             if not env.needle_touched_tissue and step >= self._next_move_step and not self._glide:

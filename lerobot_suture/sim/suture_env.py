@@ -223,11 +223,7 @@ class SutureEnv(gym.Env):
         obs_spaces: dict[str, spaces.Space] = {}
         if "pixels" in obs_type:
             obs_spaces["pixels"] = spaces.Dict(
-                {
-                    "endoscope": spaces.Box(
-                        0, 255, (self.image_size, self.image_size, 3), dtype=np.uint8
-                    )
-                }
+                {"endoscope": spaces.Box(0, 255, (self.image_size, self.image_size, 3), dtype=np.uint8)}
             )
         obs_spaces["agent_pos"] = spaces.Box(-np.inf, np.inf, (10,), dtype=np.float32)
         if obs_type in ("state", "pixels_agent_pos_state"):
@@ -372,7 +368,9 @@ class SutureEnv(gym.Env):
         self.set_endoscope_viewpoint()
 
         xy = PHANTOM_NOMINAL[:2] + rng.uniform(-PHANTOM_RANGE_XY, PHANTOM_RANGE_XY, size=2)
-        self.set_phantom_pose(np.array([xy[0], xy[1], PHANTOM_NOMINAL[2]]), rng.uniform(-1, 1) * PHANTOM_YAW_RANGE)
+        self.set_phantom_pose(
+            np.array([xy[0], xy[1], PHANTOM_NOMINAL[2]]), rng.uniform(-1, 1) * PHANTOM_YAW_RANGE
+        )
         self._grasp_pos, self._grasp_rot = grasp_transform(
             GRASP_ANGLE + rng.uniform(-1, 1) * GRASP_ANGLE_RANGE,
             rng.uniform(-1, 1) * GRASP_OFFSET_RANGE,
@@ -412,7 +410,9 @@ class SutureEnv(gym.Env):
             v_nominal = controller.point_velocity(linear, angular, jaw_pos, point)
             v_command = v_nominal
             if self.tip_velocity_filter is not None:
-                v_command = np.asarray(self.tip_velocity_filter(point.copy(), v_nominal.copy()), dtype=np.float64)
+                v_command = np.asarray(
+                    self.tip_velocity_filter(point.copy(), v_nominal.copy()), dtype=np.float64
+                )
                 if v_command.shape != (3,) or not np.all(np.isfinite(v_command)):
                     raise ValueError(
                         f"`tip_velocity_filter` must return a finite (3,) velocity. Got {v_command!r}."
@@ -435,7 +435,9 @@ class SutureEnv(gym.Env):
 
         d.qfrc_applied[:] = 0.0
         if self._grasped and self._in_tissue:
-            d.qfrc_applied[self._arm_dofs] = self._tissue_resistance(jaw_pos, jaw_rot, linear, angular, jacp, jacr)
+            d.qfrc_applied[self._arm_dofs] = self._tissue_resistance(
+                jaw_pos, jaw_rot, linear, angular, jacp, jacr
+            )
 
         trace = None
         if self.record_tip_trace:
@@ -531,7 +533,9 @@ class SutureEnv(gym.Env):
             lin, ang = controller.pose_velocity_command(p, r, target_pos, target_rot, 1.0, 1.0, 1.0)
             mujoco.mj_jac(m, d, jacp, jacr, p, self._jaw_body)
             jac = np.vstack([IK_LINEAR_WEIGHT * jacp[:, self._arm_dofs], jacr[:, self._arm_dofs]])
-            qdot = controller.damped_least_squares(jac, np.concatenate([IK_LINEAR_WEIGHT * lin, ang]), IK_DAMPING)
+            qdot = controller.damped_least_squares(
+                jac, np.concatenate([IK_LINEAR_WEIGHT * lin, ang]), IK_DAMPING
+            )
             d.qpos[self._arm_qpos] = np.clip(d.qpos[self._arm_qpos] + 0.5 * qdot, lo, hi)
         return d.qpos[self._arm_qpos].copy()
 
