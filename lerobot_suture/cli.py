@@ -11,6 +11,10 @@ SUBCOMMANDS = {
     "demo": ("lerobot_suture.demo", "run the main job at a small default and write figures"),
     "record": ("lerobot_suture.datasets.record", "record expert insertions as a LeRobotDataset"),
     "push": ("lerobot_suture.datasets.hub", "push a recorded dataset to the Hugging Face Hub"),
+    "cbf-replay": (
+        "lerobot_suture.experiments.cbf_offline",
+        "filter a recorded unsafe throw offline, plot it",
+    ),
 }
 
 

@@ -436,7 +436,7 @@ class SutureEnv(gym.Env):
         d.qfrc_applied[:] = 0.0
         if self._grasped and self._in_tissue:
             d.qfrc_applied[self._arm_dofs] = self._tissue_resistance(
-                jaw_pos, jaw_rot, linear, angular, jacp, jacr
+                jaw_pos, jaw_rot, point, v_command, angular, jacp, jacr
             )
 
         trace = None
@@ -550,16 +550,19 @@ class SutureEnv(gym.Env):
         self._set_needle_free_pose(centre, rot)
         self.data.qvel[self._needle_dof : self._needle_dof + 6] = 0.0
 
-    def _tissue_resistance(self, jaw_pos, jaw_rot, linear, angular, jacp, jacr) -> np.ndarray:
-        """Generalized arm forces resisting the commanded off-arc motion of the needle in tissue."""
+    def _tissue_resistance(self, jaw_pos, jaw_rot, point, v_point, angular, jacp, jacr) -> np.ndarray:
+        """Generalized arm forces resisting the commanded (filtered) off-arc motion of the needle in tissue.
+
+        ``point`` is where the Jacobians were taken (the needle tip) and ``v_point`` its commanded velocity.
+        """
         centre = jaw_pos + jaw_rot @ self._grasp_pos
         axis = jaw_rot @ self._grasp_rot[:, 2]
-        v_centre = controller.point_velocity(linear, angular, jaw_pos, centre)
+        v_centre = controller.point_velocity(v_point, angular, point, centre)
         w_off = angular - (angular @ axis) * axis
         force = -TISSUE_DAMPING * v_centre
         torque = -TISSUE_ROTATIONAL_DAMPING * w_off
         # The force acts at the needle centre: shift the linear Jacobian from the control point.
-        jac_centre = jacp[:, self._arm_dofs] - _skew(centre - self.needle_tip_pos) @ jacr[:, self._arm_dofs]
+        jac_centre = jacp[:, self._arm_dofs] - _skew(centre - point) @ jacr[:, self._arm_dofs]
         return jac_centre.T @ force + jacr[:, self._arm_dofs].T @ torque
 
     def _update_tissue_state(self, first: bool = False) -> None:

@@ -1,0 +1,147 @@
+"""The CBF live in the loop of SutureEnv: an adversary pulls the needle sideways out of the wound.
+
+The adversary runs the scripted expert until the needle has been in tissue for a few steps, then
+commands the jaw 2 cm along the phantom's lateral axis (orientation kept, jaw closed) and holds that
+target. Safety is checked at every physics step from ``info["needle_tip_trace"]``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from lerobot_suture.experiments.adversary import SidewaysPull
+from lerobot_suture.expert import ScriptedExpert
+from lerobot_suture.safety.cbf import CBFConfig, ellipsoid_h
+from lerobot_suture.safety.cbf_wrapper import PHASE_ACTIVE, CBFActionWrapper
+from lerobot_suture.sim.suture_env import SutureEnv
+
+PULL_DISTANCE = 0.02  # m, along the phantom's lateral axis
+STEPS_IN_TISSUE_BEFORE_PULL = 3
+PULL_STEPS = 20
+MAX_STEPS = 100
+FAST_SEEDS = range(5)
+SLOW_SEEDS = range(5, 35)
+
+
+@dataclass
+class Episode:
+    h_min_active: float  # smallest h over every physics step while the CBF was active
+    h_min_pull: float  # smallest h over every physics step of the pull (nan without a pull)
+    tissue_strain: float  # m, at the end of the episode
+    interventions: int
+    phases: list[str]
+    success: bool
+
+
+def run_episode(seed: int, enabled: bool, adversarial: bool) -> Episode:
+    env = CBFActionWrapper(SutureEnv(obs_type="state", record_tip_trace=True), CBFConfig(enabled=enabled))
+    env.reset(seed=seed)
+    policy = SidewaysPull(PULL_DISTANCE, STEPS_IN_TISSUE_BEFORE_PULL) if adversarial else ScriptedExpert()
+    policy.reset(env)
+    pull_steps = 0
+    h_active, h_pull, phases, interventions, info, success = [], [], [], 0, {}, False
+    for _ in range(MAX_STEPS):
+        action = policy.act(env)
+        pulling = adversarial and policy.pulling
+        if pulling:
+            if pull_steps == PULL_STEPS:
+                break
+            pull_steps += 1
+        _, _, terminated, truncated, info = env.step(action)
+        center, axes, rotation = env.safe_set()
+        h_trace = float(ellipsoid_h(info["needle_tip_trace"], center, axes, rotation).min())
+        if info["cbf_active"]:
+            h_active.append(h_trace)
+        if pulling:
+            h_pull.append(h_trace)
+        phases.append(env.phase)
+        interventions += info["cbf_intervened"]
+        success = success or bool(info["is_success"])
+        if terminated or truncated:
+            break
+    env.close()
+    return Episode(
+        h_min_active=min(h_active, default=np.nan),
+        h_min_pull=min(h_pull, default=np.nan),
+        tissue_strain=float(info["tissue_strain"]),
+        interventions=interventions,
+        phases=phases,
+        success=success,
+    )
+
+
+def check_sideways_pull(seeds) -> None:
+    strain_off, strain_on = [], []
+    for seed in seeds:
+        off = run_episode(seed, enabled=False, adversarial=True)
+        on = run_episode(seed, enabled=True, adversarial=True)
+        assert off.h_min_pull < 0.0, f"seed {seed}: the pull should leave the safe set without the filter"
+        assert on.phases[-1] == PHASE_ACTIVE, (
+            f"seed {seed}: the filter must stay on while the needle is held in tissue"
+        )
+        assert on.h_min_active >= 0.0, (
+            f"seed {seed}: h = {on.h_min_active} < 0 at a physics step with the filter on"
+        )
+        assert on.interventions > 0
+        strain_off.append(off.tissue_strain)
+        strain_on.append(on.tissue_strain)
+    strain_off, strain_on = np.array(strain_off), np.array(strain_on)
+    assert np.all(strain_on < strain_off), (strain_on, strain_off)
+    assert strain_on.mean() < 0.5 * strain_off.mean()
+
+
+def test_sideways_pull_leaves_the_set_without_the_filter_and_never_with_it():
+    check_sideways_pull(FAST_SEEDS)
+
+
+@pytest.mark.slow
+def test_sideways_pull_many_seeds():
+    check_sideways_pull(SLOW_SEEDS)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_filter_leaves_the_expert_throw_alone(seed):
+    off = run_episode(seed, enabled=False, adversarial=False)
+    on = run_episode(seed, enabled=True, adversarial=False)
+    assert off.success and on.success
+    assert PHASE_ACTIVE in on.phases and on.interventions == 0
+    assert on.h_min_active >= 0.0
+    assert on.tissue_strain == off.tissue_strain
+
+
+def free_pull_h(seed: int, enabled: bool, direction: np.ndarray) -> tuple[float, float]:
+    """Pull 3 cm in ``direction`` (ellipsoid frame) as soon as the filter is on, before the needle
+    touches tissue (no tissue resistance: the tip goes where the filter lets it). Returns the smallest
+    h over the physics steps and h at the end."""
+    env = CBFActionWrapper(SutureEnv(obs_type="state", record_tip_trace=True), CBFConfig(enabled=enabled))
+    env.reset(seed=seed)
+    expert = ScriptedExpert()
+    expert.reset(env)
+    pull_action, h_min, info = None, np.inf, {}
+    for _ in range(60):
+        if pull_action is None and env.phase == PHASE_ACTIVE:
+            _, _, rotation = env.safe_set()
+            pull_action = expert.act(env).copy()
+            pull_action[:3] += 0.03 * rotation @ direction
+        _, _, _, _, info = env.step(expert.act(env) if pull_action is None else pull_action)
+        if pull_action is not None:
+            center, axes, rotation = env.safe_set()
+            h_min = min(h_min, float(ellipsoid_h(info["needle_tip_trace"], center, axes, rotation).min()))
+    env.close()
+    return h_min, info["h"]
+
+
+@pytest.mark.parametrize("direction", [(0.0, 1.0, 0.0), (1.0, 0.0, 0.0), (-0.6, -0.8, 0.0)])
+def test_free_pull_stops_at_the_tightened_boundary(direction):
+    direction = np.array(direction)
+    h_margin = CBFConfig().margin_level
+    for seed in (0, 1):
+        h_min_off, _ = free_pull_h(seed, enabled=False, direction=direction)
+        h_min_on, h_end_on = free_pull_h(seed, enabled=True, direction=direction)
+        assert h_min_off < 0.0
+        # The tip slides up to the set tightened by the margin, and no further at any physics step.
+        assert h_min_on >= 0.0
+        assert h_margin - 0.02 < h_end_on < h_margin + 0.02
