@@ -42,15 +42,20 @@ import torch
 from torch import Tensor
 
 
-def ensemble_mean(samples: Tensor, dim: int = -3) -> Tensor:
-    """Mean over the member axis.
+def ensemble_mean(samples: Tensor, dim: int = -3, keepdim: bool = False) -> Tensor:
+    """Mean over the member axis, exact when all members agree.
+
+    Computed as x_0 + mean(x_n - x_0): identical members give exactly their common value (and so an exactly
+    zero covariance), where a plain sum-then-divide can be off by rounding.
 
     Args:
         samples: (..., N, T, A) samples; the member axis is `dim` (default: third from last).
     Returns:
-        (..., T, A) mean.
+        (..., T, A) mean ((..., 1, T, A) with `keepdim`).
     """
-    return samples.mean(dim=dim)
+    shift = samples.narrow(dim, 0, 1)  # (..., 1, T, A)
+    mean = shift + (samples - shift).mean(dim=dim, keepdim=True)
+    return mean if keepdim else mean.squeeze(dim)
 
 
 def ensemble_covariance(samples: Tensor, correction: int = 1) -> Tensor:
@@ -64,8 +69,10 @@ def ensemble_covariance(samples: Tensor, correction: int = 1) -> Tensor:
     """
     n = samples.shape[-3]
     if n - correction < 1:
-        raise ValueError(f"A covariance with correction={correction} needs at least {correction + 1} samples. Got {n}.")
-    centered = samples - samples.mean(dim=-3, keepdim=True)  # (..., N, T, A)
+        raise ValueError(
+            f"A covariance with correction={correction} needs at least {correction + 1} samples. Got {n}."
+        )
+    centered = samples - ensemble_mean(samples, keepdim=True)  # (..., N, T, A)
     cov = torch.einsum("...nta,...ntb->...tab", centered, centered) / (n - correction)  # (..., T, A, A)
     return 0.5 * (cov + cov.transpose(-1, -2))  # exact symmetry despite rounding
 
@@ -81,7 +88,7 @@ def total_covariance_split(samples: Tensor, correction: int = 1) -> tuple[Tensor
         epistemic: (..., T, A, A) covariance over members of each member's mean over its K samples.
         total: (..., T, A, A) aleatoric + epistemic.
     """
-    member_means = samples.mean(dim=-3)  # (..., N, T, A)
+    member_means = ensemble_mean(samples)  # (..., N, T, A): mean over each member's K samples
     within = ensemble_covariance(samples, correction=correction)  # (..., N, T, A, A)
     aleatoric = within.mean(dim=-4)  # (..., T, A, A)
     epistemic = ensemble_covariance(member_means, correction=correction)  # (..., T, A, A)
@@ -155,7 +162,7 @@ def compute_ensemble_stats(samples: Tensor, correction: int = 1) -> EnsembleActi
     Returns:
         EnsembleActionStats; with K = 1 `covariance` is the paper's ensemble covariance over the N members.
     """
-    member_mean = samples.mean(dim=2)  # (B, N, T, A)
+    member_mean = ensemble_mean(samples, dim=2)  # (B, N, T, A)
     mean = ensemble_mean(member_mean)  # (B, T, A)
     if samples.shape[2] == 1:
         epistemic = ensemble_covariance(member_mean, correction=correction)  # (B, T, A, A)

@@ -1,0 +1,546 @@
+#!/usr/bin/env python
+
+# Licensed under the Apache License, Version 2.0 (the "License");
+# you may not use this file except in compliance with the License.
+# You may obtain a copy of the License at
+#
+#     http://www.apache.org/licenses/LICENSE-2.0
+#
+# Unless required by applicable law or agreed to in writing, software
+# distributed under the License is distributed on an "AS IS" BASIS,
+# WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
+# See the License for the specific language governing permissions and
+# limitations under the License.
+"""Ensemble of N LeRobot diffusion policies ("Safe Uncertainty-Aware Learning of Robotic Suturing").
+
+The members are plain LeRobot `DiffusionPolicy` modules (`self.members[n]`), trained together on one data
+pipeline (loss = mean of the member losses) from independent initialisations. At inference every member
+samples an action chunk for the same observation; the ensemble executes the mean chunk and reports the
+per-step covariance, whose largest absolute entry is the paper's uncertainty score sigma_hat.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+from collections import deque
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+from lerobot.configs import FeatureType, NormalizationMode
+from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
+from lerobot.policies.pretrained import PreTrainedPolicy
+from lerobot.policies.utils import populate_queues
+from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
+from lerobot.utils.device_utils import resolve_safetensors_device
+from lerobot.utils.import_utils import require_package
+from safetensors import safe_open
+from safetensors.torch import load_model as load_model_as_safetensor
+from torch import Tensor, nn
+
+from .batched_members import FusedDiffusionEnsemble
+from .configuration_ensemble_diffusion import EnsembleDiffusionConfig
+from .ensemble_stats import EnsembleActionStats, compute_ensemble_stats, uncertainty_score
+
+if TYPE_CHECKING:
+    from lerobot.datasets import LeRobotDatasetMetadata
+
+logger = logging.getLogger(__name__)
+
+MEMBERS_PREFIX = "members"
+_MEMBER_KEY = re.compile(rf"^{MEMBERS_PREFIX}\.(\d+)\.")
+
+
+@dataclass(frozen=True)
+class EnsemblePrediction:
+    """One ensemble prediction: statistics of every member's sampled chunks for one observation batch.
+
+    Attributes:
+        normalized: statistics in the policy's normalized action space (what the members predict).
+        unnormalized: the same in dataset units (the postprocessor's inverse normalization); None when
+            the policy holds no action statistics (built without `dataset_stats` and never trained/loaded).
+        score: (B,) the configured uncertainty score (sigma_hat by default), one per batch element.
+        score_name: the score's name (`config.uncertainty_score`).
+        score_space: "normalized" or "unnormalized".
+        score_source: "total", "epistemic" or "aleatoric".
+        action_steps: the slice of the T = horizon predicted steps that `select_action` executes.
+    """
+
+    normalized: EnsembleActionStats
+    unnormalized: EnsembleActionStats | None
+    score: Tensor
+    score_name: str
+    score_space: str
+    score_source: str
+    action_steps: slice
+
+
+def action_affine_from_stats(
+    stats: dict[str, dict], mode: NormalizationMode, eps: float = 1e-8
+) -> tuple[Tensor, Tensor]:
+    """The map x_norm -> x = x_norm * scale + offset that inverts LeRobot's action normalization.
+
+    Mirrors `lerobot.processor.normalize_processor` (`_apply_transform(..., inverse=True)`), which is affine in
+    every mode.
+
+    Args:
+        stats: dataset statistics, {"action": {"mean"|"std"|"min"|"max"|"q01"|...: (A,)}}.
+        mode: the ACTION normalization mode.
+    Returns:
+        scale: (A,), offset: (A,) float32.
+    """
+    if ACTION not in stats:
+        raise ValueError(f"`dataset_stats` has no '{ACTION}' entry. Got keys {sorted(stats)}.")
+    action_stats = {k: torch.as_tensor(np.asarray(v), dtype=torch.float32) for k, v in stats[ACTION].items()}
+
+    def need(*names: str) -> list[Tensor]:
+        missing = [n for n in names if n not in action_stats]
+        if missing:
+            raise ValueError(
+                f"{mode.value} normalization of '{ACTION}' needs stats {missing}; got {sorted(action_stats)}."
+            )
+        return [action_stats[n] for n in names]
+
+    if mode == NormalizationMode.IDENTITY:
+        dim = next(iter(action_stats.values())).shape[-1]
+        return torch.ones(dim), torch.zeros(dim)
+    if mode == NormalizationMode.MEAN_STD:
+        mean, std = need("mean", "std")
+        return std.clone(), mean.clone()
+    low_high = {
+        NormalizationMode.MIN_MAX: ("min", "max"),
+        NormalizationMode.QUANTILES: ("q01", "q99"),
+        NormalizationMode.QUANTILE10: ("q10", "q90"),
+    }
+    if mode not in low_high:
+        raise ValueError(f"Unsupported normalization mode for '{ACTION}': {mode}.")
+    low, high = need(*low_high[mode])
+    denom = high - low
+    denom = torch.where(denom == 0, torch.tensor(eps), denom)
+    return denom / 2, low + denom / 2
+
+
+class EnsembleDiffusionPolicy(PreTrainedPolicy):
+    """N LeRobot `DiffusionPolicy` members trained and run as one policy; mean action plus covariance."""
+
+    config_class = EnsembleDiffusionConfig
+    name = "ensemble_diffusion"
+
+    def __init__(
+        self,
+        config: EnsembleDiffusionConfig,
+        dataset_stats: dict[str, dict] | None = None,
+        dataset_meta: LeRobotDatasetMetadata | None = None,
+        **kwargs,
+    ):
+        """
+        Args:
+            config: Policy configuration.
+            dataset_stats: Dataset statistics; the action statistics give the unnormalized covariance. When
+                loading a checkpoint they replace the saved ones (as they replace the processor's).
+            dataset_meta: Dataset metadata; its features are checked against `config.input_features`.
+        """
+        require_package("diffusers", extra="diffusion")
+        super().__init__(config)
+        config.validate_features()
+        if config.action_feature is None or config.robot_state_feature is None:
+            raise ValueError(
+                f"`input_features` must hold '{OBS_STATE}' and `output_features` must hold '{ACTION}'. "
+                f"Got input_features={sorted(config.input_features or {})}, "
+                f"output_features={sorted(config.output_features or {})}."
+            )
+        if dataset_meta is not None:
+            check_features_match(config, dataset_meta.features, source=f"dataset {dataset_meta.repo_id}")
+        if config.ood.enforce:
+            # Integration point for the OOD gate (issue 5): load `config.ood.calibration_file` here.
+            raise NotImplementedError(
+                "`ood.enforce=true` needs the OOD gate of `lerobot_suture.safety.ood`, which is not wired into "
+                "the policy yet. Run with `--policy.ood.enforce=false` (report only)."
+            )
+        self.config = config
+
+        member_config = config.member_config()
+        members = []
+        for i in range(config.n_members):
+            if config.member_seeds is None:
+                members.append(DiffusionPolicy(member_config))
+            else:
+                with torch.random.fork_rng(devices=[]):
+                    torch.manual_seed(config.member_seeds[i])
+                    members.append(DiffusionPolicy(member_config))
+        self.members = nn.ModuleList(members)
+
+        action_dim = config.action_feature.shape[0]
+        # x = x_norm * scale + offset inverts the action normalization (NaN: unknown until stats are given).
+        self.register_buffer("action_unnormalize_scale", torch.full((action_dim,), math.nan))
+        self.register_buffer("action_unnormalize_offset", torch.full((action_dim,), math.nan))
+        self._given_action_affine = None
+        if dataset_stats is not None and ACTION in dataset_stats:
+            self._given_action_affine = action_affine_from_stats(dataset_stats, self._action_norm_mode())
+            self._apply_given_action_affine()
+
+        # Fused inference copy of the members, in a plain dict so that it is no submodule (not saved, not
+        # moved by `.to()`); rebuilt when the members' tensors change.
+        self._fused_cache: dict = {}
+        self.last_prediction: EnsemblePrediction | None = None
+        self.reset()
+
+    # ---- bookkeeping --------------------------------------------------------------------------------
+
+    def _action_norm_mode(self) -> NormalizationMode:
+        mapping = self.config.normalization_mapping or {}
+        mode = mapping.get(
+            FeatureType.ACTION.value, mapping.get(FeatureType.ACTION, NormalizationMode.IDENTITY)
+        )
+        return NormalizationMode(mode)
+
+    def _apply_given_action_affine(self) -> None:
+        if self._given_action_affine is not None:
+            scale, offset = self._given_action_affine
+            with torch.no_grad():
+                self.action_unnormalize_scale.copy_(scale)
+                self.action_unnormalize_offset.copy_(offset)
+
+    @property
+    def has_action_stats(self) -> bool:
+        """Whether the policy knows how to unnormalize actions (for unnormalized statistics)."""
+        return bool(torch.isfinite(self.action_unnormalize_scale).all())
+
+    def get_optim_params(self) -> dict:
+        return self.members.parameters()
+
+    def reset(self):
+        """Clear observation and action queues and the last prediction. Call on `env.reset()`."""
+        self._queues = {
+            OBS_STATE: deque(maxlen=self.config.n_obs_steps),
+            ACTION: deque(maxlen=self.config.n_action_steps),
+        }
+        if self.config.image_features:
+            self._queues[OBS_IMAGES] = deque(maxlen=self.config.n_obs_steps)
+        if self.config.env_state_feature:
+            self._queues[OBS_ENV_STATE] = deque(maxlen=self.config.n_obs_steps)
+        self.last_prediction = None
+        # Integration point for the OOD gate (issue 5): reset the gate's latch here.
+
+    def train(self, mode: bool = True):
+        self.invalidate_fused_cache()
+        return super().train(mode)
+
+    def invalidate_fused_cache(self) -> None:
+        """Drop the fused inference copy of the members (rebuilt on the next prediction).
+
+        Needed only after writing into parameters through `.data` (which torch does not version); optimizer
+        steps, `load_state_dict`, device or dtype moves and `train()`/`eval()` are detected automatically.
+        """
+        if hasattr(self, "_fused_cache"):
+            self._fused_cache.clear()
+
+    def _fused_members(self) -> FusedDiffusionEnsemble:
+        tensors = [*self.members.parameters(), *self.members.buffers()]
+        key = (tensors[0].device, tensors[0].dtype, tuple(t._version for t in tensors))
+        if self._fused_cache.get("key") != key:
+            self._fused_cache.clear()
+            with torch.no_grad():
+                self._fused_cache["model"] = FusedDiffusionEnsemble([m.diffusion for m in self.members])
+            self._fused_cache["key"] = key
+        return self._fused_cache["model"]
+
+    # ---- training -----------------------------------------------------------------------------------
+
+    def forward(self, batch: dict[str, Tensor]) -> tuple[Tensor, dict]:
+        """Mean of the member losses on one shared batch (each member's own bootstrap resample if enabled).
+
+        Returns:
+            loss: scalar tensor, the mean of the N member losses.
+            output: {"loss_member_<n>": float} per member, for logging.
+        """
+        batch_size = batch[OBS_STATE].shape[0]
+        losses = []
+        for member in self.members:
+            member_batch = batch
+            if self.config.bootstrap and self.training:
+                index = torch.randint(0, batch_size, (batch_size,), device=batch[OBS_STATE].device)
+                member_batch = _index_batch(batch, index, batch_size)
+            loss, _ = member.forward(member_batch)
+            losses.append(loss)
+        losses = torch.stack(losses)  # (N,)
+        output = {f"loss_member_{n}": value for n, value in enumerate(losses.detach().cpu().tolist())}
+        return losses.mean(), output
+
+    # ---- inference ----------------------------------------------------------------------------------
+
+    def _stack_observation(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+        """The (B, n_obs_steps, ...) model input, from the queues (online) or from `batch` (offline)."""
+        if any(len(q) > 0 for q in self._queues.values()):
+            return {k: torch.stack(list(self._queues[k]), dim=1) for k in batch if k in self._queues}
+        batch = dict(batch)
+        if self.config.image_features:
+            for key in self.config.image_features:
+                if batch[key].ndim == 4:
+                    batch[key] = batch[key].unsqueeze(1)
+            batch[OBS_IMAGES] = torch.stack([batch[key] for key in self.config.image_features], dim=-4)
+        return batch
+
+    def _check_observation(self, batch: dict[str, Tensor]) -> None:
+        """Raise a clear error when the observation does not match the features the policy was built for."""
+        state_dim = self.config.robot_state_feature.shape[0]
+        if batch[OBS_STATE].shape[-1] != state_dim:
+            raise ValueError(
+                f"'{OBS_STATE}' has {batch[OBS_STATE].shape[-1]} dimensions but the policy was trained with "
+                f"{state_dim} (config.input_features). Check the env/dataset features."
+            )
+        if self.config.n_obs_steps != batch[OBS_STATE].shape[1]:
+            raise ValueError(
+                f"Expected {self.config.n_obs_steps} observation steps, got {batch[OBS_STATE].shape[1]}."
+            )
+        if self.config.image_features:
+            images = batch[OBS_IMAGES]  # (B, S, n_cameras, C, H, W)
+            expected = next(iter(self.config.image_features.values())).shape
+            got = tuple(images.shape[-3:])
+            same_size = self.config.resize_shape is not None or got[1:] == tuple(expected[1:])
+            if got[0] != expected[0] or not same_size:
+                raise ValueError(
+                    f"Images have shape {got} but the policy was trained with {tuple(expected)} "
+                    f"({list(self.config.image_features)}). Check the env/dataset camera features."
+                )
+
+    def _sample(
+        self,
+        batch: dict[str, Tensor],
+        samples_per_member: int,
+        noise: Tensor | None,
+        generator: torch.Generator | None,
+    ) -> Tensor:
+        """Every member's K sampled chunks over the full horizon: (B, N, K, T, A)."""
+        batch_size = batch[OBS_STATE].shape[0]
+        k = samples_per_member
+        n = self.config.n_members
+        t_len, a = self.config.horizon, self.config.action_feature.shape[0]
+        if noise is not None and tuple(noise.shape) != (batch_size, n, k, t_len, a):
+            raise ValueError(
+                f"`noise` must have shape (B, N, K, T, A) = {(batch_size, n, k, t_len, a)}. Got {tuple(noise.shape)}."
+            )
+        if self.config.batched_inference and not self.training:
+            fused = self._fused_members()
+            global_cond = fused.encode(batch)  # (B, N, G)
+            return fused.sample(global_cond, samples_per_member=k, noise=noise, generator=generator)
+        samples = []
+        for i, member in enumerate(self.members):
+            model = member.diffusion
+            global_cond = model._prepare_global_conditioning(batch)  # (B, G)
+            global_cond = global_cond.repeat_interleave(k, dim=0)  # (B*K, G)
+            member_noise = None if noise is None else noise[:, i].reshape(batch_size * k, t_len, a)
+            chunk = model.conditional_sample(
+                batch_size * k, global_cond=global_cond, generator=generator, noise=member_noise
+            )  # (B*K, T, A)
+            samples.append(chunk.view(batch_size, k, t_len, a))
+        return torch.stack(samples, dim=1)  # (B, N, K, T, A)
+
+    @torch.no_grad()
+    def predict_action_distribution(
+        self,
+        batch: dict[str, Tensor],
+        samples_per_member: int | None = None,
+        noise: Tensor | None = None,
+        generator: torch.Generator | None = None,
+    ) -> EnsemblePrediction:
+        """Sample every member on the same observation and return the ensemble statistics.
+
+        Uses the observation queues when `select_action` has filled them, otherwise `batch` directly (a
+        dataloader batch with n_obs_steps observations, or a single observation with n_obs_steps = 1).
+        The result is also kept in `self.last_prediction`.
+
+        Args:
+            batch: normalized observation (the preprocessor's output).
+            samples_per_member: K chunks per member (default `config.uncertainty_samples_per_member`); K > 1
+                gives the aleatoric / epistemic split.
+            noise: optional initial noise (B, N, K, horizon, A).
+            generator: optional RNG for the diffusion noise.
+        Returns:
+            EnsemblePrediction over the full horizon: samples (B, N, K, T, A), member_mean (B, N, T, A),
+            mean (B, T, A), covariance / epistemic / aleatoric (B, T, A, A), normalized and unnormalized, and
+            the score (B,).
+        """
+        k = self.config.uncertainty_samples_per_member if samples_per_member is None else samples_per_member
+        if k < 1:
+            raise ValueError(f"`samples_per_member` must be >= 1. Got {k}.")
+        if self.config.uncertainty_source == "aleatoric" and k < 2:
+            raise ValueError("`uncertainty_source`='aleatoric' needs `samples_per_member` >= 2.")
+        model_batch = self._stack_observation(batch)
+        self._check_observation(model_batch)
+        samples = self._sample(model_batch, k, noise, generator)  # (B, N, K, T, A)
+
+        normalized = compute_ensemble_stats(samples, correction=self.config.covariance_correction)
+        unnormalized = None
+        if self.has_action_stats:
+            unnormalized = normalized.affine(self.action_unnormalize_scale, self.action_unnormalize_offset)
+        elif self.config.uncertainty_space == "unnormalized":
+            raise ValueError(
+                "`uncertainty_space`='unnormalized' needs the action statistics, which this policy does not "
+                "hold: build it with `dataset_stats` (lerobot-train does) or load a trained checkpoint."
+            )
+
+        start = self.config.n_obs_steps - 1
+        action_steps = slice(start, start + self.config.n_action_steps)
+        scored = normalized if self.config.uncertainty_space == "normalized" else unnormalized
+        if self.config.uncertainty_steps == "action":
+            scored = scored.select_steps(action_steps)
+        cov = {"total": scored.covariance, "epistemic": scored.epistemic, "aleatoric": scored.aleatoric}[
+            self.config.uncertainty_source
+        ]
+        score = uncertainty_score(
+            cov, self.config.uncertainty_score, logdet_eps=self.config.logdet_eps
+        )  # (B,)
+
+        prediction = EnsemblePrediction(
+            normalized=normalized,
+            unnormalized=unnormalized,
+            score=score,
+            score_name=self.config.uncertainty_score,
+            score_space=self.config.uncertainty_space,
+            score_source=self.config.uncertainty_source,
+            action_steps=action_steps,
+        )
+        self.last_prediction = prediction
+        return prediction
+
+    @property
+    def uncertainty(self) -> Tensor | None:
+        """(B,) the last prediction's uncertainty score (sigma_hat by default); None before the first."""
+        return None if self.last_prediction is None else self.last_prediction.score
+
+    @torch.no_grad()
+    def predict_action_chunk(self, batch: dict[str, Tensor], noise: Tensor | None = None) -> Tensor:
+        """The ensemble mean of the executed steps, (B, n_action_steps, A), in normalized action space.
+
+        Online (queues filled by `select_action`) or offline (dataloader batch), as `DiffusionPolicy`.
+        `noise`: optional initial noise (B, N, K, horizon, A).
+        """
+        prediction = self.predict_action_distribution(batch, noise=noise)
+        return prediction.normalized.mean[:, prediction.action_steps]  # (B, n_action_steps, A)
+
+    @torch.no_grad()
+    def select_action(self, batch: dict[str, Tensor], noise: Tensor | None = None) -> Tensor:
+        """One action per call with LeRobot's diffusion queue semantics (see `DiffusionPolicy.select_action`).
+
+        A new chunk is predicted when the action queue is empty: every member samples, the mean of the
+        `n_action_steps` executed steps fills the queue, and `self.last_prediction` holds the statistics.
+        """
+        if ACTION in batch:
+            batch = dict(batch)
+            batch.pop(ACTION)
+        if self.config.image_features:
+            batch = dict(batch)  # shallow copy so that adding a key doesn't modify the original
+            batch[OBS_IMAGES] = torch.stack([batch[key] for key in self.config.image_features], dim=-4)
+        self._queues = populate_queues(self._queues, batch)
+
+        if len(self._queues[ACTION]) == 0:
+            actions = self.predict_action_chunk(batch, noise=noise)  # (B, n_action_steps, A)
+            self._queues[ACTION].extend(actions.transpose(0, 1))
+            # Integration point for the OOD gate (issue 5): update it with `self.last_prediction.score`.
+
+        return self._queues[ACTION].popleft()
+
+    # ---- loading ------------------------------------------------------------------------------------
+
+    @classmethod
+    def _load_as_safetensor(cls, model, model_file: str, map_location: str, strict: bool):
+        check_checkpoint_matches(model, model_file)
+        load_model_as_safetensor(
+            model, model_file, strict=True, device=resolve_safetensors_device(map_location)
+        )
+        model._apply_given_action_affine()
+        model.invalidate_fused_cache()
+        return model
+
+
+def _index_batch(batch: dict, index: Tensor, batch_size: int) -> dict:
+    """Rows `index` of every per-sample entry of `batch` (tensors and lists with `batch_size` rows)."""
+    out = {}
+    for key, value in batch.items():
+        if isinstance(value, Tensor) and value.ndim > 0 and value.shape[0] == batch_size:
+            out[key] = value[index]
+        elif isinstance(value, list) and len(value) == batch_size:
+            out[key] = [value[i] for i in index.tolist()]
+        else:
+            out[key] = value
+    return out
+
+
+def check_features_match(config: EnsembleDiffusionConfig, features: dict, source: str) -> None:
+    """Raise a ValueError naming every policy input/output feature that `features` lacks or shapes differently.
+
+    Args:
+        config: the policy config (its `input_features` / `output_features`).
+        features: LeRobot dataset features ({"key": {"dtype", "shape", ...}}) or policy features.
+        source: what `features` describe, for the message (e.g. "dataset local/suture").
+    """
+    from lerobot.utils.feature_utils import dataset_to_policy_features
+
+    if features and isinstance(next(iter(features.values())), dict):
+        features = dataset_to_policy_features(features)
+    problems = []
+    for kind, expected in (("input", config.input_features or {}), ("output", config.output_features or {})):
+        for key, ft in expected.items():
+            if key not in features:
+                problems.append(f"{kind} feature '{key}' {tuple(ft.shape)} is missing")
+            elif tuple(features[key].shape) != tuple(ft.shape):
+                problems.append(
+                    f"{kind} feature '{key}' has shape {tuple(features[key].shape)} there but {tuple(ft.shape)} "
+                    "in the policy"
+                )
+    if problems:
+        raise ValueError(f"The policy's features do not match the {source}: " + "; ".join(problems) + ".")
+
+
+def check_checkpoint_matches(model: EnsembleDiffusionPolicy, model_file: str) -> None:
+    """Raise a clear error when `model_file` does not hold exactly the tensors `model` expects.
+
+    Names missing or extra members (against `config.n_members`), missing or unexpected keys, and tensors whose
+    shapes differ (typically: features or architecture settings that differ from the checkpoint's).
+    """
+    expected = {k: tuple(v.shape) for k, v in model.state_dict().items()}
+    with safe_open(model_file, framework="pt") as f:
+        found = {k: tuple(f.get_slice(k).get_shape()) for k in f.keys()}  # noqa: SIM118
+
+    def members_of(keys) -> set[int]:
+        return {int(m.group(1)) for k in keys if (m := _MEMBER_KEY.match(k))}
+
+    found_members, expected_members = members_of(found), members_of(expected)
+    problems = []
+    if found_members != expected_members:
+        missing = sorted(expected_members - found_members)
+        extra = sorted(found_members - expected_members)
+        problems.append(
+            f"the checkpoint holds members {sorted(found_members)} but the config has n_members="
+            f"{model.config.n_members}"
+            + (f" (missing member(s) {missing})" if missing else "")
+            + (f" (unexpected member(s) {extra})" if extra else "")
+        )
+    common_members = found_members & expected_members
+
+    def relevant(key: str) -> bool:
+        m = _MEMBER_KEY.match(key)
+        return m is None or int(m.group(1)) in common_members
+
+    missing_keys = sorted(k for k in expected if k not in found and relevant(k))
+    unexpected_keys = sorted(k for k in found if k not in expected and relevant(k))
+    if missing_keys:
+        problems.append(f"{len(missing_keys)} missing tensor(s), e.g. {missing_keys[:5]}")
+    if unexpected_keys:
+        problems.append(f"{len(unexpected_keys)} unexpected tensor(s), e.g. {unexpected_keys[:5]}")
+    mismatched = [
+        f"{k}: checkpoint {found[k]} vs policy {expected[k]}"
+        for k in sorted(expected)
+        if k in found and found[k] != expected[k]
+    ]
+    if mismatched:
+        problems.append(
+            f"{len(mismatched)} tensor(s) with mismatched shapes (do the input/output features or architecture "
+            f"settings differ from the checkpoint's?), e.g. {mismatched[:5]}"
+        )
+    if problems:
+        raise ValueError(f"{model_file} does not match the ensemble policy: " + "; ".join(problems) + ".")

@@ -1,0 +1,116 @@
+"""EnsembleDiffusionConfig: registration, reuse of DiffusionConfig, validation, presets."""
+
+import json
+from dataclasses import fields
+from pathlib import Path
+
+import draccus
+import pytest
+from lerobot.configs import PreTrainedConfig
+from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
+from lerobot.policies.factory import get_policy_class, make_policy_config
+from lerobot_policy_ensemble_diffusion import EnsembleDiffusionConfig, EnsembleOODConfig
+from lerobot_policy_ensemble_diffusion.testing import tiny_config
+
+PRESETS = Path(__file__).resolve().parents[1] / "policies" / "presets"
+
+
+def test_registered_and_discoverable():
+    assert PreTrainedConfig.get_choice_class("ensemble_diffusion") is EnsembleDiffusionConfig
+    config = make_policy_config("ensemble_diffusion", device="cpu")
+    assert config.type == "ensemble_diffusion"
+    assert get_policy_class("ensemble_diffusion").__name__ == "EnsembleDiffusionPolicy"
+
+
+def test_defaults_are_the_paper_and_offline():
+    config = EnsembleDiffusionConfig(device="cpu")
+    assert config.n_members == 5
+    assert (config.n_obs_steps, config.horizon, config.n_action_steps) == (4, 8, 4)
+    assert config.noise_scheduler_type == "DDPM" and config.num_train_timesteps == 100
+    assert config.optimizer_lr == 1e-4 and config.optimizer_weight_decay == 0.1
+    assert config.scheduler_warmup_steps == 100
+    assert config.pretrained_backbone_weights is None
+    assert config.uncertainty_score == "max_abs_cov" and config.uncertainty_space == "normalized"
+    assert config.ood.enforce is False
+    optimizer = config.get_optimizer_preset()
+    assert optimizer.type == "adamw" and optimizer.weight_decay == 0.1
+
+
+def test_every_diffusion_field_is_reused():
+    diffusion = {f.name for f in fields(DiffusionConfig)}
+    ensemble = {f.name for f in fields(EnsembleDiffusionConfig)}
+    assert diffusion <= ensemble
+    config = tiny_config(kernel_size=3, use_film_scale_modulation=False)
+    member = config.member_config()
+    assert type(member) is DiffusionConfig
+    for name in diffusion:
+        assert getattr(member, name) == getattr(config, name), name
+    back = EnsembleDiffusionConfig.from_member_config(member, n_members=3)
+    assert back.n_members == 3 and back.kernel_size == 3
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"n_members": 1}, "`n_members` must be >= 2. Got 1."),
+        ({"member_seeds": [1, 2, 3]}, r"`member_seeds` must hold one seed per member \(2\). Got 3"),
+        ({"member_seeds": [4, 4]}, "`member_seeds` must be distinct"),
+        (
+            {"uncertainty_score": "max"},
+            r"`uncertainty_score` must be one of \['max_abs_cov', 'trace', 'logdet'\]",
+        ),
+        ({"uncertainty_space": "raw"}, "`uncertainty_space` must be one of"),
+        ({"uncertainty_source": "both"}, "`uncertainty_source` must be one of"),
+        ({"uncertainty_steps": "all"}, "`uncertainty_steps` must be one of"),
+        ({"optimizer_name": "sgd"}, "`optimizer_name` must be one of"),
+        ({"uncertainty_source": "aleatoric"}, "needs `uncertainty_samples_per_member` >= 2"),
+        ({"uncertainty_samples_per_member": 0}, "`uncertainty_samples_per_member` must be >= 1. Got 0."),
+        ({"covariance_correction": 2}, "`covariance_correction` must be 0 or 1"),
+        ({"logdet_eps": 0.0}, "`logdet_eps` must be > 0"),
+        ({"n_action_steps": 8}, r"`n_action_steps` must be <= `horizon - n_obs_steps \+ 1` \(7\). Got 8."),
+        ({"num_inference_steps": 20}, r"`num_inference_steps` must be in \[1, 10\]"),
+        # DiffusionConfig's own check still runs.
+        ({"down_dims": (8, 16, 32, 64)}, "horizon should be an integer multiple"),
+    ],
+)
+def test_validation_names_the_field(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        tiny_config(**kwargs)
+
+
+def test_ood_options():
+    assert tiny_config(ood={"enforce": False, "calibration_file": "c.json"}).ood.calibration_file == "c.json"
+    with pytest.raises(ValueError, match="`ood.calibration_file` must be a plain file name"):
+        EnsembleOODConfig(calibration_file="../c.json")
+
+
+def test_json_round_trip(tmp_path):
+    config = tiny_config(member_seeds=[3, 7], bootstrap=True, uncertainty_score="trace")
+    config._save_pretrained(tmp_path)
+    assert json.loads((tmp_path / "config.json").read_text())["type"] == "ensemble_diffusion"
+    loaded = PreTrainedConfig.from_pretrained(tmp_path)
+    assert isinstance(loaded, EnsembleDiffusionConfig)
+    assert loaded == config
+
+
+@pytest.mark.parametrize("preset", ["paper", "cpu"])
+def test_presets_parse_and_never_download(preset):
+    data = json.loads((PRESETS / f"{preset}.json").read_text())
+    assert data["policy"]["type"] == "ensemble_diffusion"
+    assert data["policy"]["pretrained_backbone_weights"] is None
+    policy = {k: v for k, v in data["policy"].items() if k != "type"}
+    with draccus.config_type("json"):
+        config = draccus.decode(EnsembleDiffusionConfig, policy)
+    assert config.pretrained_backbone_weights is None
+    assert config.horizon % 2 ** len(config.down_dims) == 0
+    if preset == "paper":
+        assert (config.n_obs_steps, config.horizon, config.n_action_steps) == (4, 8, 4)
+        assert config.noise_scheduler_type == "DDPM"
+        assert config.num_train_timesteps == config.num_inference_steps == 100
+        assert config.optimizer_lr == 1e-4 and config.optimizer_weight_decay == 0.1
+        assert config.scheduler_warmup_steps == 100
+        assert data["batch_size"] == 8
+    else:
+        assert config.noise_scheduler_type == "DDIM" and config.num_inference_steps <= 20
+        assert max(config.crop_shape or config.resize_shape) < 96
+        assert max(config.down_dims) < max(DiffusionConfig().down_dims)
