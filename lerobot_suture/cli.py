@@ -6,11 +6,22 @@ import importlib
 import logging
 import sys
 
+from draccus.utils import ParsingError
+
 # subcommand -> (module with `main(argv)`, one-line help)
 SUBCOMMANDS = {
     "demo": ("lerobot_suture.demo", "run the main job at a small default and write figures"),
     "record": ("lerobot_suture.datasets.record", "record expert insertions as a LeRobotDataset"),
     "push": ("lerobot_suture.datasets.hub", "push a recorded dataset to the Hugging Face Hub"),
+    "calibrate": (
+        "lerobot_suture.calibrate",
+        "fit the O.O.D. gate of a trained ensemble on nominal rollouts",
+    ),
+    # Lives in the policy plugin; imported by name only when run (the core never imports a plugin).
+    "assemble": (
+        "lerobot_policy_ensemble_diffusion.assemble",
+        "assemble separately trained diffusion policies into one ensemble",
+    ),
     "cbf-replay": (
         "lerobot_suture.experiments.cbf_offline",
         "filter a recorded unsafe throw offline, plot it",
@@ -36,7 +47,12 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit(2)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     module = importlib.import_module(SUBCOMMANDS[name][0])
-    module.main(rest)
+    try:
+        module.main(rest)
+    except ParsingError as exc:
+        # A config's own validation error is the useful part; draccus wraps it.
+        print(f"lerobot-suture {name}: {exc.__cause__ or exc}", file=sys.stderr)
+        raise SystemExit(2) from exc
 
 
 if __name__ == "__main__":

@@ -324,8 +324,3 @@ def test_unnormalized_needs_stats():
     assert not policy.has_action_stats
     with pytest.raises(ValueError, match="needs the action statistics"):
         policy.predict_action_distribution(random_observation(policy.config))
-
-
-def test_enforcing_the_gate_is_not_wired_yet():
-    with pytest.raises(NotImplementedError, match="ood.enforce"):
-        EnsembleDiffusionPolicy(tiny_config(ood={"enforce": True}))

@@ -587,10 +587,9 @@ def record(cfg: RecordConfig) -> RecordSummary:
 
         check_hub_access(cfg.repo_id)  # fail fast, before any recording
 
+    import datasets as hf_datasets
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
     from tqdm import tqdm
-
-    import datasets as hf_datasets
 
     os.environ.setdefault("SVT_LOG", "1")  # the AV1 encoder's banner, per episode, otherwise
     backend = resolve_video_backend() if cfg.video and cfg.has_images else None

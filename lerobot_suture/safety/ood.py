@@ -828,21 +828,24 @@ class CalibrationNotFoundError(FileNotFoundError):
     """No calibration file in a policy directory; the message says how to create one."""
 
 
-def save_calibration(calibration: OODCalibration, directory: str | os.PathLike) -> Path:
-    """Write ``calibration`` to ``directory / CALIBRATION_FILENAME`` (created if needed, written atomically).
+def save_calibration(
+    calibration: OODCalibration, directory: str | os.PathLike, filename: str = CALIBRATION_FILENAME
+) -> Path:
+    """Write ``calibration`` to ``directory / filename`` (created if needed, written atomically).
 
     Args:
         calibration: The calibration to save.
         directory: Directory, typically the pretrained policy directory.
+        filename: File name inside ``directory`` (the policy's ``ood.calibration_file``).
 
     Returns:
         Path of the written file.
     """
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    path = directory / CALIBRATION_FILENAME
+    path = directory / filename
     text = json.dumps(calibration.to_dict(), indent=2, allow_nan=False) + "\n"
-    fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{CALIBRATION_FILENAME}.", suffix=".tmp")
+    fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{filename}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as f:
             f.write(text)
@@ -853,11 +856,12 @@ def save_calibration(calibration: OODCalibration, directory: str | os.PathLike) 
     return path
 
 
-def load_calibration(directory: str | os.PathLike) -> OODCalibration:
+def load_calibration(directory: str | os.PathLike, filename: str = CALIBRATION_FILENAME) -> OODCalibration:
     """Read the calibration saved by :func:`save_calibration` in ``directory``.
 
     Args:
-        directory: Directory holding ``CALIBRATION_FILENAME`` (typically the pretrained policy directory).
+        directory: Directory holding ``filename`` (typically the pretrained policy directory).
+        filename: File name inside ``directory`` (the policy's ``ood.calibration_file``).
 
     Returns:
         The validated calibration.
@@ -868,7 +872,7 @@ def load_calibration(directory: str | os.PathLike) -> OODCalibration:
         ValueError: If the file is not valid JSON, misses a key, has an unknown key, an invalid value or a
             different format ``version``; the message names the key.
     """
-    path = Path(directory) / CALIBRATION_FILENAME
+    path = Path(directory) / filename
     if not path.is_file():
         raise CalibrationNotFoundError(f"No OOD calibration at {path}. {_CALIBRATE_HINT}")
     try:

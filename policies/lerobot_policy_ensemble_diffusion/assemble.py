@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import json
 import shutil
-from dataclasses import fields
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import torch
@@ -253,3 +253,30 @@ def export_member(
     for p in _processor_files(ensemble_dir):
         shutil.copy2(p, output_dir / p.name)
     return output_dir
+
+
+@dataclass
+class AssembleConfig:
+    """``lerobot-suture assemble`` flags.
+
+    Args:
+        members: the members' pretrained directories, e.g. ``--members='[outputs/m0/.../pretrained_model,...]'``.
+        output_dir: where the ensemble's pretrained directory is written.
+        overwrite: replace a non-empty ``output_dir``.
+    """
+
+    members: list[str] = field(default_factory=list)
+    output_dir: str | None = None
+    overwrite: bool = False
+
+    def __post_init__(self):
+        if self.output_dir is None:
+            raise ValueError("`--output_dir` is required: where the assembled ensemble is written.")
+
+
+def main(argv: list[str] | None = None) -> None:
+    import draccus
+
+    cfg = draccus.parse(config_class=AssembleConfig, args=argv)
+    path = assemble_members(cfg.members, cfg.output_dir, overwrite=cfg.overwrite)
+    print(f"Assembled {len(cfg.members)} members into {path}")

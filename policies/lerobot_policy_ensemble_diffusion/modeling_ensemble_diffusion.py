@@ -26,6 +26,7 @@ import math
 import re
 from collections import deque
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -40,6 +41,8 @@ from lerobot.utils.import_utils import require_package
 from safetensors import safe_open
 from safetensors.torch import load_model as load_model_as_safetensor
 from torch import Tensor, nn
+
+from lerobot_suture.safety.ood import OODCalibration, OODGate, load_calibration
 
 from .batched_members import FusedDiffusionEnsemble
 from .configuration_ensemble_diffusion import EnsembleDiffusionConfig
@@ -79,28 +82,32 @@ class EnsemblePrediction:
 
 
 def action_affine_from_stats(
-    stats: dict[str, dict], mode: NormalizationMode, eps: float = 1e-8
+    stats: dict[str, dict], mode: NormalizationMode, eps: float = 1e-8, key: str = ACTION
 ) -> tuple[Tensor, Tensor]:
-    """The map x_norm -> x = x_norm * scale + offset that inverts LeRobot's action normalization.
+    """The map x_norm -> x = x_norm * scale + offset that inverts LeRobot's normalization of ``key``.
 
     Mirrors `lerobot.processor.normalize_processor` (`_apply_transform(..., inverse=True)`), which is affine in
     every mode.
 
     Args:
         stats: dataset statistics, {"action": {"mean"|"std"|"min"|"max"|"q01"|...: (A,)}}.
-        mode: the ACTION normalization mode.
+        mode: the normalization mode of ``key``.
+        key: the feature (default the action; the OOD gate's hold action also needs the state's).
     Returns:
         scale: (A,), offset: (A,) float32.
     """
-    if ACTION not in stats:
-        raise ValueError(f"`dataset_stats` has no '{ACTION}' entry. Got keys {sorted(stats)}.")
-    action_stats = {k: torch.as_tensor(np.asarray(v), dtype=torch.float32) for k, v in stats[ACTION].items()}
+    if key not in stats:
+        raise ValueError(f"`dataset_stats` has no '{key}' entry. Got keys {sorted(stats)}.")
+    action_stats = {
+        k: torch.as_tensor(np.asarray(v.cpu() if isinstance(v, Tensor) else v), dtype=torch.float32)
+        for k, v in stats[key].items()
+    }
 
     def need(*names: str) -> list[Tensor]:
         missing = [n for n in names if n not in action_stats]
         if missing:
             raise ValueError(
-                f"{mode.value} normalization of '{ACTION}' needs stats {missing}; got {sorted(action_stats)}."
+                f"{mode.value} normalization of '{key}' needs stats {missing}; got {sorted(action_stats)}."
             )
         return [action_stats[n] for n in names]
 
@@ -116,7 +123,7 @@ def action_affine_from_stats(
         NormalizationMode.QUANTILE10: ("q10", "q90"),
     }
     if mode not in low_high:
-        raise ValueError(f"Unsupported normalization mode for '{ACTION}': {mode}.")
+        raise ValueError(f"Unsupported normalization mode for '{key}': {mode}.")
     low, high = need(*low_high[mode])
     denom = high - low
     denom = torch.where(denom == 0, torch.tensor(eps), denom)
@@ -154,12 +161,6 @@ class EnsembleDiffusionPolicy(PreTrainedPolicy):
             )
         if dataset_meta is not None:
             check_features_match(config, dataset_meta.features, source=f"dataset {dataset_meta.repo_id}")
-        if config.ood.enforce:
-            # Integration point for the OOD gate (issue 5): load `config.ood.calibration_file` here.
-            raise NotImplementedError(
-                "`ood.enforce=true` needs the OOD gate of `lerobot_suture.safety.ood`, which is not wired into "
-                "the policy yet. Run with `--policy.ood.enforce=false` (report only)."
-            )
         self.config = config
 
         member_config = config.member_config()
@@ -181,6 +182,16 @@ class EnsembleDiffusionPolicy(PreTrainedPolicy):
         if dataset_stats is not None and ACTION in dataset_stats:
             self._given_action_affine = action_affine_from_stats(dataset_stats, self._action_norm_mode())
             self._apply_given_action_affine()
+        # The O.O.D. gate's hold action is the measured pose: the state's normalization is needed to turn it
+        # into a normalized action. Not saved with the weights; set from the dataset statistics or, on
+        # loading, from the saved preprocessor (see `from_pretrained`).
+        state_dim = config.robot_state_feature.shape[0]
+        self.register_buffer("state_unnormalize_scale", torch.full((state_dim,), math.nan), persistent=False)
+        self.register_buffer("state_unnormalize_offset", torch.full((state_dim,), math.nan), persistent=False)
+        if dataset_stats is not None and OBS_STATE in dataset_stats:
+            self.set_state_normalization(dataset_stats)
+        # The gate's calibration (`lerobot-suture calibrate`); loaded by `from_pretrained`.
+        self.ood_calibration: OODCalibration | None = None
 
         # Fused inference copy of the members, in a plain dict so that it is no submodule (not saved, not
         # moved by `.to()`); rebuilt when the members' tensors change.
@@ -223,7 +234,8 @@ class EnsembleDiffusionPolicy(PreTrainedPolicy):
         if self.config.env_state_feature:
             self._queues[OBS_ENV_STATE] = deque(maxlen=self.config.n_obs_steps)
         self.last_prediction = None
-        # Integration point for the OOD gate (issue 5): reset the gate's latch here.
+        self._ood_gates: list[OODGate] = []  # one per batch element, made at the first prediction
+        self._new_prediction = False
 
     def train(self, mode: bool = True):
         self.invalidate_fused_cache()
@@ -437,12 +449,127 @@ class EnsembleDiffusionPolicy(PreTrainedPolicy):
             batch[OBS_IMAGES] = torch.stack([batch[key] for key in self.config.image_features], dim=-4)
         self._queues = populate_queues(self._queues, batch)
 
-        if len(self._queues[ACTION]) == 0:
+        self._new_prediction = len(self._queues[ACTION]) == 0
+        if self._new_prediction:
             actions = self.predict_action_chunk(batch, noise=noise)  # (B, n_action_steps, A)
             self._queues[ACTION].extend(actions.transpose(0, 1))
-            # Integration point for the OOD gate (issue 5): update it with `self.last_prediction.score`.
+            self._update_ood_gates(self.last_prediction.score)
 
-        return self._queues[ACTION].popleft()
+        action = self._queues[ACTION].popleft()  # (B, A)
+        if self.config.ood.enforce:
+            released = torch.tensor([gate.released for gate in self._ood_gates], device=action.device)
+            if released.any():
+                action = torch.where(released[:, None], self._hold_action(batch), action)
+        return action
+
+    # ---- out-of-distribution gate -------------------------------------------------------------------
+
+    def set_state_normalization(self, stats: dict[str, dict]) -> None:
+        """Learn the state's normalization (for the gate's hold action) from dataset-style statistics."""
+        mode = NormalizationMode(
+            (self.config.normalization_mapping or {}).get(FeatureType.STATE.value, NormalizationMode.IDENTITY)
+        )
+        scale, offset = action_affine_from_stats(stats, mode, key=OBS_STATE)
+        with torch.no_grad():
+            self.state_unnormalize_scale.copy_(scale)
+            self.state_unnormalize_offset.copy_(offset)
+
+    def load_ood_calibration(self, directory: str | Path) -> OODCalibration:
+        """Load the gate's calibration from `directory / config.ood.calibration_file`.
+
+        Raises:
+            CalibrationNotFoundError: the file is missing (its message says how to calibrate).
+            ValueError: the file is malformed, or was fitted on another score than this policy computes.
+        """
+        calibration = load_calibration(directory, filename=self.config.ood.calibration_file)
+        if (calibration.score_name, calibration.space) != (
+            self.config.uncertainty_score,
+            self.config.uncertainty_space,
+        ):
+            raise ValueError(
+                f"The calibration in {directory} was fitted on score {calibration.score_name!r} in "
+                f"{calibration.space} space, but this policy computes {self.config.uncertainty_score!r} in "
+                f"{self.config.uncertainty_space} space. Recalibrate with `lerobot-suture calibrate "
+                f"--policy.path={directory}` or set the policy's uncertainty options to match."
+            )
+        self.ood_calibration = calibration
+        self._ood_gates = []
+        return calibration
+
+    def _update_ood_gates(self, scores: Tensor) -> None:
+        if self.config.ood.enforce and self.ood_calibration is None:
+            raise ValueError(
+                "`ood.enforce=true` needs a calibration of the O.O.D. gate, and this policy has none. Run "
+                "`lerobot-suture calibrate --policy.path=DIR` on the trained policy directory (it writes "
+                f"{self.config.ood.calibration_file} there), or set `--policy.ood.enforce=false` to report only."
+            )
+        values = scores.detach().cpu().tolist()
+        if len(self._ood_gates) != len(values):
+            self._ood_gates = [
+                OODGate(calibration=self.ood_calibration, enforce=self.config.ood.enforce) for _ in values
+            ]
+        for gate, value in zip(self._ood_gates, values, strict=True):
+            gate.update(value)
+
+    def _hold_action(self, batch: dict[str, Tensor]) -> Tensor:
+        """The measured pose as a normalized action, (B, A): the arm stops where it is."""
+        if not bool(torch.isfinite(self.state_unnormalize_scale).all()) or not self.has_action_stats:
+            raise ValueError(
+                "The O.O.D. gate released control but the policy cannot form a hold action: it does not know "
+                "the state and action normalization. Load the policy with `from_pretrained` from a lerobot-train "
+                "checkpoint directory (it reads them from the saved preprocessor)."
+            )
+        state = batch[OBS_STATE]  # (B, S), normalized, the current observation
+        pose = state * self.state_unnormalize_scale + self.state_unnormalize_offset
+        return (pose - self.action_unnormalize_offset) / self.action_unnormalize_scale
+
+    def ood_status(self, index: int = 0) -> dict:
+        """The gate's state for batch element `index` after the last `select_action`, for logging.
+
+        Keys: `score` (the last prediction's uncertainty score), `threshold` (NaN without a calibration),
+        `decision` (the last test said O.O.D.), `released` (control was released, latched until `reset`),
+        `new_prediction` (this call predicted a new chunk).
+        """
+        if index >= len(self._ood_gates):
+            return {
+                "score": math.nan,
+                "threshold": math.nan,
+                "decision": False,
+                "released": False,
+                "new_prediction": False,
+            }
+        gate = self._ood_gates[index]
+        return {
+            "score": float(gate.last_score),
+            "threshold": float(gate.threshold),
+            "decision": bool(gate.decision),
+            "released": bool(gate.released and self.config.ood.enforce),
+            "new_prediction": self._new_prediction,
+        }
+
+    @classmethod
+    def from_pretrained(cls, pretrained_name_or_path, **kwargs):
+        """LeRobot's loading, then the gate's calibration and the state normalization from the directory.
+
+        With `ood.enforce=true` a missing calibration is an error that says how to calibrate; without it a
+        calibration is loaded when present (so the gate reports its decisions) and skipped otherwise.
+        """
+        policy = super().from_pretrained(pretrained_name_or_path, **kwargs)
+        directory = Path(pretrained_name_or_path)
+        if not directory.is_dir():
+            if policy.config.ood.enforce:
+                raise ValueError(
+                    f"`ood.enforce=true` needs a local policy directory with a calibration; {directory} is not "
+                    "one. Download the policy and run `lerobot-suture calibrate --policy.path=DIR` on it."
+                )
+            return policy
+        if policy.config.ood.enforce or (directory / policy.config.ood.calibration_file).is_file():
+            policy.load_ood_calibration(directory)
+        if not bool(torch.isfinite(policy.state_unnormalize_scale).all()):
+            stats = _saved_normalizer_stats(directory)
+            if stats is not None and OBS_STATE in stats:
+                policy.set_state_normalization(stats)
+        return policy
 
     # ---- loading ------------------------------------------------------------------------------------
 
@@ -455,6 +582,20 @@ class EnsembleDiffusionPolicy(PreTrainedPolicy):
         model._apply_given_action_affine()
         model.invalidate_fused_cache()
         return model
+
+
+def _saved_normalizer_stats(directory: Path) -> dict | None:
+    """The statistics of the normalizer step in the preprocessor saved beside the policy, if any."""
+    from lerobot.processor import PolicyProcessorPipeline
+
+    if not (directory / "policy_preprocessor.json").is_file():
+        return None
+    pipeline = PolicyProcessorPipeline.from_pretrained(directory, config_filename="policy_preprocessor.json")
+    for step in pipeline.steps:
+        stats = getattr(step, "stats", None)
+        if stats:
+            return stats
+    return None
 
 
 def _index_batch(batch: dict, index: Tensor, batch_size: int) -> dict:

@@ -1,0 +1,175 @@
+"""``lerobot-suture calibrate --policy.path=DIR``: fit the O.O.D. gate of a trained ensemble.
+
+Rolls the policy out in the nominal scenario on seeds it was not trained on (the dataset's validation
+seeds when ``--dataset_root`` is given, else fresh seeds), records the uncertainty score of every
+prediction, fits the in-distribution model on the first ``calibration_episodes`` episodes, measures
+the false-alarm rate on the remaining held-out episodes, and writes the calibration into the policy
+directory, where ``from_pretrained`` finds it.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import draccus
+import numpy as np
+from tqdm import tqdm
+
+from lerobot_suture.safety.ood import (
+    false_alarm_rates,
+    fit_calibration,
+    min_calibration_episodes,
+    save_calibration,
+)
+
+logger = logging.getLogger(__name__)
+
+FRESH_SEED_BASE = 1_000_000
+"""First of the fresh seeds used when no dataset gives validation seeds (far from recording seeds)."""
+
+
+@dataclass
+class PolicyPathConfig:
+    path: Path | None = None  # pretrained_model directory of a lerobot-train checkpoint
+
+
+@dataclass
+class CalibrateConfig:
+    """Args:
+    policy: ``--policy.path=DIR``, the trained ensemble's pretrained directory.
+    dataset_root: a ``lerobot-suture record`` dataset whose validation seeds are used first.
+    calibration_episodes: nominal episodes the in-distribution model is fitted on.
+    holdout_episodes: further nominal episodes on which the false-alarm rate is measured.
+    model: ``normal`` (the paper's) or ``lognormal`` (the score is positive and skewed).
+    mode: ``per_prediction`` (the paper's test on every prediction) or ``per_episode`` (a threshold on
+        the running maximum holding the per-episode false-alarm rate near alpha).
+    alpha: significance of the one-sided likelihood-ratio test.
+    h: width factor of the in-distribution model, Normal(mean, h * std).
+    device: torch device of the policy.
+    """
+
+    policy: PolicyPathConfig = field(default_factory=PolicyPathConfig)
+    dataset_root: Path | None = None
+    calibration_episodes: int = 24
+    holdout_episodes: int = 10
+    model: str = "lognormal"
+    mode: str = "per_episode"
+    alpha: float = 0.05
+    h: float = 1.0
+    device: str = "cpu"
+
+    def __post_init__(self):
+        if self.policy.path is None:
+            raise ValueError(
+                "`--policy.path` is required: the pretrained_model directory of a trained policy."
+            )
+        if self.calibration_episodes < 1 or self.holdout_episodes < 0:
+            raise ValueError(
+                "`calibration_episodes` must be >= 1 and `holdout_episodes` >= 0. "
+                f"Got {self.calibration_episodes}, {self.holdout_episodes}."
+            )
+        if self.mode == "per_episode" and self.calibration_episodes < min_calibration_episodes(self.alpha):
+            raise ValueError(
+                f"`mode=per_episode` at alpha={self.alpha} needs at least "
+                f"{min_calibration_episodes(self.alpha)} calibration episodes. Got {self.calibration_episodes}; "
+                "raise `--calibration_episodes` or use `--mode=per_prediction`."
+            )
+
+
+def calibration_seeds(cfg: CalibrateConfig) -> list[int]:
+    """Seeds of the calibration then the held-out episodes: validation seeds first, then fresh ones."""
+    needed = cfg.calibration_episodes + cfg.holdout_episodes
+    seeds: list[int] = []
+    if cfg.dataset_root is not None:
+        from lerobot_suture.datasets.split import validation_seeds
+
+        seeds = validation_seeds(cfg.dataset_root)[:needed]
+    seeds += [FRESH_SEED_BASE + k for k in range(needed - len(seeds))]
+    return seeds
+
+
+def collect_scores(
+    runner, env_kwargs: dict, seeds: list[int], desc: str
+) -> tuple[np.ndarray, np.ndarray, list]:
+    """Per-prediction uncertainty scores and their episode ids over nominal episodes of ``runner``."""
+    import gymnasium as gym
+
+    from lerobot_suture.registration import ENV_ID
+    from lerobot_suture.rollout import rollout_episode
+
+    env = gym.make(ENV_ID, disable_env_checker=True, scenario="nominal", **env_kwargs)
+    scores, episode_ids, logs = [], [], []
+    try:
+        for episode, seed in enumerate(tqdm(seeds, desc=desc, unit="episode")):
+            log = rollout_episode(env, runner, seed)
+            logs.append(log)
+            for step in log.steps:
+                if step.new_prediction:
+                    scores.append(step.score)
+                    episode_ids.append(episode)
+    finally:
+        env.close()
+    return np.asarray(scores), np.asarray(episode_ids), logs
+
+
+def run_calibration(cfg: CalibrateConfig) -> dict:
+    from lerobot_suture.policy_runner import PolicyRunner, env_kwargs_for_policy
+
+    runner = PolicyRunner.from_pretrained(cfg.policy.path, cfg.device)
+    config = runner.policy.config
+    if config.ood.enforce:
+        # Calibrating needs the gate to report, not to stop the rollouts.
+        config.ood.enforce = False
+    env_kwargs = env_kwargs_for_policy(config)
+    seeds = calibration_seeds(cfg)
+    fit_seeds, holdout_seeds = seeds[: cfg.calibration_episodes], seeds[cfg.calibration_episodes :]
+    scores, ids, fit_logs = collect_scores(runner, env_kwargs, fit_seeds, "calibration episodes")
+    calibration = fit_calibration(
+        scores,
+        model=cfg.model,
+        h=cfg.h,
+        alpha=cfg.alpha,
+        mode=cfg.mode,
+        episode_ids=ids,
+        score_name=config.uncertainty_score,
+        space=config.uncertainty_space,
+    )
+    path = save_calibration(calibration, cfg.policy.path, filename=config.ood.calibration_file)
+    report = {
+        "calibration_file": str(path),
+        "calibration": calibration.to_dict(),
+        "calibration_seeds": fit_seeds,
+        "calibration_success_rate": float(np.mean([log.success for log in fit_logs])),
+    }
+    if holdout_seeds:
+        held_scores, held_ids, held_logs = collect_scores(
+            runner, env_kwargs, holdout_seeds, "held-out episodes"
+        )
+        rates = false_alarm_rates(held_scores, calibration, held_ids)
+        report["holdout_seeds"] = holdout_seeds
+        report["holdout_false_alarm_rate"] = asdict(rates)
+        report["holdout_success_rate"] = float(np.mean([log.success for log in held_logs]))
+    (Path(cfg.policy.path) / "ood_calibration_report.json").write_text(json.dumps(report, indent=2))
+    return report
+
+
+def main(argv: list[str] | None = None) -> None:
+    cfg = draccus.parse(config_class=CalibrateConfig, args=argv)
+    report = run_calibration(cfg)
+    cal = report["calibration"]
+    print(
+        f"O.O.D. gate calibrated on {cal['n_samples']} predictions of {len(report['calibration_seeds'])} nominal "
+        f"episodes: {cal['model']} model, mean {cal['mean']:.4g}, std {cal['std']:.4g}, h {cal['h']}, "
+        f"mode {cal['mode']}, alpha {cal['alpha']} -> threshold {cal['threshold']:.4g} "
+        f"({cal['score_name']}, {cal['space']} space)."
+    )
+    if "holdout_false_alarm_rate" in report:
+        rates = report["holdout_false_alarm_rate"]
+        print(
+            f"False alarms on {rates['n_episodes']} held-out nominal episodes: {rates['per_step']:.3f} per "
+            f"prediction, {rates['per_episode']:.3f} per episode."
+        )
+    print(f"Written: {report['calibration_file']}")

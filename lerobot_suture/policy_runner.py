@@ -1,0 +1,112 @@
+"""Run a trained LeRobot policy on a single (unbatched) suture env, as ``lerobot-eval`` does.
+
+The policy is loaded through LeRobot's own factory, which discovers the policy plugin, with its
+saved pre- and post-processors; observations go through the same steps as in ``lerobot-eval``
+(``preprocess_observation``, task string, preprocessor, ``select_action`` under inference mode,
+postprocessor).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+TASK = "Insert the curved needle at the entry point and drive it out of the exit point."
+
+
+def load_policy(policy_path: str | Path, device: str = "cpu"):
+    """A trained policy and its processors from a pretrained directory (offline).
+
+    Returns:
+        (policy, preprocessor, postprocessor)
+
+    Raises:
+        FileNotFoundError: the directory or its ``config.json`` is missing.
+    """
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+    from lerobot.utils.import_utils import register_third_party_plugins
+
+    path = Path(policy_path)
+    if not (path / "config.json").is_file():
+        raise FileNotFoundError(
+            f"No trained policy at {path} (no config.json). Pass the `pretrained_model` directory of a "
+            "lerobot-train checkpoint, e.g. outputs/train/NAME/checkpoints/last/pretrained_model."
+        )
+    register_third_party_plugins()
+    config = PreTrainedConfig.from_pretrained(path)
+    config.device = device
+    policy = get_policy_class(config.type).from_pretrained(path, config=config)
+    policy.eval()
+    preprocessor, postprocessor = make_pre_post_processors(
+        policy_cfg=config,
+        pretrained_path=str(path),
+        preprocessor_overrides={"device_processor": {"device": device}},
+    )
+    return policy, preprocessor, postprocessor
+
+
+def env_kwargs_for_policy(config) -> dict:
+    """The suture env's observation arguments that produce what a trained policy reads.
+
+    Raises:
+        ValueError: the policy reads features the suture env does not produce.
+    """
+    features = dict(config.input_features or {})
+    images = [k for k in features if k.startswith("observation.images.")]
+    unknown = sorted(
+        set(features) - {"observation.images.endoscope", "observation.state", "observation.environment_state"}
+    )
+    if unknown:
+        raise ValueError(
+            f"The policy reads {unknown}, which the suture env does not produce (it has "
+            "observation.images.endoscope, observation.state, observation.environment_state)."
+        )
+    env_state = "observation.environment_state" in features
+    if images:
+        height, width = features[images[0]].shape[-2:]
+        if height != width:
+            raise ValueError(f"The suture env renders square images; the policy reads {height}x{width}.")
+        return {
+            "obs_type": "pixels_agent_pos_state" if env_state else "pixels_agent_pos",
+            "image_size": int(height),
+        }
+    return {"obs_type": "state"}
+
+
+class PolicyRunner:
+    """``act(observation) -> (10,) float32 action`` for one env, with LeRobot's processing."""
+
+    def __init__(self, policy, preprocessor, postprocessor):
+        self.policy = policy
+        self.preprocessor = preprocessor
+        self.postprocessor = postprocessor
+
+    @classmethod
+    def from_pretrained(cls, policy_path: str | Path, device: str = "cpu") -> PolicyRunner:
+        return cls(*load_policy(policy_path, device))
+
+    def reset(self) -> None:
+        self.policy.reset()
+        for pipeline in (self.preprocessor, self.postprocessor):
+            pipeline.reset()
+
+    def act(self, observation: dict) -> np.ndarray:
+        from lerobot.envs.utils import preprocess_observation
+
+        batch = preprocess_observation(_add_batch_axis(observation))
+        batch["task"] = [TASK]
+        batch = self.preprocessor(batch)
+        with torch.inference_mode():
+            action = self.policy.select_action(batch)
+        action = self.postprocessor(action)
+        return action.to("cpu").numpy()[0].astype(np.float32)
+
+
+def _add_batch_axis(observation: dict) -> dict:
+    out = {}
+    for key, value in observation.items():
+        out[key] = _add_batch_axis(value) if isinstance(value, dict) else np.asarray(value)[None]
+    return out

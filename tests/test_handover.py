@@ -1,0 +1,110 @@
+"""Policy rollouts with the O.O.D. gate at the env step, handover to the surgeon, and calibration."""
+
+import json
+import shutil
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import lerobot_suture
+from lerobot_suture.cli import main as cli_main
+from lerobot_suture.policy_runner import PolicyRunner, env_kwargs_for_policy
+from lerobot_suture.rollout import HOLD, POLICY, SURGEON, rollout_episode
+from lerobot_suture.safety.ood import fit_calibration, load_calibration, save_calibration
+
+
+def _runner(policy_dir, tmp_path, threshold: float | None, enforce: bool) -> PolicyRunner:
+    directory = tmp_path / "policy"
+    shutil.copytree(policy_dir, directory)
+    if threshold is not None:
+        scores = threshold * (1 + 1e-3 * np.random.default_rng(0).standard_normal(100))
+        save_calibration(fit_calibration(np.abs(scores)), directory)
+    runner = PolicyRunner.from_pretrained(directory)
+    runner.policy.config.ood.enforce = enforce
+    return runner
+
+
+def _env(runner, **kwargs):
+    return gym.make(
+        lerobot_suture.ENV_ID,
+        disable_env_checker=True,
+        **env_kwargs_for_policy(runner.policy.config),
+        **kwargs,
+    )
+
+
+def test_forced_ood_hands_over_to_the_expert_which_finishes_the_insertion(tiny_policy_dir, tmp_path):
+    runner = _runner(tiny_policy_dir, tmp_path, threshold=1e-12, enforce=True)
+    log = rollout_episode(_env(runner), runner, seed=0, surgeon="expert")
+    assert log.handover_step == 0
+    assert all(step.controller == SURGEON for step in log.steps)
+    assert all(step.released and step.ood for step in log.steps)
+    assert log.success and not log.autonomous_success
+
+
+def test_with_no_surgeon_the_released_arm_holds_still(tiny_policy_dir, tmp_path):
+    runner = _runner(tiny_policy_dir, tmp_path, threshold=1e-12, enforce=True)
+    env = _env(runner)
+    log = rollout_episode(env, runner, seed=1, surgeon="none", max_steps=12)
+    assert [step.controller for step in log.steps] == [HOLD] * 12
+    start = env.unwrapped.jaw_pose()[0]
+    rollout_episode(env, runner, seed=1, surgeon="none", max_steps=1)
+    # The hold action is the measured pose: the jaw stays where it started (within tracking error).
+    assert np.linalg.norm(env.unwrapped.jaw_pose()[0] - start) < 5e-3
+    assert not log.success
+
+
+def test_reporting_gate_keeps_the_policy_in_control(tiny_policy_dir, tmp_path):
+    runner = _runner(tiny_policy_dir, tmp_path, threshold=1e-12, enforce=False)
+    log = rollout_episode(_env(runner), runner, seed=0, surgeon="expert", max_steps=9)
+    assert log.handover_step is None
+    assert all(step.controller == POLICY for step in log.steps)
+    assert log.first_alarm_step == 0
+    predictions = [step.new_prediction for step in log.steps]
+    assert predictions[0] and sum(predictions) == -(-9 // runner.policy.config.n_action_steps)
+
+
+def test_surgeon_must_be_known(tiny_policy_dir, tmp_path):
+    runner = _runner(tiny_policy_dir, tmp_path, threshold=None, enforce=False)
+    with pytest.raises(ValueError, match="surgeon"):
+        rollout_episode(_env(runner), runner, seed=0, surgeon="resident")
+
+
+def test_enforcing_without_calibration_fails_at_load_with_the_fix(tiny_policy_dir, tmp_path):
+    directory = tmp_path / "policy"
+    shutil.copytree(tiny_policy_dir, directory)
+    config = json.loads((directory / "config.json").read_text())
+    config["ood"]["enforce"] = True
+    (directory / "config.json").write_text(json.dumps(config))
+    with pytest.raises(FileNotFoundError, match="lerobot-suture calibrate"):
+        PolicyRunner.from_pretrained(directory)
+
+
+def test_calibrate_command_writes_a_calibration_the_policy_loads(tiny_policy_dir, tmp_path, capsys):
+    directory = tmp_path / "policy"
+    shutil.copytree(tiny_policy_dir, directory)
+    cli_main(
+        [
+            "calibrate",
+            f"--policy.path={directory}",
+            "--calibration_episodes=2",
+            "--holdout_episodes=1",
+            "--mode=per_prediction",
+        ]
+    )
+    out = capsys.readouterr().out
+    assert "threshold" in out and "False alarms on 1 held-out" in out
+    calibration = load_calibration(directory)
+    assert calibration.mode == "per_prediction" and calibration.n_samples >= 10
+    report = json.loads((directory / "ood_calibration_report.json").read_text())
+    assert report["calibration_seeds"] == [1_000_000, 1_000_001]
+    runner = PolicyRunner.from_pretrained(directory)
+    assert runner.policy.ood_calibration == calibration
+
+
+def test_calibrate_rejects_too_few_episodes_for_per_episode_mode(tiny_policy_dir, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        cli_main(["calibrate", f"--policy.path={tiny_policy_dir}", "--calibration_episodes=5"])
+    assert exit_info.value.code == 2
+    assert "needs at least 19 calibration episodes" in capsys.readouterr().err
