@@ -22,6 +22,10 @@ SUBCOMMANDS = {
         "lerobot_policy_ensemble_diffusion.assemble",
         "assemble separately trained diffusion policies into one ensemble",
     ),
+    "experiments": (
+        "lerobot_suture.experiments.runner",
+        "run the paper's experiments: figures, metrics, report",
+    ),
     "cbf-replay": (
         "lerobot_suture.experiments.cbf_offline",
         "filter a recorded unsafe throw offline, plot it",

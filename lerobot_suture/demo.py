@@ -1,16 +1,27 @@
 """``lerobot-suture demo``: the main job at a small default, writing what a person looks at.
 
-Steps, each writing under ``output_dir`` (default ``outputs/demo/``):
+Steps, each writing under ``output_dir`` (default ``outputs/demo/``), all at toy scale:
 
 1. the scripted expert in every scenario: an endoscope-view strip (PNG) per scenario;
 2. a small expert dataset (``dataset/``), recorded by the same code as ``lerobot-suture record``;
-3. ``summary.json`` with every figure above.
+3. a tiny ensemble trained for a few steps by the real ``lerobot-train`` (``train/``);
+4. its O.O.D. gate calibrated by ``lerobot-suture calibrate``;
+5. one run of each of the paper's experiments and the CBF figures, by ``lerobot-suture experiments``
+   (``experiments/``: figures, ``metrics.json``, ``report.md``);
+6. ``summary.json`` with where everything is.
+
+A toy ensemble trained for a few steps does not insert the needle; the demo shows the machinery. The
+README gives the commands and the reference results of a properly trained ensemble.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import os
+import shutil
+import subprocess
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -33,7 +44,9 @@ class DemoConfig:
     episodes_per_scenario: expert episodes per scenario (the first one is drawn as a strip).
     frames_per_strip: endoscope frames per strip.
     frame_size: side of each frame (px).
-    dataset_episodes: expert episodes in the demo dataset (0 skips recording).
+    dataset_episodes: expert episodes in the demo dataset (0 skips recording and everything after).
+    train_steps: ``lerobot-train`` steps of the toy ensemble.
+    train: train, calibrate and run the experiments (false stops after the dataset).
     """
 
     output_dir: Path = Path("outputs/demo")
@@ -43,6 +56,8 @@ class DemoConfig:
     frames_per_strip: int = 6
     frame_size: int = 160
     dataset_episodes: int = 12
+    train_steps: int = 30
+    train: bool = True
 
     def __post_init__(self):
         unknown = [s for s in self.scenarios if s not in SCENARIOS]
@@ -87,6 +102,90 @@ def record_demo_dataset(cfg: DemoConfig) -> dict:
     }
 
 
+# A toy ensemble for the demo: 2 members, 32 px images, a two-level U-Net, DDIM with 5 steps.
+TOY_POLICY_FLAGS = [
+    "--policy.type=ensemble_diffusion",
+    "--policy.n_members=2",
+    "--policy.n_obs_steps=2",
+    "--policy.horizon=8",
+    "--policy.n_action_steps=4",
+    "--policy.drop_n_last_frames=3",
+    "--policy.resize_shape=[32,32]",
+    "--policy.down_dims=[16,32]",
+    "--policy.diffusion_step_embed_dim=16",
+    "--policy.spatial_softmax_num_keypoints=8",
+    "--policy.noise_scheduler_type=DDIM",
+    "--policy.num_train_timesteps=20",
+    "--policy.num_inference_steps=5",
+    "--policy.pretrained_backbone_weights=null",
+    "--policy.push_to_hub=false",
+    "--policy.device=cpu",
+]
+
+
+def train_toy_ensemble(cfg: DemoConfig, dataset_root: Path) -> Path:
+    """Train the toy ensemble with the real ``lerobot-train`` command; returns its pretrained directory."""
+    from lerobot_suture.datasets.split import train_episodes
+
+    out = cfg.output_dir / "train"
+    policy_dir = out / "checkpoints" / "last" / "pretrained_model"
+    if policy_dir.is_dir():
+        logger.info("toy ensemble already trained: %s", policy_dir)
+        return policy_dir
+    if out.exists():
+        shutil.rmtree(out)  # an interrupted earlier run: lerobot-train refuses an existing output_dir
+    command = [
+        str(Path(sys.executable).parent / "lerobot-train"),
+        *TOY_POLICY_FLAGS,
+        "--dataset.repo_id=local/suture_demo",
+        f"--dataset.root={dataset_root}",
+        f"--dataset.episodes=[{','.join(str(i) for i in train_episodes(dataset_root))}]",
+        f"--steps={cfg.train_steps}",
+        "--batch_size=4",
+        "--num_workers=0",
+        f"--save_freq={cfg.train_steps}",
+        "--log_freq=10",
+        f"--output_dir={out}",
+        "--job_name=suture_demo",
+    ]
+    logger.info("training the toy ensemble: %s", " ".join(command))
+    env = {**os.environ, "HF_HUB_OFFLINE": "1"}
+    subprocess.run(command, check=True, env=env)
+    return policy_dir
+
+
+def calibrate_and_run_experiments(cfg: DemoConfig, policy_dir: Path) -> dict:
+    """``lerobot-suture calibrate`` then ``lerobot-suture experiments`` at toy scale."""
+    from lerobot_suture.calibrate import CalibrateConfig, PolicyPathConfig, run_calibration
+    from lerobot_suture.experiments.runner import ExperimentsConfig, run_experiments
+
+    run_calibration(
+        CalibrateConfig(
+            policy=PolicyPathConfig(path=policy_dir),
+            dataset_root=cfg.output_dir / "dataset",
+            calibration_episodes=3,
+            holdout_episodes=1,
+            mode="per_prediction",
+        )
+    )
+    out = cfg.output_dir / "experiments"
+    result = run_experiments(
+        ExperimentsConfig(
+            policy=PolicyPathConfig(path=policy_dir),
+            output_dir=out,
+            nominal_episodes=2,
+            expert_episodes=5,
+            needle_drop_runs=1,
+            camera_moved_runs=1,
+            phantom_servo_runs=1,
+            phantom_moved_after_insertion_runs=1,
+            cbf_runs=1,
+            enforced_runs=1,
+        )
+    )
+    return {"dir": str(out), "figures": [str(out / name) for name in result["figures"].values()]}
+
+
 def run_demo(cfg: DemoConfig) -> dict:
     cfg.output_dir.mkdir(parents=True, exist_ok=True)
     summary: dict = {"scenarios": {}}
@@ -106,6 +205,10 @@ def run_demo(cfg: DemoConfig) -> dict:
         entry["success_rate"] = float(np.mean([e["success"] for e in entry["episodes"]]))
     if cfg.dataset_episodes:
         summary["dataset"] = record_demo_dataset(cfg)
+        if cfg.train:
+            policy_dir = train_toy_ensemble(cfg, Path(summary["dataset"]["root"]))
+            summary["policy"] = str(policy_dir)
+            summary["experiments"] = calibrate_and_run_experiments(cfg, policy_dir)
     path = cfg.output_dir / "summary.json"
     path.write_text(json.dumps(summary, indent=2))
     summary["path"] = str(path)
@@ -120,4 +223,9 @@ def main(argv: list[str] | None = None) -> None:
     if "dataset" in summary:
         d = summary["dataset"]
         print(f"dataset {d['repo_id']}: {d['episodes']} episodes, {d['frames']} frames at {d['root']}")
+    if "experiments" in summary:
+        print(f"toy ensemble: {summary['policy']}")
+        print(f"experiment figures, metrics.json and report.md: {summary['experiments']['dir']}")
+        for figure in summary["experiments"]["figures"]:
+            print(f"  {figure}")
     print(f"summary: {summary['path']}")

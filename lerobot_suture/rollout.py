@@ -41,6 +41,7 @@ class StepLog:
     perturbed: bool
     needle_in_tissue: bool
     h: float = math.nan
+    cbf_active: bool = False
     cbf_intervened: bool = False
 
 
@@ -120,6 +121,7 @@ def rollout_episode(
                 perturbed=bool(info["perturbed"]),
                 needle_in_tissue=bool(info["needle_in_tissue"]),
                 h=float(info.get("h", math.nan)),
+                cbf_active=bool(info.get("cbf_active", False)),
                 cbf_intervened=bool(info.get("cbf_intervened", False)),
             )
         )
@@ -136,5 +138,5 @@ def rollout_episode(
 def _h_min_of_trace(env: gym.Env, trace: np.ndarray) -> float:
     from lerobot_suture.safety.cbf import ellipsoid_h
 
-    center, axes, rotation = env.safe_set()
+    center, axes, rotation = env.get_wrapper_attr("safe_set")()
     return float(np.min(ellipsoid_h(trace, center, axes, rotation)))

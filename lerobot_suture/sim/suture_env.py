@@ -137,6 +137,7 @@ MAX_LINEAR_SPEED = 0.05  # m/s
 MAX_ANGULAR_SPEED = 2.0  # rad/s
 IK_DAMPING = 0.01
 IK_LINEAR_WEIGHT = 10.0  # 0.1 m of tip motion weighs as much as 1 rad of turn
+IK_UPDATES_WHEN_FILTERED = 10  # IK solves per control step (100 Hz) while a tip-velocity filter acts
 
 # Tissue: viscous resistance to off-arc motion of the needle (N per m/s, N m per rad/s).
 TISSUE_DAMPING = 2.0
@@ -421,32 +422,26 @@ class SutureEnv(gym.Env):
             point, v_nominal = jaw_pos, linear
             v_command = linear
 
-        jacp = np.zeros((3, m.nv))
-        jacr = np.zeros((3, m.nv))
-        mujoco.mj_jac(m, d, jacp, jacr, point, self._jaw_body)
-        jacobian = np.vstack([IK_LINEAR_WEIGHT * jacp[:, self._arm_dofs], jacr[:, self._arm_dofs]])
-        twist = np.concatenate([IK_LINEAR_WEIGHT * v_command, angular])
-        qdot = controller.damped_least_squares(jacobian, twist, IK_DAMPING)
-        # Scale uniformly so the direction of motion survives the actuator limits.
-        scale = float(np.max(np.abs(qdot) / self._arm_ctrl_limit))
-        if scale > 1.0:
-            qdot /= scale
-        d.ctrl[self._arm_ctrl] = qdot
-
-        d.qfrc_applied[:] = 0.0
-        if self._grasped and self._in_tissue:
-            d.qfrc_applied[self._arm_dofs] = self._tissue_resistance(
-                jaw_pos, jaw_rot, point, v_command, angular, jacp, jacr
-            )
-
-        trace = None
-        if self.record_tip_trace:
-            trace = np.empty((self.n_substeps, 3))
-            for k in range(self.n_substeps):
-                mujoco.mj_step(m, d)
-                trace[k] = self.needle_tip_pos
-        else:
-            mujoco.mj_step(m, d, nstep=self.n_substeps)
+        # While a safety filter shapes the tip's velocity, the Cartesian command is re-tracked several
+        # times per control step so the tip follows the filtered straight segment closely (the CBF's
+        # guarantee assumes a fast velocity controller); otherwise once per step is enough.
+        filtered = self._grasped and self.tip_velocity_filter is not None
+        blocks = IK_UPDATES_WHEN_FILTERED if filtered else 1
+        substeps = self.n_substeps // blocks
+        trace = np.empty((self.n_substeps, 3)) if self.record_tip_trace else None
+        for block in range(blocks):
+            if block > 0:
+                mujoco.mj_kinematics(m, d)
+                mujoco.mj_comPos(m, d)
+                jaw_pos, jaw_rot = self.jaw_pose()
+                point = jaw_pos + jaw_rot @ (self._grasp_pos + self._grasp_rot @ self._tip_local)
+            self._actuate(point, v_command, angular, jaw_pos, jaw_rot)
+            if trace is not None:
+                for k in range(block * substeps, (block + 1) * substeps):
+                    mujoco.mj_step(m, d)
+                    trace[k] = self.needle_tip_pos
+            else:
+                mujoco.mj_step(m, d, nstep=substeps)
         if self._grasped:
             self._snap_needle_to_jaw()
 
@@ -538,6 +533,26 @@ class SutureEnv(gym.Env):
             )
             d.qpos[self._arm_qpos] = np.clip(d.qpos[self._arm_qpos] + 0.5 * qdot, lo, hi)
         return d.qpos[self._arm_qpos].copy()
+
+    def _actuate(self, point, v_point, angular, jaw_pos, jaw_rot) -> None:
+        """Joint velocity commands (damped differential IK at ``point``) and the tissue's resistance."""
+        m, d = self.model, self.data
+        jacp = np.zeros((3, m.nv))
+        jacr = np.zeros((3, m.nv))
+        mujoco.mj_jac(m, d, jacp, jacr, point, self._jaw_body)
+        jacobian = np.vstack([IK_LINEAR_WEIGHT * jacp[:, self._arm_dofs], jacr[:, self._arm_dofs]])
+        twist = np.concatenate([IK_LINEAR_WEIGHT * v_point, angular])
+        qdot = controller.damped_least_squares(jacobian, twist, IK_DAMPING)
+        # Scale uniformly so the direction of motion survives the actuator limits.
+        scale = float(np.max(np.abs(qdot) / self._arm_ctrl_limit))
+        if scale > 1.0:
+            qdot /= scale
+        d.ctrl[self._arm_ctrl] = qdot
+        d.qfrc_applied[:] = 0.0
+        if self._grasped and self._in_tissue:
+            d.qfrc_applied[self._arm_dofs] = self._tissue_resistance(
+                jaw_pos, jaw_rot, point, v_point, angular, jacp, jacr
+            )
 
     def _set_needle_free_pose(self, centre: np.ndarray, rotation: np.ndarray) -> None:
         q = self._needle_qpos

@@ -1,0 +1,86 @@
+"""Metrics of the paper's experiments, as pure functions of per-episode logs.
+
+Scores are the ensemble's uncertainty per control step (the latest prediction's), alarms the gate's
+decisions; an episode's onset is the first control step whose info said ``perturbed``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+
+def wilson_interval(successes: int, n: int, z: float = 1.959963984540054) -> tuple[float, float]:
+    """95% Wilson score interval of a binomial proportion (default z); (nan, nan) when n = 0."""
+    if n == 0:
+        return math.nan, math.nan
+    p = successes / n
+    denom = 1 + z**2 / n
+    centre = (p + z**2 / (2 * n)) / denom
+    half = z * math.sqrt(p * (1 - p) / n + z**2 / (4 * n**2)) / denom
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def auroc(negatives: Sequence[float], positives: Sequence[float]) -> float:
+    """Area under the ROC curve: P(positive score > negative score) + 0.5 P(tie) (Mann-Whitney U).
+
+    NaN scores are dropped; nan when either side is empty.
+    """
+    neg = np.asarray([x for x in negatives if not math.isnan(x)], dtype=np.float64)
+    pos = np.asarray([x for x in positives if not math.isnan(x)], dtype=np.float64)
+    if neg.size == 0 or pos.size == 0:
+        return math.nan
+    greater = (pos[:, None] > neg[None, :]).sum()
+    ties = (pos[:, None] == neg[None, :]).sum()
+    return float((greater + 0.5 * ties) / (pos.size * neg.size))
+
+
+def episode_score(scores: Sequence[float], start: int = 0) -> float:
+    """An episode's uncertainty: the maximum score from control step ``start`` on (nan if none)."""
+    tail = np.asarray(scores[start:], dtype=np.float64)
+    tail = tail[~np.isnan(tail)]
+    return float(tail.max()) if tail.size else math.nan
+
+
+def first_alarm_after(alarms: Sequence[bool], onset: int) -> int | None:
+    """First control step at or after ``onset`` with an alarm, or None."""
+    return next((k for k in range(onset, len(alarms)) if alarms[k]), None)
+
+
+def detection_delays(episodes: Sequence[tuple[Sequence[bool], int | None]]) -> list[int]:
+    """Control steps from onset to the first alarm, for each (alarms, onset) episode that alarmed."""
+    delays = []
+    for alarms, onset in episodes:
+        if onset is None:
+            continue
+        first = first_alarm_after(alarms, onset)
+        if first is not None:
+            delays.append(first - onset)
+    return delays
+
+
+def summarize(values: Sequence[float]) -> dict:
+    """Median and spread (quartiles, min, max) of a sample; n = 0 gives nulls."""
+    v = np.asarray(values, dtype=np.float64)
+    if v.size == 0:
+        return {"n": 0, "median": None, "q25": None, "q75": None, "min": None, "max": None}
+    return {
+        "n": int(v.size),
+        "median": float(np.median(v)),
+        "q25": float(np.percentile(v, 25)),
+        "q75": float(np.percentile(v, 75)),
+        "min": float(v.min()),
+        "max": float(v.max()),
+    }
+
+
+def alarm_rates(alarm_sequences: Sequence[Sequence[bool]]) -> dict:
+    """Per-step and per-episode false-alarm rates over in-distribution episodes."""
+    steps = sum(len(a) for a in alarm_sequences)
+    return {
+        "per_step": float(sum(sum(a) for a in alarm_sequences) / steps) if steps else math.nan,
+        "per_episode": float(np.mean([any(a) for a in alarm_sequences])) if alarm_sequences else math.nan,
+        "episodes": len(alarm_sequences),
+    }
