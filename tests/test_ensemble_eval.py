@@ -42,6 +42,7 @@ def test_lerobot_eval_runs_the_ensemble_on_the_suture_env(saved_policy, tmp_path
             f"--policy.path={saved_policy}",
             "--policy.device=cpu",
             "--env.type=suture",
+            "--env.cbf.enabled=true",  # the safety filter runs inside lerobot-eval's envs too
             "--eval.n_episodes=1",
             "--eval.batch_size=1",
             f"--output_dir={out}",

@@ -77,3 +77,16 @@ def test_async_vector_env_through_lerobot_factory(suture_config_cls):
         assert frames[0].shape == (32, 32, 3)
     finally:
         vec.close()
+
+
+def test_cbf_enabled_from_the_env_config_wraps_every_env(suture_config_cls):
+    cfg = suture_config_cls(obs_type="state", episode_length=2)
+    cfg.cbf.enabled = True
+    vec = make_env(cfg, n_envs=1, use_async_envs=False)["suture"][0]
+    try:
+        obs, info = vec.reset(seed=[0])
+        assert "cbf_active" in info and "h" in info
+        obs, _, _, _, info = vec.step(obs["agent_pos"].astype(np.float32))
+        assert "v_safe" in info and not info["cbf_active"][0]  # the tip is far above the wound
+    finally:
+        vec.close()

@@ -546,23 +546,22 @@ def fit_calibration(
         _, labels = np.unique(episode_ids, return_inverse=True)
         n_episodes = int(labels.max()) + 1
 
+    common = {
+        "model": model_.value,
+        "mean": mean,
+        "std": std,
+        "h": float(h),
+        "alpha": float(alpha),
+        "mode": mode_.value,
+        "n_samples": int(scores.size),
+        "score_name": ScoreName.parse(score_name).value,
+        "space": space,
+        "n_episodes": n_episodes,
+    }
     if mode_ is CalibrationMode.PER_PREDICTION:
         critical = float(stats.norm.ppf(1.0 - alpha))
         threshold = _inverse_transform(mean + critical * h * std, model_)
-        return OODCalibration(
-            model=model_.value,
-            mean=mean,
-            std=std,
-            h=float(h),
-            alpha=float(alpha),
-            mode=mode_.value,
-            threshold=threshold,
-            critical_value=critical,
-            n_samples=int(scores.size),
-            score_name=ScoreName.parse(score_name).value,
-            space=space,
-            n_episodes=n_episodes,
-        )
+        return OODCalibration(**common, threshold=threshold, critical_value=critical)
 
     if labels is None:
         raise ValueError(
@@ -587,18 +586,9 @@ def fit_calibration(
         )
     threshold = quantile if h == 1.0 else _inverse_transform(mean + critical * h * std, model_)
     return OODCalibration(
-        model=model_.value,
-        mean=mean,
-        std=std,
-        h=float(h),
-        alpha=float(alpha),
-        mode=mode_.value,
+        **common,
         threshold=threshold,
         critical_value=critical,
-        n_samples=int(scores.size),
-        score_name=ScoreName.parse(score_name).value,
-        space=space,
-        n_episodes=n_episodes,
         quantile_rank=rank,
         mean_episode_length=scores.size / n_episodes,
     )
