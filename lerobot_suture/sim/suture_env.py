@@ -54,6 +54,15 @@ Terminated on success: the tip entered within ``ENTRY_TOLERANCE`` of the entry p
 ``EXIT_TOLERANCE`` of the exit point, protrudes at least ``MIN_PROTRUSION`` beyond it and the needle
 still spans the wound. Truncated by the registered ``max_episode_steps`` (100 = 10 s).
 
+## Info
+``is_success``; ``reward_success`` (the reward's only term); ``entry_error_m`` and ``exit_error_m``
+(distance in the tissue surface from the marked point to where the tip crossed it, m; ``inf`` until
+the tip has entered / emerged); ``protrusion_m`` (tip distance beyond the exit crossing, m);
+``tissue_strain`` (accumulated off-arc motion of the needle in tissue, m); ``needle_tip_pos`` (3,);
+``needle_in_tissue``; ``needle_grasped``; ``perturbed`` (the scenario's perturbation has begun);
+``tip_velocity_nominal`` and ``tip_velocity_command`` (3,) m/s (before and after
+``tip_velocity_filter``); with ``record_tip_trace``, ``needle_tip_trace`` (50, 3) m.
+
 ## Arguments
 =======================  ======================  ===============================================
 argument                 default                 meaning
