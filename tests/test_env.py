@@ -245,3 +245,18 @@ def test_off_arc_motion_in_tissue_raises_strain():
     for _ in range(5):
         _, _, _, _, info = env.step(pose_vector(p + 0.01 * lateral, r, 1.0))
     assert info["tissue_strain"] > 5 * max(nominal_strain, 1e-4)
+
+
+def test_reward_is_the_sum_of_its_terms_in_info():
+    env = make()
+    expert = ScriptedExpert()
+    env.reset(seed=4)
+    expert.reset(env)
+    rewards = []
+    for _ in range(100):
+        _, reward, terminated, truncated, info = env.step(expert.act(env))
+        assert reward == info["reward_success"]
+        rewards.append(reward)
+        if terminated or truncated:
+            break
+    assert rewards[-1] == 1.0 and sum(rewards) == 1.0
