@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-TASK = "Insert the curved needle at the entry point and drive it out of the exit point."
+from lerobot_suture.sim.suture_env import TASK
 
 
 def load_policy(policy_path: str | Path, device: str = "cpu"):

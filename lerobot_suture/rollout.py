@@ -98,13 +98,17 @@ def rollout_episode(
     log = EpisodeLog(seed=seed, scenario=u.scenario.config.name)
     h_physics: list[float] = []
     for _ in range(max_steps):
-        action = runner.act(observation)
-        status = runner.policy.ood_status(0)
-        controller = POLICY
-        if status["released"]:
-            if log.handover_step is None:
+        if log.handover_step is None:
+            action = runner.act(observation)
+            status = runner.policy.ood_status(0)
+            controller = POLICY
+            if status["released"]:
                 log.handover_step = len(log.steps)
                 expert.reset(env)  # the expert works out where the task stands
+        else:
+            status = {**status, "new_prediction": False}  # the released policy is not asked again
+        if log.handover_step is not None:
+            # Released: the arm holds the pose of the release (the policy's last action), or the surgeon acts.
             if surgeon == "expert":
                 action, controller = expert.act(env), SURGEON
             else:

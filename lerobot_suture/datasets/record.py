@@ -69,7 +69,7 @@ from lerobot_suture.sim.scenarios import SCENARIOS
 logger = logging.getLogger(__name__)
 
 COMMAND = "lerobot-suture record"
-TASK = "Insert the curved suture needle at the entry point and drive it out through the exit point."
+TASK = suture_env.TASK
 """The task string of every frame (LeRobot's ``task``)."""
 ROBOT_TYPE = "psm"
 FPS = round(1.0 / suture_env.CONTROL_DT)

@@ -111,6 +111,8 @@ from lerobot_suture.sim.scenarios import Scenario, ScenarioConfig
 SCENE_XML = Path(__file__).parent / "assets" / "scene.xml"
 
 OBS_TYPES = ("pixels_agent_pos", "state", "pixels_agent_pos_state")
+TASK = "Insert the curved suture needle at the entry point and drive it out through the exit point."
+"""The task string of the dataset's frames and of policy inputs."""
 CONTROL_DT = 0.1
 """Control period (s): 10 Hz, the dataset's fps."""
 
