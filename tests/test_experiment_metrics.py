@@ -44,3 +44,19 @@ def test_episode_score_ignores_nan_and_starts_where_asked():
     assert metrics.episode_score([math.nan, 1.0, 3.0, 2.0]) == 3.0
     assert metrics.episode_score([5.0, 1.0], start=1) == 1.0
     assert math.isnan(metrics.episode_score([math.nan]))
+
+
+def test_uncertainty_figure_is_written_and_not_blank(tmp_path):
+    from PIL import Image
+
+    from lerobot_suture.experiments.plots import OOD_COLOUR, plot_uncertainty
+
+    rng = np.random.default_rng(0)
+    runs = [np.r_[rng.uniform(0.1, 0.2, 20), rng.uniform(0.5, 0.9, 30)] for _ in range(3)]
+    nominal = [rng.uniform(0.1, 0.2, 50) for _ in range(2)]
+    path = plot_uncertainty(runs, 0.3, tmp_path / "exp.png", "test", onset_steps=[20, 20, 20], nominal_runs=nominal)
+    image = np.asarray(Image.open(path).convert("RGB"), dtype=float)
+    assert image.std() > 10
+    # The O.O.D. background (red) appears where the maximum crosses the threshold.
+    red = np.array([int(OOD_COLOUR[i : i + 2], 16) for i in (1, 3, 5)], dtype=float)
+    assert (np.abs(image - red).sum(axis=-1) < 6).any()
