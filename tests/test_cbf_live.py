@@ -7,12 +7,10 @@ target. Safety is checked at every physics step from ``info["needle_tip_trace"]`
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import pytest
 
-from lerobot_suture.experiments.adversary import SidewaysPull
+from lerobot_suture.experiments.adversary import CBFEpisode, run_cbf_episode
 from lerobot_suture.expert import ScriptedExpert
 from lerobot_suture.safety.cbf import CBFConfig, ellipsoid_h
 from lerobot_suture.safety.cbf_wrapper import PHASE_ACTIVE, CBFActionWrapper
@@ -26,50 +24,15 @@ FAST_SEEDS = range(5)
 SLOW_SEEDS = range(5, 35)
 
 
-@dataclass
-class Episode:
-    h_min_active: float  # smallest h over every physics step while the CBF was active
-    h_min_pull: float  # smallest h over every physics step of the pull (nan without a pull)
-    tissue_strain: float  # m, at the end of the episode
-    interventions: int
-    phases: list[str]
-    success: bool
-
-
-def run_episode(seed: int, enabled: bool, adversarial: bool) -> Episode:
-    env = CBFActionWrapper(SutureEnv(obs_type="state", record_tip_trace=True), CBFConfig(enabled=enabled))
-    env.reset(seed=seed)
-    policy = SidewaysPull(PULL_DISTANCE, STEPS_IN_TISSUE_BEFORE_PULL) if adversarial else ScriptedExpert()
-    policy.reset(env)
-    pull_steps = 0
-    h_active, h_pull, phases, interventions, info, success = [], [], [], 0, {}, False
-    for _ in range(MAX_STEPS):
-        action = policy.act(env)
-        pulling = adversarial and policy.pulling
-        if pulling:
-            if pull_steps == PULL_STEPS:
-                break
-            pull_steps += 1
-        _, _, terminated, truncated, info = env.step(action)
-        center, axes, rotation = env.safe_set()
-        h_trace = float(ellipsoid_h(info["needle_tip_trace"], center, axes, rotation).min())
-        if info["cbf_active"]:
-            h_active.append(h_trace)
-        if pulling:
-            h_pull.append(h_trace)
-        phases.append(env.phase)
-        interventions += info["cbf_intervened"]
-        success = success or bool(info["is_success"])
-        if terminated or truncated:
-            break
-    env.close()
-    return Episode(
-        h_min_active=min(h_active, default=np.nan),
-        h_min_pull=min(h_pull, default=np.nan),
-        tissue_strain=float(info["tissue_strain"]),
-        interventions=interventions,
-        phases=phases,
-        success=success,
+def run_episode(seed: int, enabled: bool, adversarial: bool) -> CBFEpisode:
+    return run_cbf_episode(
+        seed,
+        CBFConfig(enabled=enabled),
+        adversarial,
+        PULL_DISTANCE,
+        STEPS_IN_TISSUE_BEFORE_PULL,
+        PULL_STEPS,
+        MAX_STEPS,
     )
 
 

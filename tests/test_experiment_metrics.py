@@ -54,7 +54,9 @@ def test_uncertainty_figure_is_written_and_not_blank(tmp_path):
     rng = np.random.default_rng(0)
     runs = [np.r_[rng.uniform(0.1, 0.2, 20), rng.uniform(0.5, 0.9, 30)] for _ in range(3)]
     nominal = [rng.uniform(0.1, 0.2, 50) for _ in range(2)]
-    path = plot_uncertainty(runs, 0.3, tmp_path / "exp.png", "test", onset_steps=[20, 20, 20], nominal_runs=nominal)
+    path = plot_uncertainty(
+        runs, 0.3, tmp_path / "exp.png", "test", onset_steps=[20, 20, 20], nominal_runs=nominal
+    )
     image = np.asarray(Image.open(path).convert("RGB"), dtype=float)
     assert image.std() > 10
     # The O.O.D. background (red) appears where the maximum crosses the threshold.

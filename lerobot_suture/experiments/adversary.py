@@ -2,14 +2,21 @@
 
 It runs the scripted expert until the needle has been in tissue for ``steps_in_tissue`` control
 steps, then commands the jaw ``pull_distance`` metres along the phantom's lateral axis (across the
-wound, orientation kept, jaw closed) and holds that target: what would tear tissue.
+wound, orientation kept, jaw closed) and holds that target: what would tear tissue. ``run_cbf_episode`` runs it (or the plain expert) under the CBF wrapper and
+measures h at every physics step.
 """
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
+
 import numpy as np
 
 from lerobot_suture.expert import ScriptedExpert
+from lerobot_suture.safety.cbf import CBFConfig, ellipsoid_h
+from lerobot_suture.safety.cbf_wrapper import PHASE_ACTIVE, PHASE_IDLE, CBFActionWrapper
+from lerobot_suture.sim.suture_env import SutureEnv
 
 
 class SidewaysPull:
@@ -44,3 +51,68 @@ class SidewaysPull:
             return self._pull_action
         self._in_tissue_steps += int(u.needle_in_tissue)
         return self.expert.act(env)
+
+
+@dataclass(frozen=True)
+class CBFEpisode:
+    """One scripted episode under ``CBFActionWrapper``; h is the CBF's value at every physics step."""
+
+    h_min: float  # smallest h from the filter's activation on (nan if it never activated)
+    h_min_active: float  # smallest h over the steps where the filter was active (nan if none)
+    h_min_pull: float  # smallest h over the steps of the pull (nan without a pull)
+    tissue_strain: float  # m, at the end of the episode
+    interventions: int  # control steps where the filter changed the command
+    active_steps: int  # control steps where the filter was active
+    phases: list[str]  # the wrapper's phase after every control step
+    success: bool
+
+
+def run_cbf_episode(
+    seed: int,
+    cbf: CBFConfig,
+    adversarial: bool = True,
+    pull_distance: float = 0.02,
+    steps_in_tissue: int = 3,
+    pull_steps: int = 20,
+    max_steps: int = 100,
+) -> CBFEpisode:
+    """The sideways-pull adversary (or, with ``adversarial=False``, the plain expert) for one episode
+    under the CBF wrapper, filter on or off as ``cbf.enabled`` says; the pull lasts ``pull_steps``."""
+    env = CBFActionWrapper(SutureEnv(obs_type="state", record_tip_trace=True), cbf)
+    env.reset(seed=seed)
+    actor = SidewaysPull(pull_distance, steps_in_tissue) if adversarial else ScriptedExpert()
+    actor.reset(env)
+    h_all, h_active, h_pull, phases = [], [], [], []
+    interventions, info, success, pulled = 0, {}, False, 0
+    for _ in range(max_steps):
+        action = actor.act(env)
+        pulling = adversarial and actor.pulling
+        if pulling:
+            if pulled == pull_steps:
+                break
+            pulled += 1
+        _, _, terminated, truncated, info = env.step(action)
+        if env.phase != PHASE_IDLE:
+            center, axes, rotation = env.safe_set()
+            h = float(ellipsoid_h(info["needle_tip_trace"], center, axes, rotation).min())
+            h_all.append(h)
+            if info["cbf_active"]:
+                h_active.append(h)
+            if pulling:
+                h_pull.append(h)
+        phases.append(env.phase)
+        interventions += bool(info["cbf_intervened"])
+        success = success or bool(info["is_success"])
+        if terminated or truncated:
+            break
+    env.close()
+    return CBFEpisode(
+        h_min=min(h_all, default=math.nan),
+        h_min_active=min(h_active, default=math.nan),
+        h_min_pull=min(h_pull, default=math.nan),
+        tissue_strain=float(info["tissue_strain"]),
+        interventions=interventions,
+        active_steps=sum(p == PHASE_ACTIVE for p in phases),
+        phases=phases,
+        success=success,
+    )

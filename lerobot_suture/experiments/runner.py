@@ -32,14 +32,12 @@ from tqdm import tqdm
 
 from lerobot_suture.calibrate import PolicyPathConfig
 from lerobot_suture.experiments import metrics
-from lerobot_suture.experiments.adversary import SidewaysPull
+from lerobot_suture.experiments.adversary import run_cbf_episode
 from lerobot_suture.experiments.plots import plot_uncertainty
 from lerobot_suture.registration import ENV_ID
 from lerobot_suture.rollout import EpisodeLog, rollout_episode
 from lerobot_suture.rollout_expert import run_expert_episode
-from lerobot_suture.safety.cbf import CBFConfig, ellipsoid_h
-from lerobot_suture.safety.cbf_wrapper import CBFActionWrapper
-from lerobot_suture.sim.suture_env import SutureEnv
+from lerobot_suture.safety.cbf import CBFConfig
 
 logger = logging.getLogger(__name__)
 
@@ -152,27 +150,6 @@ def ood_metrics(nominal: list[EpisodeLog], runs: list[EpisodeLog]) -> dict:
     }
 
 
-def _scripted_cbf_episode(seed: int, enabled: bool, cfg_cbf: CBFConfig, max_steps: int = 60) -> dict:
-    """The sideways-pull adversary with the filter on or off: min h over physics steps, strain."""
-    env = CBFActionWrapper(
-        SutureEnv(obs_type="state", record_tip_trace=True),
-        CBFConfig(**{**asdict(cfg_cbf), "enabled": enabled}),
-    )
-    env.reset(seed=seed)
-    actor = SidewaysPull()
-    actor.reset(env)
-    h_min, info = math.inf, {}
-    for _ in range(max_steps):
-        _, _, terminated, truncated, info = env.step(actor.act(env))
-        if env.phase != "idle":
-            center, axes, rotation = env.safe_set()
-            h_min = min(h_min, float(ellipsoid_h(info["needle_tip_trace"], center, axes, rotation).min()))
-        if terminated or truncated:
-            break
-    env.close()
-    return {"h_min": h_min, "tissue_strain": float(info["tissue_strain"])}
-
-
 def cbf_live(cfg: ExperimentsConfig, runner, env_kwargs: dict) -> dict:
     """Experiment 4 live: the policy (nominal) and the adversary, each with the filter on and off."""
     cbf_on, cbf_off = CBFConfig(enabled=True), CBFConfig(enabled=False)
@@ -192,15 +169,16 @@ def cbf_live(cfg: ExperimentsConfig, runner, env_kwargs: dict) -> dict:
             "tissue_strain_m": metrics.summarize([log.tissue_strain for log in logs]),
             "success_rate": float(np.mean([log.success for log in logs])),
         }
-        adversary = [
-            _scripted_cbf_episode(s, cbf.enabled, cbf_on)
-            for s in tqdm(seeds, desc=f"CBF live, adversary, {name}")
-        ]
+        adversary = [run_cbf_episode(s, cbf) for s in tqdm(seeds, desc=f"CBF live, adversary, {name}")]
+        active_steps = sum(a.active_steps for a in adversary)
         result[f"adversary_{name}"] = {
             "runs": len(adversary),
-            "violations": int(sum(a["h_min"] < 0 for a in adversary)),
-            "h_min": float(min(a["h_min"] for a in adversary)) if adversary else None,
-            "tissue_strain_m": metrics.summarize([a["tissue_strain"] for a in adversary]),
+            "violations": int(sum(a.h_min < 0 for a in adversary)),
+            "h_min": float(min(a.h_min for a in adversary)) if adversary else None,
+            "intervention_rate": sum(a.interventions for a in adversary) / active_steps
+            if active_steps
+            else 0.0,
+            "tissue_strain_m": metrics.summarize([a.tissue_strain for a in adversary]),
         }
     return result
 
