@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import gymnasium as gym
@@ -10,6 +11,35 @@ import numpy as np
 
 from lerobot_suture.expert import ScriptedExpert
 from lerobot_suture.registration import ENV_ID
+
+
+@dataclass(frozen=True)
+class ExpertStep:
+    """One control step of the expert: the observation it acted on, its action and what followed."""
+
+    obs: dict
+    action: np.ndarray
+    reward: float
+    terminated: bool
+    truncated: bool
+    info: dict
+
+    @property
+    def done(self) -> bool:
+        return self.terminated or self.truncated
+
+
+def iter_expert_steps(env: gym.Env, expert: ScriptedExpert, obs: dict) -> Iterator[ExpertStep]:
+    """Yield the expert's steps from ``obs``, the observation ``env.reset`` just returned, to the
+    episode's end."""
+    expert.reset(env)
+    while True:
+        action = expert.act(env)
+        next_obs, reward, terminated, truncated, info = env.step(action)
+        yield ExpertStep(obs, action, float(reward), bool(terminated), bool(truncated), info)
+        if terminated or truncated:
+            return
+        obs = next_obs
 
 
 @dataclass
@@ -51,19 +81,13 @@ def run_expert_episode(
         env = gym.make(
             ENV_ID, obs_type="state", scenario=scenario, render_size=frame_size, disable_env_checker=True
         )
-    expert = ScriptedExpert()
     try:
-        env.reset(seed=seed)
-        expert.reset(env)
+        obs, info = env.reset(seed=seed)
         frames = [env.render()] if n_frames else []
         onset = 0 if env.unwrapped.scenario.perturbed else None
-        info: dict = {}
         steps = 0
-        done = False
-        while not done:
-            _, _, terminated, truncated, info = env.step(expert.act(env))
-            steps += 1
-            done = terminated or truncated
+        for steps, step in enumerate(iter_expert_steps(env, ScriptedExpert(), obs), start=1):
+            info = step.info
             if onset is None and info["perturbed"]:
                 onset = steps - 1
             if n_frames:

@@ -63,6 +63,7 @@ from lerobot_suture.datasets.split import info_splits, split_episodes
 from lerobot_suture.datasets.video import resolve_video_backend
 from lerobot_suture.expert import ExpertConfig, ScriptedExpert
 from lerobot_suture.registration import ENV_ID, MAX_EPISODE_STEPS
+from lerobot_suture.rollout_expert import iter_expert_steps
 from lerobot_suture.sim import suture_env
 from lerobot_suture.sim.scenarios import SCENARIOS
 
@@ -296,29 +297,24 @@ def rollout_expert(env, expert, seed: int, on_step: Callable[[], None] | None = 
         on_step: called after every control step (progress).
     """
     obs, info = env.reset(seed=seed)
-    expert.reset(env)
     frames = []
-    while True:
-        action = expert.act(env)
-        next_obs, reward, terminated, truncated, info = env.step(action)
+    for step in iter_expert_steps(env, expert, obs):
         frame = {
-            STATE_KEY: obs["agent_pos"],
-            ACTION_KEY: np.asarray(action, dtype=np.float32),
-            REWARD_KEY: np.array([reward], dtype=np.float32),
-            SUCCESS_KEY: np.array([bool(info["is_success"])]),
-            DONE_KEY: np.array([bool(terminated or truncated)]),
+            STATE_KEY: step.obs["agent_pos"],
+            ACTION_KEY: np.asarray(step.action, dtype=np.float32),
+            REWARD_KEY: np.array([step.reward], dtype=np.float32),
+            SUCCESS_KEY: np.array([bool(step.info["is_success"])]),
+            DONE_KEY: np.array([step.done]),
             "task": TASK,
         }
-        if "pixels" in obs:
-            frame[IMAGE_KEY] = obs["pixels"]["endoscope"]
-        if "environment_state" in obs:
-            frame[ENV_STATE_KEY] = obs["environment_state"]
+        if "pixels" in step.obs:
+            frame[IMAGE_KEY] = step.obs["pixels"]["endoscope"]
+        if "environment_state" in step.obs:
+            frame[ENV_STATE_KEY] = step.obs["environment_state"]
         frames.append(frame)
-        obs = next_obs
+        info = step.info
         if on_step is not None:
             on_step()
-        if terminated or truncated:
-            break
     success = bool(info["is_success"])
     rollout = ExpertRollout(seed=seed, frames=frames, success=success, info=info)
     if not success:
