@@ -16,7 +16,6 @@ from pathlib import Path
 
 import draccus
 import numpy as np
-from tqdm import tqdm
 
 from lerobot_suture.safety.ood import (
     false_alarm_rates,
@@ -48,6 +47,7 @@ class CalibrateConfig:
         the running maximum holding the per-episode false-alarm rate near alpha).
     alpha: significance of the one-sided likelihood-ratio test.
     h: width factor of the in-distribution model, Normal(mean, h * std).
+    batch_envs: envs run in lockstep with one batched policy call per step (faster on any device).
     device: torch device of the policy.
     """
 
@@ -59,6 +59,7 @@ class CalibrateConfig:
     mode: str = "per_episode"
     alpha: float = 0.05
     h: float = 1.0
+    batch_envs: int = 8
     device: str = "cpu"
 
     def __post_init__(self):
@@ -66,6 +67,8 @@ class CalibrateConfig:
             raise ValueError(
                 "`--policy.path` is required: the pretrained_model directory of a trained policy."
             )
+        if self.batch_envs < 1:
+            raise ValueError(f"`batch_envs` must be >= 1. Got {self.batch_envs}.")
         if self.calibration_episodes < 1 or self.holdout_episodes < 0:
             raise ValueError(
                 "`calibration_episodes` must be >= 1 and `holdout_episodes` >= 0. "
@@ -92,26 +95,24 @@ def calibration_seeds(cfg: CalibrateConfig) -> list[int]:
 
 
 def collect_scores(
-    runner, env_kwargs: dict, seeds: list[int], desc: str
+    runner, env_kwargs: dict, seeds: list[int], desc: str, batch_envs: int = 8
 ) -> tuple[np.ndarray, np.ndarray, list]:
     """Per-prediction uncertainty scores and their episode ids over nominal episodes of ``runner``."""
     import gymnasium as gym
 
     from lerobot_suture.registration import ENV_ID
-    from lerobot_suture.rollout import rollout_episode
+    from lerobot_suture.rollout import rollout_seeds
 
-    env = gym.make(ENV_ID, disable_env_checker=True, scenario="nominal", **env_kwargs)
-    scores, episode_ids, logs = [], [], []
-    try:
-        for episode, seed in enumerate(tqdm(seeds, desc=desc, unit="episode")):
-            log = rollout_episode(env, runner, seed)
-            logs.append(log)
-            for step in log.steps:
-                if step.new_prediction:
-                    scores.append(step.score)
-                    episode_ids.append(episode)
-    finally:
-        env.close()
+    def make_env():
+        return gym.make(ENV_ID, disable_env_checker=True, scenario="nominal", **env_kwargs)
+
+    logs = rollout_seeds(make_env, runner, seeds, batch_envs, desc=desc)
+    scores, episode_ids = [], []
+    for episode, log in enumerate(logs):
+        for step in log.steps:
+            if step.new_prediction:
+                scores.append(step.score)
+                episode_ids.append(episode)
     return np.asarray(scores), np.asarray(episode_ids), logs
 
 
@@ -126,7 +127,9 @@ def run_calibration(cfg: CalibrateConfig) -> dict:
     env_kwargs = env_kwargs_for_policy(config)
     seeds = calibration_seeds(cfg)
     fit_seeds, holdout_seeds = seeds[: cfg.calibration_episodes], seeds[cfg.calibration_episodes :]
-    scores, ids, fit_logs = collect_scores(runner, env_kwargs, fit_seeds, "calibration episodes")
+    scores, ids, fit_logs = collect_scores(
+        runner, env_kwargs, fit_seeds, "calibration episodes", cfg.batch_envs
+    )
     calibration = fit_calibration(
         scores,
         model=cfg.model,
@@ -146,7 +149,7 @@ def run_calibration(cfg: CalibrateConfig) -> dict:
     }
     if holdout_seeds:
         held_scores, held_ids, held_logs = collect_scores(
-            runner, env_kwargs, holdout_seeds, "held-out episodes"
+            runner, env_kwargs, holdout_seeds, "held-out episodes", cfg.batch_envs
         )
         rates = false_alarm_rates(held_scores, calibration, held_ids)
         report["holdout_seeds"] = holdout_seeds

@@ -1,4 +1,4 @@
-"""Run a trained LeRobot policy on a single (unbatched) suture env, as ``lerobot-eval`` does.
+"""Run a trained LeRobot policy on suture envs (one, or several in one batch), as ``lerobot-eval`` does.
 
 The policy is loaded through LeRobot's own factory, which discovers the policy plugin, with its
 saved pre- and post-processors; observations go through the same steps as in ``lerobot-eval``
@@ -77,7 +77,7 @@ def env_kwargs_for_policy(config) -> dict:
 
 
 class PolicyRunner:
-    """``act(observation) -> (10,) float32 action`` for one env, with LeRobot's processing."""
+    """``act(observation) -> (10,) float32`` for one env, ``act_batch`` for several, with LeRobot's processing."""
 
     def __init__(self, policy, preprocessor, postprocessor):
         self.policy = policy
@@ -94,19 +94,28 @@ class PolicyRunner:
             pipeline.reset()
 
     def act(self, observation: dict) -> np.ndarray:
+        """(10,) float32: the action for one env's observation."""
+        return self.act_batch([observation])[0]
+
+    def act_batch(self, observations: list[dict]) -> np.ndarray:
+        """(B, 10) float32: the actions for B envs' observations, in one policy call (row i is env i)."""
         from lerobot.envs.utils import preprocess_observation
 
-        batch = preprocess_observation(_add_batch_axis(observation))
-        batch["task"] = [TASK]
+        batch = preprocess_observation(_stack(observations))
+        batch["task"] = [TASK] * len(observations)
         batch = self.preprocessor(batch)
         with torch.inference_mode():
             action = self.policy.select_action(batch)
         action = self.postprocessor(action)
-        return action.to("cpu").numpy()[0].astype(np.float32)
+        return action.to("cpu").numpy().astype(np.float32)
 
 
-def _add_batch_axis(observation: dict) -> dict:
-    out = {}
-    for key, value in observation.items():
-        out[key] = _add_batch_axis(value) if isinstance(value, dict) else np.asarray(value)[None]
-    return out
+def _stack(observations: list[dict]) -> dict:
+    """Env observations (nested dicts of arrays) stacked along a new leading batch axis."""
+    first = observations[0]
+    return {
+        key: _stack([o[key] for o in observations])
+        if isinstance(value, dict)
+        else np.stack([np.asarray(o[key]) for o in observations])
+        for key, value in first.items()
+    }

@@ -10,7 +10,7 @@ import pytest
 import lerobot_suture
 from lerobot_suture.cli import main as cli_main
 from lerobot_suture.policy_runner import PolicyRunner, env_kwargs_for_policy
-from lerobot_suture.rollout import HOLD, POLICY, SURGEON, rollout_episode
+from lerobot_suture.rollout import HOLD, POLICY, SURGEON, rollout_episode, rollout_episodes, rollout_seeds
 from lerobot_suture.safety.ood import fit_calibration, load_calibration, save_calibration
 
 
@@ -63,6 +63,40 @@ def test_reporting_gate_keeps_the_policy_in_control(tiny_policy_dir, tmp_path):
     assert log.first_alarm_step == 0
     predictions = [step.new_prediction for step in log.steps]
     assert predictions[0] and sum(predictions) == -(-9 // runner.policy.config.n_action_steps)
+
+
+def test_batched_rollout_keeps_one_gate_and_one_surgeon_per_env(tiny_policy_dir, tmp_path):
+    runner = _runner(tiny_policy_dir, tmp_path, threshold=1e-12, enforce=True)
+    envs = [_env(runner) for _ in range(3)]
+    logs = rollout_episodes(envs, runner, [0, 1, 2], surgeon="expert")
+    assert [log.seed for log in logs] == [0, 1, 2]
+    for log in logs:
+        # Every env was handed over at once and the expert finished its own insertion.
+        assert log.handover_step == 0 and log.success
+        assert all(step.controller == SURGEON for step in log.steps)
+    # Each episode ended on its own step and was not stepped after: the lengths are the expert's.
+    singles = [rollout_episode(_env(runner), runner, seed, surgeon="expert") for seed in (0, 1, 2)]
+    assert [len(log.steps) for log in logs] == [len(log.steps) for log in singles]
+
+
+def test_batched_rollouts_are_seeded_and_match_in_batches(tiny_policy_dir, tmp_path):
+    runner = _runner(tiny_policy_dir, tmp_path, threshold=1.0, enforce=False)
+
+    def make_env():
+        return _env(runner, max_episode_steps=8)
+
+    first = rollout_seeds(make_env, runner, [5, 6, 7], batch_envs=2)
+    again = rollout_seeds(make_env, runner, [5, 6, 7], batch_envs=2)
+    assert [log.seed for log in first] == [5, 6, 7]
+    assert [len(log.steps) for log in first] == [8, 8, 8]
+    for a, b in zip(first, again, strict=True):
+        np.testing.assert_array_equal(a.scores, b.scores)
+    # Rows of one batch see different observations and noise: the scores are the policy's, not a constant.
+    assert not np.array_equal(first[0].scores, first[1].scores)
+    with pytest.raises(ValueError, match="batch_envs"):
+        rollout_seeds(make_env, runner, [5], batch_envs=0)
+    with pytest.raises(ValueError, match="one seed per env"):
+        rollout_episodes([make_env()], runner, [1, 2])
 
 
 def test_surgeon_must_be_known(tiny_policy_dir, tmp_path):

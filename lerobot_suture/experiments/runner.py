@@ -35,7 +35,7 @@ from lerobot_suture.experiments import metrics
 from lerobot_suture.experiments.adversary import run_cbf_episode
 from lerobot_suture.experiments.plots import plot_uncertainty
 from lerobot_suture.registration import ENV_ID
-from lerobot_suture.rollout import EpisodeLog, rollout_episode
+from lerobot_suture.rollout import EpisodeLog, rollout_seeds
 from lerobot_suture.rollout_expert import run_expert_episode
 from lerobot_suture.safety.cbf import CBFConfig
 
@@ -64,6 +64,8 @@ class ExperimentsConfig:
     cbf_runs: runs of each arm of experiment 4 live (policy and adversary, filter on and off).
     enforced_runs: runs per scenario (nominal and the four perturbations) with the gate enforced and
         the scripted surgeon taking over.
+    batch_envs: envs run in lockstep with one batched policy call per step (same seeds and batch_envs:
+        same numbers).
     device: torch device of the policy.
     """
 
@@ -78,12 +80,15 @@ class ExperimentsConfig:
     phantom_moved_after_insertion_runs: int = 27
     cbf_runs: int = 10
     enforced_runs: int = 5
+    batch_envs: int = 8
     device: str = "cpu"
 
     def __post_init__(self):
         if self.policy.path is None:
             raise ValueError("`--policy.path` is required: a trained, calibrated ensemble directory.")
         counts = {k: v for k, v in asdict(self).items() if k.endswith(("_runs", "_episodes"))}
+        if self.batch_envs < 1:
+            raise ValueError(f"`batch_envs` must be >= 1. Got {self.batch_envs}.")
         bad = {k: v for k, v in counts.items() if v < 0}
         if bad:
             raise ValueError(f"Episode counts must be >= 0. Got {bad}.")
@@ -112,15 +117,11 @@ def _make_env(env_kwargs: dict, scenario: str, cbf: CBFConfig | None = None, tra
 
 
 def _rollouts(
-    runner, env_kwargs, scenario, seeds, desc, surgeon="none", cbf=None, trace=False
+    cfg: ExperimentsConfig, runner, env_kwargs, scenario, seeds, desc, surgeon="none", cbf=None, trace=False
 ) -> list[EpisodeLog]:
-    env = _make_env(env_kwargs, scenario, cbf, trace)
-    try:
-        return [
-            rollout_episode(env, runner, s, surgeon=surgeon) for s in tqdm(seeds, desc=desc, unit="episode")
-        ]
-    finally:
-        env.close()
+    return rollout_seeds(
+        lambda: _make_env(env_kwargs, scenario, cbf, trace), runner, seeds, cfg.batch_envs, surgeon, desc
+    )
 
 
 def _alarms(log: EpisodeLog) -> list[bool]:
@@ -157,7 +158,7 @@ def cbf_live(cfg: ExperimentsConfig, runner, env_kwargs: dict) -> dict:
     result = {}
     for name, cbf in (("filter_on", cbf_on), ("filter_off", cbf_off)):
         logs = _rollouts(
-            runner, env_kwargs, "nominal", seeds, f"CBF live, policy, {name}", cbf=cbf, trace=True
+            cfg, runner, env_kwargs, "nominal", seeds, f"CBF live, policy, {name}", cbf=cbf, trace=True
         )
         active = [s for log in logs for s in log.steps if s.cbf_active]
         h_mins = [log.h_min_physics for log in logs if not math.isnan(log.h_min_physics)]
@@ -190,6 +191,7 @@ def enforced(cfg: ExperimentsConfig, runner, env_kwargs: dict) -> dict:
         out = {}
         for group, scenario in enumerate(["nominal"] + [s for _, s, _ in EXPERIMENTS]):
             logs = _rollouts(
+                cfg,
                 runner,
                 env_kwargs,
                 scenario,
@@ -231,7 +233,7 @@ def run_experiments(cfg: ExperimentsConfig) -> dict:
     env_kwargs = env_kwargs_for_policy(policy.config)
     threshold = policy.ood_calibration.threshold
 
-    nominal = _rollouts(runner, env_kwargs, "nominal", _seeds(cfg, 0, cfg.nominal_episodes), "nominal")
+    nominal = _rollouts(cfg, runner, env_kwargs, "nominal", _seeds(cfg, 0, cfg.nominal_episodes), "nominal")
     expert = [
         run_expert_episode(s) for s in tqdm(_seeds(cfg, 1, cfg.expert_episodes), desc="expert, nominal")
     ]
@@ -254,7 +256,7 @@ def run_experiments(cfg: ExperimentsConfig) -> dict:
     }
     nominal_scores = [log.scores for log in nominal]
     for group, (exp_id, scenario, title) in enumerate(EXPERIMENTS, start=2):
-        runs = _rollouts(runner, env_kwargs, scenario, _seeds(cfg, group, cfg.runs(scenario)), title)
+        runs = _rollouts(cfg, runner, env_kwargs, scenario, _seeds(cfg, group, cfg.runs(scenario)), title)
         entry = ood_metrics(nominal, runs)
         entry["scenario"] = scenario
         result["experiments"][exp_id] = entry
