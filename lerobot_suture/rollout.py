@@ -143,11 +143,8 @@ def rollout_episodes(
                     log.handover_step = len(log.steps)
                     held[i] = action  # the policy's hold action at the release
                     experts[i].reset(env)  # the expert works out where the task stands
-            else:
-                statuses[i] = {
-                    **statuses[i],
-                    "new_prediction": False,
-                }  # the released policy is not asked again
+            else:  # the released policy is not asked again
+                statuses[i] = {**statuses[i], "new_prediction": False}
             if log.handover_step is not None:
                 # Released: the arm holds the pose of the release, or the surgeon acts.
                 if surgeon == "expert":
