@@ -1,0 +1,119 @@
+#!/usr/bin/env python
+"""Open-loop action error of trained ensemble checkpoints on the dataset's validation episodes.
+
+How far along is the vision path? For each checkpoint, a fixed, seeded sample of validation frames
+(with the observation and action windows the policy was trained on) goes through the checkpoint's own
+pre-processor and the fused members; the members' mean chunk is compared with the expert's recorded
+actions. Per checkpoint it prints one JSON line: the median jaw-position error (mm) of the first
+executed action and of the last action of the chunk, and ``stay_mm``, the error of keeping the current
+pose until the chunk's end: a policy that ignores the phantom's pose in the image scores about that.
+The entry tolerance of the task is 2 mm.
+
+    python benchmarks/open_loop_error.py --dataset-root DIR CHECKPOINT [CHECKPOINT ...]
+
+CHECKPOINT is a ``pretrained_model`` directory, or a run's ``checkpoints`` directory (every step in it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from pathlib import Path
+
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from lerobot_suture.datasets.split import validation_episodes  # noqa: E402
+from lerobot_suture.policy_runner import load_policy  # noqa: E402
+from lerobot_suture.sim.suture_env import TASK  # noqa: E402
+
+
+def checkpoint_dirs(paths: list[str]) -> list[Path]:
+    """``pretrained_model`` directories: given ones, and every step of a given ``checkpoints`` folder."""
+    out = []
+    for p in map(Path, paths):
+        if (p / "config.json").is_file():
+            out.append(p)
+        elif p.is_dir():
+            steps = sorted(d for d in p.iterdir() if d.name.isdigit() and (d / "pretrained_model").is_dir())
+            if not steps:
+                raise FileNotFoundError(f"No checkpoint in {p}: expected STEP/pretrained_model folders.")
+            out += [d / "pretrained_model" for d in steps]
+        else:
+            raise FileNotFoundError(f"{p} is neither a pretrained_model directory nor a checkpoints folder.")
+    return out
+
+
+def validation_batch(dataset_root: Path, config, n_frames: int, seed: int) -> dict:
+    """``n_frames`` validation frames with the observation and action windows of ``config``."""
+    from lerobot.datasets import LeRobotDataset, LeRobotDatasetMetadata
+
+    fps = LeRobotDatasetMetadata("local/eval", root=dataset_root).fps
+    delta = {"action": [i / fps for i in config.action_delta_indices]}
+    for key in config.input_features:
+        delta[key] = [i / fps for i in config.observation_delta_indices]
+    episodes = validation_episodes(dataset_root)
+    if not episodes:
+        raise ValueError(f"The dataset at {dataset_root} has no validation episodes.")
+    dataset = LeRobotDataset("local/eval", root=dataset_root, episodes=episodes, delta_timestamps=delta)
+    rng = np.random.default_rng(seed)
+    indices = rng.choice(len(dataset), size=min(n_frames, len(dataset)), replace=False)
+    items = [dataset[int(i)] for i in indices]
+    batch = {
+        k: torch.stack([it[k] for it in items]) for k in [*config.input_features, "action", "action_is_pad"]
+    }
+    batch["task"] = [TASK] * len(items)
+    return batch
+
+
+def open_loop_error(checkpoint: Path, dataset_root: Path, n_frames: int, seed: int, device: str) -> dict:
+    policy, preprocessor, _ = load_policy(checkpoint, device)
+    config = policy.config
+    batch = validation_batch(dataset_root, config, n_frames, seed)
+    expert = batch.pop("action")[..., :3]  # (B, T, 3) m
+    pad = batch.pop("action_is_pad")  # (B, T)
+    state = batch["observation.state"][:, -1, :3]  # (B, 3): the current jaw position
+    policy.reset()
+    started = time.perf_counter()
+    with torch.inference_mode():
+        generator = torch.Generator(device=device).manual_seed(seed)
+        prediction = policy.predict_action_distribution(preprocessor(batch), generator=generator)
+    mean = prediction.unnormalized.mean[..., :3].cpu()  # (B, T, 3) m
+    first, last = config.n_obs_steps - 1, config.horizon - 1
+    keep = ~pad[:, last]  # frames whose whole chunk lies inside the episode
+
+    def median_mm(x: torch.Tensor) -> float:
+        return round(float(x[keep].norm(dim=-1).median()) * 1e3, 3)
+
+    return {
+        "checkpoint": str(checkpoint),
+        "members": config.n_members,
+        "frames": int(keep.sum()),
+        "first_action_mm": median_mm(mean[:, first] - expert[:, first]),
+        "last_action_mm": median_mm(mean[:, last] - expert[:, last]),
+        "stay_mm": median_mm(state - expert[:, last]),
+        "seconds": round(time.perf_counter() - started, 1),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("checkpoints", nargs="+")
+    parser.add_argument("--dataset-root", type=Path, required=True)
+    parser.add_argument("--frames", type=int, default=256)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--device", default="cpu")
+    args = parser.parse_args()
+    for checkpoint in checkpoint_dirs(args.checkpoints):
+        result = open_loop_error(checkpoint, args.dataset_root, args.frames, args.seed, args.device)
+        print(json.dumps({"benchmark": "open_loop_error", **result}), flush=True)
+
+
+if __name__ == "__main__":
+    main()
