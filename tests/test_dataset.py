@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import subprocess
 import sys
@@ -430,3 +431,54 @@ def test_push_uses_lerobot_push_to_hub_with_tags_and_card(tiny, online_without_t
     with pytest.raises(HubPushError, match="cannot write to 'elsewhere'"):
         push_dataset("elsewhere/tiny_expert", tiny.root)
     assert "upload_folder" not in calls
+
+
+def test_open_loop_error_benchmark_scores_a_checkpoint_on_the_validation_frames(tiny, tmp_path):
+    """`benchmarks/open_loop_error.py` on a tiny untrained ensemble saved as lerobot-train saves one."""
+    import importlib.util
+
+    from lerobot.configs.types import FeatureType, PolicyFeature
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+    from lerobot.policies.factory import make_pre_post_processors
+    from lerobot_policy_ensemble_diffusion import EnsembleDiffusionPolicy
+    from lerobot_policy_ensemble_diffusion.testing import tiny_config
+
+    spec = importlib.util.spec_from_file_location(
+        "open_loop_error", Path(__file__).resolve().parents[1] / "benchmarks" / "open_loop_error.py"
+    )
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+
+    stats = LeRobotDataset(REPO_ID, root=tiny.root).meta.stats
+    torch.manual_seed(0)
+    config = tiny_config(
+        n_members=2,
+        num_inference_steps=2,
+        noise_scheduler_type="DDIM",
+        resize_shape=None,
+        crop_ratio=1.0,
+        input_features={
+            "observation.images.endoscope": PolicyFeature(FeatureType.VISUAL, (3, IMAGE_SIZE, IMAGE_SIZE)),
+            "observation.state": PolicyFeature(FeatureType.STATE, (10,)),
+        },
+    )
+    policy = EnsembleDiffusionPolicy(config, dataset_stats=stats)
+    run = tmp_path / "checkpoints"
+    directory = run / "000002" / "pretrained_model"
+    policy.save_pretrained(directory)
+    for pipeline in make_pre_post_processors(config, dataset_stats=stats):
+        pipeline.save_pretrained(directory)
+
+    assert bench.checkpoint_dirs([str(run)]) == [directory]
+    with pytest.raises(FileNotFoundError, match="pretrained_model"):
+        bench.checkpoint_dirs([str(tmp_path / "nothing")])
+    first = bench.open_loop_error(directory, Path(tiny.root), n_frames=16, seed=0, device="cpu")
+    again = bench.open_loop_error(directory, Path(tiny.root), n_frames=16, seed=0, device="cpu")
+    assert first["frames"] > 0 and first["members"] == 2
+    assert all(
+        math.isfinite(first[k]) and first[k] >= 0 for k in ("first_action_mm", "last_action_mm", "stay_mm")
+    )
+    # Seeded: the same frames and the same diffusion noise give the same numbers.
+    assert {k: v for k, v in first.items() if k != "seconds"} == {
+        k: v for k, v in again.items() if k != "seconds"
+    }
