@@ -155,7 +155,7 @@ def rollout_episodes(
             infos[i] = info
             log.steps.append(_step_log(statuses[i], controller, info))
             if info.get("cbf_active") and "needle_tip_trace" in info:
-                h_physics[i].append(_h_min_of_trace(env, info["needle_tip_trace"]))
+                h_physics[i].append(env.get_wrapper_attr("h_min")(info["needle_tip_trace"]))
             done[i] = bool(terminated or truncated)
     for log, info, h in zip(logs, infos, h_physics, strict=True):
         log.success = bool(info["is_success"])
@@ -207,10 +207,3 @@ def _step_log(status: dict, controller: str, info: dict) -> StepLog:
         cbf_active=bool(info.get("cbf_active", False)),
         cbf_intervened=bool(info.get("cbf_intervened", False)),
     )
-
-
-def _h_min_of_trace(env: gym.Env, trace: np.ndarray) -> float:
-    from lerobot_suture.safety.cbf import ellipsoid_h
-
-    center, axes, rotation = env.get_wrapper_attr("safe_set")()
-    return float(np.min(ellipsoid_h(trace, center, axes, rotation)))

@@ -12,7 +12,7 @@ import pytest
 
 from lerobot_suture.experiments.adversary import CBFEpisode, run_cbf_episode
 from lerobot_suture.expert import ScriptedExpert
-from lerobot_suture.safety.cbf import CBFConfig, ellipsoid_h
+from lerobot_suture.safety.cbf import CBFConfig
 from lerobot_suture.safety.cbf_wrapper import PHASE_ACTIVE, CBFActionWrapper
 from lerobot_suture.sim.suture_env import SutureEnv
 
@@ -91,8 +91,7 @@ def free_pull_h(seed: int, enabled: bool, direction: np.ndarray) -> tuple[float,
             pull_action[:3] += 0.03 * rotation @ direction
         _, _, _, _, info = env.step(expert.act(env) if pull_action is None else pull_action)
         if pull_action is not None:
-            center, axes, rotation = env.safe_set()
-            h_min = min(h_min, float(ellipsoid_h(info["needle_tip_trace"], center, axes, rotation).min()))
+            h_min = min(h_min, env.h_min(info["needle_tip_trace"]))
     env.close()
     return h_min, info["h"]
 

@@ -2,8 +2,9 @@
 
 It runs the scripted expert until the needle has been in tissue for ``steps_in_tissue`` control
 steps, then commands the jaw ``pull_distance`` metres along the phantom's lateral axis (across the
-wound, orientation kept, jaw closed) and holds that target: what would tear tissue. ``run_cbf_episode`` runs it (or the plain expert) under the CBF wrapper and
-measures h at every physics step.
+wound, orientation kept, jaw closed) and holds that target: what would tear tissue.
+``run_cbf_episode`` runs it (or the plain expert) under the CBF wrapper and measures h at every
+physics step.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lerobot_suture.expert import ScriptedExpert
-from lerobot_suture.safety.cbf import CBFConfig, ellipsoid_h
+from lerobot_suture.safety.cbf import CBFConfig
 from lerobot_suture.safety.cbf_wrapper import PHASE_ACTIVE, PHASE_IDLE, CBFActionWrapper
 from lerobot_suture.sim.suture_env import SutureEnv
 
@@ -93,8 +94,7 @@ def run_cbf_episode(
             pulled += 1
         _, _, terminated, truncated, info = env.step(action)
         if env.phase != PHASE_IDLE:
-            center, axes, rotation = env.safe_set()
-            h = float(ellipsoid_h(info["needle_tip_trace"], center, axes, rotation).min())
+            h = env.h_min(info["needle_tip_trace"])
             h_all.append(h)
             if info["cbf_active"]:
                 h_active.append(h)

@@ -96,6 +96,11 @@ class CBFActionWrapper(gym.Wrapper):
         center, rotation = suture_ellipsoid_frame(base.entry_point, base.exit_point, normal)
         return center, self._axes, rotation
 
+    def h_min(self, points: np.ndarray) -> float:
+        """Smallest h over ``points`` (N, 3) m in the current safe set, e.g. ``info["needle_tip_trace"]``."""
+        center, axes, rotation = self.safe_set()
+        return float(np.min(ellipsoid_h(np.asarray(points, dtype=np.float64), center, axes, rotation)))
+
     def _filter_tip_velocity(self, needle_tip_pos: np.ndarray, v_nominal: np.ndarray) -> np.ndarray:
         """The hook SutureEnv calls: (3,) tip position (m), (3,) nominal velocity (m/s) -> (3,) m/s."""
         base = self.env.unwrapped
