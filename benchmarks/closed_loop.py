@@ -26,9 +26,7 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 import gymnasium as gym  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from lerobot.policies.factory import make_pre_post_processors  # noqa: E402
-from lerobot_policy_ensemble_diffusion import EnsembleDiffusionPolicy  # noqa: E402
-from lerobot_policy_ensemble_diffusion.testing import fake_dataset_stats  # noqa: E402
+from lerobot_policy_ensemble_diffusion.testing import fake_dataset_stats, save_untrained_policy  # noqa: E402
 
 import lerobot_suture  # noqa: E402
 from lerobot_suture.policy_runner import PolicyRunner, env_kwargs_for_policy  # noqa: E402
@@ -45,12 +43,7 @@ def saved_ensemble(directory: Path, n_members: int) -> Path:
     from ensemble_latency import load_preset_config
 
     config = load_preset_config(str(PRESET), n_members=n_members, device="cpu")
-    stats = fake_dataset_stats()
-    policy = EnsembleDiffusionPolicy(config, dataset_stats=stats)
-    policy.save_pretrained(directory)
-    pre, post = make_pre_post_processors(config, dataset_stats=stats)
-    pre.save_pretrained(directory)
-    post.save_pretrained(directory)
+    save_untrained_policy(config, fake_dataset_stats(), directory)
     rng = np.random.default_rng(0)
     save_calibration(fit_calibration(rng.lognormal(0, 0.3, 200), model="lognormal"), directory)
     return directory

@@ -22,22 +22,16 @@ def tiny_policy_dir(tmp_path_factory) -> Path:
     """
     import numpy as np
     import torch
-    from lerobot.policies.factory import make_pre_post_processors
-    from lerobot_policy_ensemble_diffusion import EnsembleDiffusionPolicy
-    from lerobot_policy_ensemble_diffusion.testing import tiny_config
+    from lerobot_policy_ensemble_diffusion.testing import save_untrained_policy, tiny_config
 
     from lerobot_suture.expert import ScriptedExpert
-    from lerobot_suture.rollout_expert import run_expert_episode  # noqa: F401 - env registered
+    from lerobot_suture.rollout_expert import iter_expert_steps
     from lerobot_suture.sim.suture_env import SutureEnv
 
     env, expert, poses = SutureEnv(obs_type="state"), ScriptedExpert(), []
     for seed in range(2):
         obs, _ = env.reset(seed=seed)
-        expert.reset(env)
-        done = False
-        while not done:
-            poses.append(obs["agent_pos"])
-            obs, _, done, _, _ = env.step(expert.act(env))
+        poses += [step.obs["agent_pos"] for step in iter_expert_steps(env, expert, obs)]
     poses = np.asarray(poses, dtype=np.float64)
     pose_stats = {
         "min": poses.min(0) - 1e-3,
@@ -56,10 +50,4 @@ def tiny_policy_dir(tmp_path_factory) -> Path:
 
     torch.manual_seed(0)
     config = tiny_config(n_members=2, num_inference_steps=3, noise_scheduler_type="DDIM")
-    policy = EnsembleDiffusionPolicy(config, dataset_stats=stats)
-    directory = tmp_path_factory.mktemp("tiny_policy") / "pretrained_model"
-    policy.save_pretrained(directory)
-    preprocessor, postprocessor = make_pre_post_processors(config, dataset_stats=stats)
-    preprocessor.save_pretrained(directory)
-    postprocessor.save_pretrained(directory)
-    return directory
+    return save_untrained_policy(config, stats, tmp_path_factory.mktemp("tiny_policy") / "pretrained_model")

@@ -439,9 +439,7 @@ def test_open_loop_error_benchmark_scores_a_checkpoint_on_the_validation_frames(
 
     from lerobot.configs.types import FeatureType, PolicyFeature
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
-    from lerobot.policies.factory import make_pre_post_processors
-    from lerobot_policy_ensemble_diffusion import EnsembleDiffusionPolicy
-    from lerobot_policy_ensemble_diffusion.testing import tiny_config
+    from lerobot_policy_ensemble_diffusion.testing import save_untrained_policy, tiny_config
 
     spec = importlib.util.spec_from_file_location(
         "open_loop_error", Path(__file__).resolve().parents[1] / "benchmarks" / "open_loop_error.py"
@@ -462,12 +460,8 @@ def test_open_loop_error_benchmark_scores_a_checkpoint_on_the_validation_frames(
             "observation.state": PolicyFeature(FeatureType.STATE, (10,)),
         },
     )
-    policy = EnsembleDiffusionPolicy(config, dataset_stats=stats)
     run = tmp_path / "checkpoints"
-    directory = run / "000002" / "pretrained_model"
-    policy.save_pretrained(directory)
-    for pipeline in make_pre_post_processors(config, dataset_stats=stats):
-        pipeline.save_pretrained(directory)
+    directory = save_untrained_policy(config, stats, run / "000002" / "pretrained_model")
 
     assert bench.checkpoint_dirs([str(run)]) == [directory]
     with pytest.raises(FileNotFoundError, match="pretrained_model"):

@@ -11,9 +11,11 @@ import torch
 
 pytest.importorskip("lerobot_env_suture")
 
-from lerobot.policies.factory import make_pre_post_processors  # noqa: E402
-from lerobot_policy_ensemble_diffusion import EnsembleDiffusionPolicy  # noqa: E402
-from lerobot_policy_ensemble_diffusion.testing import fake_dataset_stats, tiny_config  # noqa: E402
+from lerobot_policy_ensemble_diffusion.testing import (  # noqa: E402
+    fake_dataset_stats,
+    save_untrained_policy,
+    tiny_config,
+)
 
 LEROBOT_EVAL = str(Path(sys.executable).parent / "lerobot-eval")
 
@@ -24,13 +26,7 @@ def saved_policy(tmp_path) -> Path:
     torch.manual_seed(0)
     stats = fake_dataset_stats()
     config = tiny_config(num_inference_steps=5, noise_scheduler_type="DDIM")
-    policy = EnsembleDiffusionPolicy(config, dataset_stats=stats)
-    directory = tmp_path / "pretrained_model"
-    policy.save_pretrained(directory)
-    preprocessor, postprocessor = make_pre_post_processors(config, dataset_stats=stats)
-    preprocessor.save_pretrained(directory)
-    postprocessor.save_pretrained(directory)
-    return directory
+    return save_untrained_policy(config, stats, tmp_path / "pretrained_model")
 
 
 def test_lerobot_eval_runs_the_ensemble_on_the_suture_env(saved_policy, tmp_path):

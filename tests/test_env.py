@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import inspect
+import itertools
 import re
 import warnings
 
@@ -14,6 +15,7 @@ from gymnasium.utils.env_checker import check_env
 
 import lerobot_suture
 from lerobot_suture.expert import ScriptedExpert
+from lerobot_suture.rollout_expert import iter_expert_steps
 from lerobot_suture.sim import suture_env
 from lerobot_suture.sim.geometry import pose_vector
 from lerobot_suture.sim.scenarios import SCENARIOS, ScenarioConfig
@@ -249,14 +251,8 @@ def test_off_arc_motion_in_tissue_raises_strain():
 
 def test_reward_is_the_sum_of_its_terms_in_info():
     env = make()
-    expert = ScriptedExpert()
-    env.reset(seed=4)
-    expert.reset(env)
-    rewards = []
-    for _ in range(100):
-        _, reward, terminated, truncated, info = env.step(expert.act(env))
-        assert reward == info["reward_success"]
-        rewards.append(reward)
-        if terminated or truncated:
-            break
+    obs, _ = env.reset(seed=4)
+    steps = list(itertools.islice(iter_expert_steps(env, ScriptedExpert(), obs), 100))
+    assert all(step.reward == step.info["reward_success"] for step in steps)
+    rewards = [step.reward for step in steps]
     assert rewards[-1] == 1.0 and sum(rewards) == 1.0

@@ -94,6 +94,24 @@ def tiny_config(**overrides) -> EnsembleDiffusionConfig:
     return EnsembleDiffusionConfig(**kwargs)
 
 
+def save_untrained_policy(
+    config: EnsembleDiffusionConfig, stats: dict[str, dict[str, np.ndarray]], directory: str | Path
+) -> Path:
+    """An untrained ensemble saved as `lerobot-train` saves one: weights, config and pre/post-processors.
+
+    Seed torch first for reproducible weights. Returns `directory`.
+    """
+    from lerobot.policies.factory import make_pre_post_processors
+
+    from .modeling_ensemble_diffusion import EnsembleDiffusionPolicy
+
+    directory = Path(directory)
+    EnsembleDiffusionPolicy(config, dataset_stats=stats).save_pretrained(directory)
+    for pipeline in make_pre_post_processors(config, dataset_stats=stats):
+        pipeline.save_pretrained(directory)
+    return directory
+
+
 def fake_dataset_stats(seed: int = 0) -> dict[str, dict[str, np.ndarray]]:
     """Dataset-like statistics for the suture features (enough for MIN_MAX / MEAN_STD normalization)."""
     rng = np.random.default_rng(seed)
