@@ -154,6 +154,19 @@ def test_fused_conv_equals_member_convs(mode, kernel, stride, padding):
             torch.testing.assert_close(fused(x), expected, rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.parametrize(("size", "stride"), [(3, 1), (5, 2), (6, 2), (4, 1)])
+def test_small_map_gemm_equals_conv2d(size, stride):
+    """ResNet's last stage at 64/72 px: 2x2/3x3 maps run as im2col + GEMM, larger maps as the conv."""
+    from lerobot_policy_ensemble_diffusion.batched_members import SharedPreprocessEncoders, SmallMapConv2d
+
+    torch.manual_seed(0)
+    conv = torch.nn.Conv2d(8, 16, 3, stride, 1, bias=False)
+    gemm = SmallMapConv2d(conv, SharedPreprocessEncoders.SMALL_MAP_POSITIONS)
+    x = torch.randn(2, 8, size, size)
+    with torch.no_grad():
+        torch.testing.assert_close(gemm(x), conv(x), rtol=1e-5, atol=1e-5)
+
+
 def test_prediction_shapes_and_statistics(policy):
     obs = random_observation(policy.config, batch_size=2)
     pred = policy.predict_action_distribution(obs, samples_per_member=3)
