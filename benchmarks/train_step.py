@@ -4,8 +4,8 @@
 Prints one JSON object: the median wall-clock and CPU seconds per step and the samples per second, in
 full precision and under bfloat16 autocast (what `lerobot-train --policy.use_amp=true` turns on), with
 and without the endoscope image (the state-only variant shows what the N vision encoders cost). The data
-is random and already normalized, so dataset decoding (a worker process in `lerobot-train`) is not
-counted; `lerobot-train` on the same machine adds about 0.4 s per step of batch 16 on 2 cores.
+is random and already normalized, so dataset decoding (a worker process in `lerobot-train`, about 8 ms
+per sample) is not counted; the reference run's `lerobot-train` took about 1.5 s per step on 2 cores.
 
     python benchmarks/train_step.py                               # CPU preset, 4 members, 2 threads
     python benchmarks/train_step.py --n-members 5 --batch-size 8
