@@ -36,12 +36,17 @@ from lerobot_policy_ensemble_diffusion.testing import (
 PRESETS_DIR = Path(__file__).resolve().parents[1] / "policies" / "presets"
 
 
+def preset_file(preset: str) -> dict:
+    """A preset's JSON (the whole `lerobot-train` config): a name in policies/presets or a JSON path."""
+    path = Path(preset) if preset.endswith(".json") else PRESETS_DIR / f"{preset}.json"
+    return json.loads(path.read_text())
+
+
 def load_preset_config(preset: str, **overrides):
     """The ensemble config of a preset file (policy section), with the suture features filled in."""
     from lerobot_policy_ensemble_diffusion import EnsembleDiffusionConfig
 
-    path = Path(preset) if preset.endswith(".json") else PRESETS_DIR / f"{preset}.json"
-    policy = dict(json.loads(path.read_text())["policy"])
+    policy = dict(preset_file(preset)["policy"])
     policy.pop("type")
     for key in ("resize_shape", "down_dims"):
         if isinstance(policy.get(key), list):

@@ -18,7 +18,7 @@ import json
 import platform
 
 import torch
-from ensemble_latency import PRESETS_DIR, load_preset_config, timed
+from ensemble_latency import load_preset_config, preset_file, timed
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE
 from lerobot_policy_ensemble_diffusion.modeling_ensemble_diffusion import EnsembleDiffusionPolicy
@@ -68,9 +68,7 @@ def main() -> None:
     if args.threads > 0:
         torch.set_num_threads(args.threads)
 
-    preset_path = args.preset if args.preset.endswith(".json") else str(PRESETS_DIR / f"{args.preset}.json")
-    with open(preset_path) as f:
-        batch_size = args.batch_size or json.load(f)["batch_size"]
+    batch_size = args.batch_size or preset_file(args.preset)["batch_size"]
     with_image = load_preset_config(args.preset, n_members=args.n_members, device="cpu")
     state_only = load_preset_config(args.preset, n_members=args.n_members, device="cpu")
     # Without the image LeRobot's diffusion needs an environment state: a (10,) stand-in costs nothing.
