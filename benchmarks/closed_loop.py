@@ -33,8 +33,6 @@ from lerobot_suture.policy_runner import PolicyRunner, env_kwargs_for_policy  # 
 from lerobot_suture.safety.cbf import CBFConfig  # noqa: E402
 from lerobot_suture.safety.ood import fit_calibration, save_calibration  # noqa: E402
 
-PRESET = Path(__file__).resolve().parents[1] / "policies" / "presets" / "cpu.json"
-
 
 def saved_ensemble(directory: Path, n_members: int) -> Path:
     import sys
@@ -42,7 +40,7 @@ def saved_ensemble(directory: Path, n_members: int) -> Path:
     sys.path.insert(0, str(Path(__file__).parent))
     from ensemble_latency import load_preset_config
 
-    config = load_preset_config(str(PRESET), n_members=n_members, device="cpu")
+    config = load_preset_config("cpu", n_members=n_members, device="cpu")
     save_untrained_policy(config, fake_dataset_stats(), directory)
     rng = np.random.default_rng(0)
     save_calibration(fit_calibration(rng.lognormal(0, 0.3, 200), model="lognormal"), directory)
