@@ -97,13 +97,17 @@ class PolicyRunner:
         """(10,) float32: the action for one env's observation."""
         return self.act_batch([observation])[0]
 
-    def act_batch(self, observations: list[dict]) -> np.ndarray:
-        """(B, 10) float32: the actions for B envs' observations, in one policy call (row i is env i)."""
+    def preprocess(self, observations: list[dict]) -> dict:
+        """B envs' observations as the policy's normalized input batch (row i is env i)."""
         from lerobot.envs.utils import preprocess_observation
 
         batch = preprocess_observation(_stack(observations))
         batch["task"] = [TASK] * len(observations)
-        batch = self.preprocessor(batch)
+        return self.preprocessor(batch)
+
+    def act_batch(self, observations: list[dict]) -> np.ndarray:
+        """(B, 10) float32: the actions for B envs' observations, in one policy call (row i is env i)."""
+        batch = self.preprocess(observations)
         with torch.inference_mode():
             action = self.policy.select_action(batch)
         action = self.postprocessor(action)

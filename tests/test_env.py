@@ -83,6 +83,22 @@ def test_observation_layout_and_render():
     env.close()
 
 
+def test_observe_can_hide_the_needle_from_the_endoscope_only():
+    env = SutureEnv(obs_type="pixels_agent_pos_state", image_size=96)
+    obs, _ = env.reset(seed=1)
+    shown = env.observe()
+    for key in ("agent_pos", "environment_state"):
+        np.testing.assert_array_equal(shown[key], obs[key])
+    np.testing.assert_array_equal(shown["pixels"]["endoscope"], obs["pixels"]["endoscope"])
+    hidden = env.observe(needle_visible=False)
+    changed = (hidden["pixels"]["endoscope"] != obs["pixels"]["endoscope"]).any(-1)
+    assert 0 < changed.sum() < 0.05 * changed.size, "only the needle's pixels should change"
+    np.testing.assert_array_equal(hidden["environment_state"], obs["environment_state"])
+    # The needle is visible again afterwards.
+    np.testing.assert_array_equal(env.observe()["pixels"]["endoscope"], obs["pixels"]["endoscope"])
+    env.close()
+
+
 def test_same_seed_same_trajectory():
     a = run_expert(make(obs_type="pixels_agent_pos", image_size=32), seed=7, max_steps=30)
     b = run_expert(make(obs_type="pixels_agent_pos", image_size=32), seed=7, max_steps=30)

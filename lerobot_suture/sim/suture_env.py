@@ -369,6 +369,23 @@ class SutureEnv(gym.Env):
         self.model.cam_pos[self._camera] = pos
         self.model.cam_quat[self._camera] = quat_from_matrix(np.column_stack([right, up, -forward]))
 
+    def observe(self, needle_visible: bool = True) -> dict:
+        """The observation of the current state (what the last ``reset``/``step`` returned).
+
+        With ``needle_visible=False`` the endoscope image is rendered without the needle, the scene left
+        as it is: a probe of whether a policy reads the needle from the image
+        (``benchmarks/needle_attention.py``).
+        """
+        if needle_visible:
+            return self._observation()
+        needle_geoms = np.flatnonzero(self.model.geom_bodyid == self._needle_body)
+        alpha = self.model.geom_rgba[needle_geoms, 3].copy()
+        self.model.geom_rgba[needle_geoms, 3] = 0.0
+        try:
+            return self._observation()
+        finally:
+            self.model.geom_rgba[needle_geoms, 3] = alpha
+
     # ------------------------------------------------------------------ gym API
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)

@@ -1,0 +1,136 @@
+#!/usr/bin/env python
+"""Does a trained ensemble look at the needle in the endoscope image?
+
+The gate can only flag a dropped needle if the members' predictions depend on the needle they see. For
+each checkpoint, the scripted expert drives nominal episodes (the training distribution); at a few
+control steps the same state is shown to the ensemble twice, once as rendered and once with the
+needle made invisible, with the same diffusion noise. A second noise draw on the unchanged image gives
+the scale of the sampling noise to compare with. Per checkpoint it prints one JSON line of medians over
+the probed frames:
+
+- ``needle_pixels``: endoscope pixels (env image size) that change when the needle is hidden;
+- ``hidden_shift_mm``: how far the ensemble's first predicted jaw position moves when the needle is
+  hidden; ``noise_shift_mm``: how far it moves with another noise draw instead;
+- ``hidden_score_ratio``: the uncertainty score with the needle hidden over the score with it shown;
+  ``noise_score_ratio``: the same for another noise draw.
+
+A ``hidden_shift_mm`` far below ``noise_shift_mm`` and a ``hidden_score_ratio`` of 1 mean that the
+members ignore the needle, so its absence (experiment 1) is not out of distribution for them.
+
+    python benchmarks/needle_attention.py CHECKPOINT [CHECKPOINT ...]
+
+CHECKPOINT is a ``pretrained_model`` directory, or a run's ``checkpoints`` directory (every step in it).
+Probe seeds start at 3,000,000: disjoint from recording, calibration and test seeds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+
+import gymnasium as gym  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+import lerobot_suture  # noqa: E402
+from lerobot_suture.expert import ScriptedExpert  # noqa: E402
+from lerobot_suture.policy_runner import PolicyRunner, env_kwargs_for_policy  # noqa: E402
+
+PROBE_SEED_BASE = 3_000_000
+
+
+def _prediction(runner: PolicyRunner, observation: dict, noise: torch.Tensor) -> tuple[np.ndarray, float]:
+    """(first predicted jaw position (3,) in mm, uncertainty score) for one observation and noise."""
+    runner.reset()
+    runner.policy.select_action(runner.preprocess([observation]), noise=noise)
+    prediction = runner.policy.last_prediction
+    return prediction.unnormalized.mean[0, 0, :3].numpy() * 1e3, float(prediction.score[0])
+
+
+def needle_attention(checkpoint: Path, episodes: int, probe_steps: list[int], device: str) -> dict:
+    started = time.perf_counter()
+    runner = PolicyRunner.from_pretrained(checkpoint, device)
+    config = runner.policy.config
+    env_kwargs = env_kwargs_for_policy(config)
+    if "image_size" not in env_kwargs:
+        raise ValueError(f"{checkpoint} reads no endoscope image: there is no needle for it to look at.")
+    env = gym.make(lerobot_suture.ENV_ID, disable_env_checker=True, **env_kwargs)
+    noise_shape = (
+        1,
+        config.n_members,
+        config.uncertainty_samples_per_member,
+        config.horizon,
+        config.action_feature.shape[0],
+    )
+    rows = []
+    for seed in range(PROBE_SEED_BASE, PROBE_SEED_BASE + episodes):
+        observation, _ = env.reset(seed=seed)
+        expert = ScriptedExpert()
+        expert.reset(env)
+        generator = torch.Generator().manual_seed(seed)
+        for step in range(max(probe_steps) + 1):
+            if step in probe_steps:
+                noise, other_noise = (torch.randn(noise_shape, generator=generator) for _ in range(2))
+                hidden = env.unwrapped.observe(needle_visible=False)
+                shown_pos, shown_score = _prediction(runner, observation, noise)
+                hidden_pos, hidden_score = _prediction(runner, hidden, noise)
+                other_pos, other_score = _prediction(runner, observation, other_noise)
+                changed = np.abs(
+                    observation["pixels"]["endoscope"].astype(int) - hidden["pixels"]["endoscope"].astype(int)
+                ).sum(-1)
+                rows.append(
+                    (
+                        int((changed > 0).sum()),
+                        np.linalg.norm(hidden_pos - shown_pos),
+                        np.linalg.norm(other_pos - shown_pos),
+                        hidden_score / shown_score,
+                        other_score / shown_score,
+                    )
+                )
+            observation, _, terminated, truncated, _ = env.step(expert.act(env))
+            if terminated or truncated:
+                break
+    env.close()
+    if not rows:
+        raise ValueError(f"No frame was probed: every episode ended before the probe steps {probe_steps}.")
+    medians = np.median(np.array(rows, dtype=float), axis=0)
+    return {
+        "checkpoint": str(checkpoint),
+        "frames": len(rows),
+        "needle_pixels": round(float(medians[0]), 1),
+        "hidden_shift_mm": round(float(medians[1]), 4),
+        "noise_shift_mm": round(float(medians[2]), 4),
+        "hidden_score_ratio": round(float(medians[3]), 4),
+        "noise_score_ratio": round(float(medians[4]), 4),
+        "seconds": round(time.perf_counter() - started, 1),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("checkpoints", nargs="+")
+    parser.add_argument("--episodes", type=int, default=12)
+    parser.add_argument("--probe-steps", default="5,15,25,35", help="control steps probed in each episode")
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--device", default="cpu")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    sys.path.insert(0, str(Path(__file__).parent))
+    from open_loop_error import checkpoint_dirs
+
+    probe_steps = sorted({int(s) for s in args.probe_steps.split(",")})
+    for checkpoint in checkpoint_dirs(args.checkpoints):
+        result = needle_attention(checkpoint, args.episodes, probe_steps, args.device)
+        print(json.dumps({"benchmark": "needle_attention", **result}), flush=True)
+
+
+if __name__ == "__main__":
+    main()
