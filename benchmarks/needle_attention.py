@@ -81,12 +81,10 @@ def needle_attention(checkpoint: Path, episodes: int, probe_steps: list[int], de
                 shown_pos, shown_score = _prediction(runner, observation, noise)
                 hidden_pos, hidden_score = _prediction(runner, hidden, noise)
                 other_pos, other_score = _prediction(runner, observation, other_noise)
-                changed = np.abs(
-                    observation["pixels"]["endoscope"].astype(int) - hidden["pixels"]["endoscope"].astype(int)
-                ).sum(-1)
+                changed = observation["pixels"]["endoscope"] != hidden["pixels"]["endoscope"]
                 rows.append(
                     (
-                        int((changed > 0).sum()),
+                        int(changed.any(-1).sum()),
                         np.linalg.norm(hidden_pos - shown_pos),
                         np.linalg.norm(other_pos - shown_pos),
                         hidden_score / shown_score,
