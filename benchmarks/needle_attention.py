@@ -5,17 +5,20 @@ The gate can only flag a dropped needle if the members' predictions depend on th
 each checkpoint, the scripted expert drives nominal episodes (the training distribution); at a few
 control steps the same state is shown to the ensemble twice, once as rendered and once with the
 needle made invisible, with the same diffusion noise. A second noise draw on the unchanged image gives
-the scale of the sampling noise to compare with. Per checkpoint it prints one JSON line of medians over
-the probed frames:
+the scale of the sampling noise to compare with, and the same state rendered with the phantom moved
+3 mm is the positive control (a policy that servos to the phantom must respond to it). Per checkpoint it
+prints one JSON line of medians over the probed frames:
 
 - ``needle_pixels``: endoscope pixels (env image size) that change when the needle is hidden;
 - ``hidden_shift_mm``: how far the ensemble's first predicted jaw position moves when the needle is
   hidden; ``noise_shift_mm``: how far it moves with another noise draw instead;
+- ``phantom_shift_mm``: how far it moves when the phantom is shown 3 mm away instead (the control);
 - ``hidden_score_ratio``: the uncertainty score with the needle hidden over the score with it shown;
   ``noise_score_ratio``: the same for another noise draw.
 
 A ``hidden_shift_mm`` far below ``noise_shift_mm`` and a ``hidden_score_ratio`` of 1 mean that the
-members ignore the needle, so its absence (experiment 1) is not out of distribution for them.
+members ignore the needle, so its absence (experiment 1) is not out of distribution for them; a
+``phantom_shift_mm`` well above ``hidden_shift_mm`` shows that the probe itself can see a response.
 
     python benchmarks/needle_attention.py CHECKPOINT [CHECKPOINT ...]
 
@@ -43,6 +46,8 @@ from lerobot_suture.expert import ScriptedExpert  # noqa: E402
 from lerobot_suture.policy_runner import PolicyRunner, env_kwargs_for_policy  # noqa: E402
 
 PROBE_SEED_BASE = 3_000_000
+PHANTOM_PROBE_SHIFT = np.array([0.003, 0.0, 0.0])
+"""Displacement (m) of the phantom in the positive control: 1.5x the entry tolerance."""
 
 
 def _prediction(runner: PolicyRunner, observation: dict, noise: torch.Tensor) -> tuple[np.ndarray, float]:
@@ -51,6 +56,20 @@ def _prediction(runner: PolicyRunner, observation: dict, noise: torch.Tensor) ->
     runner.policy.select_action(runner.preprocess([observation]), noise=noise)
     prediction = runner.policy.last_prediction
     return prediction.unnormalized.mean[0, 0, :3].numpy() * 1e3, float(prediction.score[0])
+
+
+def _phantom_moved_observation(sim) -> dict:
+    """The current observation rendered with the phantom moved by ``PHANTOM_PROBE_SHIFT``, then put back."""
+    import mujoco  # after lerobot_suture, which picks MuJoCo's GL backend
+
+    position, yaw = sim.phantom_position.copy(), sim.phantom_yaw
+    try:
+        sim.set_phantom_pose(position + PHANTOM_PROBE_SHIFT, yaw)
+        mujoco.mj_forward(sim.model, sim.data)  # place the phantom's mocap body before rendering
+        return sim.observe()
+    finally:
+        sim.set_phantom_pose(position, yaw)
+        mujoco.mj_forward(sim.model, sim.data)
 
 
 def needle_attention(checkpoint: Path, episodes: int, probe_steps: list[int], device: str) -> dict:
@@ -78,15 +97,18 @@ def needle_attention(checkpoint: Path, episodes: int, probe_steps: list[int], de
             if step in probe_steps:
                 noise, other_noise = (torch.randn(noise_shape, generator=generator) for _ in range(2))
                 hidden = env.unwrapped.observe(needle_visible=False)
+                moved = _phantom_moved_observation(env.unwrapped)
                 shown_pos, shown_score = _prediction(runner, observation, noise)
                 hidden_pos, hidden_score = _prediction(runner, hidden, noise)
                 other_pos, other_score = _prediction(runner, observation, other_noise)
+                moved_pos, _ = _prediction(runner, moved, noise)
                 changed = observation["pixels"]["endoscope"] != hidden["pixels"]["endoscope"]
                 rows.append(
                     (
                         int(changed.any(-1).sum()),
                         np.linalg.norm(hidden_pos - shown_pos),
                         np.linalg.norm(other_pos - shown_pos),
+                        np.linalg.norm(moved_pos - shown_pos),
                         hidden_score / shown_score,
                         other_score / shown_score,
                     )
@@ -104,8 +126,9 @@ def needle_attention(checkpoint: Path, episodes: int, probe_steps: list[int], de
         "needle_pixels": round(float(medians[0]), 1),
         "hidden_shift_mm": round(float(medians[1]), 4),
         "noise_shift_mm": round(float(medians[2]), 4),
-        "hidden_score_ratio": round(float(medians[3]), 4),
-        "noise_score_ratio": round(float(medians[4]), 4),
+        "phantom_shift_mm": round(float(medians[3]), 4),
+        "hidden_score_ratio": round(float(medians[4]), 4),
+        "noise_score_ratio": round(float(medians[5]), 4),
         "seconds": round(time.perf_counter() - started, 1),
     }
 
