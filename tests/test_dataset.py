@@ -476,3 +476,42 @@ def test_open_loop_error_benchmark_scores_a_checkpoint_on_the_validation_frames(
     assert {k: v for k, v in first.items() if k != "seconds"} == {
         k: v for k, v in again.items() if k != "seconds"
     }
+
+
+def test_needle_attention_benchmark_probes_a_checkpoint(tiny, tmp_path):
+    """`benchmarks/needle_attention.py` on a tiny untrained ensemble: needle hidden, noise, phantom moved."""
+    import importlib.util
+
+    from lerobot.configs.types import FeatureType, PolicyFeature
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+    from lerobot_policy_ensemble_diffusion.testing import save_untrained_policy, tiny_config
+
+    spec = importlib.util.spec_from_file_location(
+        "needle_attention", Path(__file__).resolve().parents[1] / "benchmarks" / "needle_attention.py"
+    )
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+
+    torch.manual_seed(0)
+    config = tiny_config(
+        n_members=2,
+        num_inference_steps=2,
+        noise_scheduler_type="DDIM",
+        resize_shape=None,
+        crop_ratio=1.0,
+        input_features={
+            "observation.images.endoscope": PolicyFeature(FeatureType.VISUAL, (3, 96, 96)),
+            "observation.state": PolicyFeature(FeatureType.STATE, (10,)),
+        },
+    )
+    stats = LeRobotDataset(REPO_ID, root=tiny.root).meta.stats
+    directory = save_untrained_policy(config, stats, tmp_path / "pretrained_model")
+    first = bench.needle_attention(directory, episodes=1, probe_steps=[3], device="cpu")
+    again = bench.needle_attention(directory, episodes=1, probe_steps=[3], device="cpu")
+    assert first["frames"] == 1 and first["needle_pixels"] > 0
+    for key in ("hidden_shift_mm", "noise_shift_mm", "phantom_shift_mm", "hidden_score_ratio"):
+        assert math.isfinite(first[key]) and first[key] >= 0
+    # Seeded: the same probe seeds and diffusion noise give the same numbers.
+    assert {k: v for k, v in first.items() if k != "seconds"} == {
+        k: v for k, v in again.items() if k != "seconds"
+    }
