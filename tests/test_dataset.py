@@ -433,33 +433,46 @@ def test_push_uses_lerobot_push_to_hub_with_tags_and_card(tiny, online_without_t
     assert "upload_folder" not in calls
 
 
-def test_open_loop_error_benchmark_scores_a_checkpoint_on_the_validation_frames(tiny, tmp_path):
-    """`benchmarks/open_loop_error.py` on a tiny untrained ensemble saved as lerobot-train saves one."""
+def _load_benchmark(name: str) -> types.ModuleType:
+    """A script of `benchmarks/` imported as a module."""
     import importlib.util
 
-    from lerobot.configs.types import FeatureType, PolicyFeature
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
-    from lerobot_policy_ensemble_diffusion.testing import save_untrained_policy, tiny_config
-
     spec = importlib.util.spec_from_file_location(
-        "open_loop_error", Path(__file__).resolve().parents[1] / "benchmarks" / "open_loop_error.py"
+        name, Path(__file__).resolve().parents[1] / "benchmarks" / f"{name}.py"
     )
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
+    return bench
 
-    stats = LeRobotDataset(REPO_ID, root=tiny.root).meta.stats
-    torch.manual_seed(0)
-    config = tiny_config(
+
+def _tiny_visual_config(image_size: int):
+    """A tiny 2-member ensemble reading the endoscope image (no resize or crop) and the state."""
+    from lerobot.configs.types import FeatureType, PolicyFeature
+    from lerobot_policy_ensemble_diffusion.testing import tiny_config
+
+    return tiny_config(
         n_members=2,
         num_inference_steps=2,
         noise_scheduler_type="DDIM",
         resize_shape=None,
         crop_ratio=1.0,
         input_features={
-            "observation.images.endoscope": PolicyFeature(FeatureType.VISUAL, (3, IMAGE_SIZE, IMAGE_SIZE)),
+            "observation.images.endoscope": PolicyFeature(FeatureType.VISUAL, (3, image_size, image_size)),
             "observation.state": PolicyFeature(FeatureType.STATE, (10,)),
         },
     )
+
+
+def test_open_loop_error_benchmark_scores_a_checkpoint_on_the_validation_frames(tiny, tmp_path):
+    """`benchmarks/open_loop_error.py` on a tiny untrained ensemble saved as lerobot-train saves one."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+    from lerobot_policy_ensemble_diffusion.testing import save_untrained_policy
+
+    bench = _load_benchmark("open_loop_error")
+
+    stats = LeRobotDataset(REPO_ID, root=tiny.root).meta.stats
+    torch.manual_seed(0)
+    config = _tiny_visual_config(image_size=IMAGE_SIZE)
     run = tmp_path / "checkpoints"
     directory = save_untrained_policy(config, stats, run / "000002" / "pretrained_model")
 
@@ -480,30 +493,13 @@ def test_open_loop_error_benchmark_scores_a_checkpoint_on_the_validation_frames(
 
 def test_needle_attention_benchmark_probes_a_checkpoint(tiny, tmp_path):
     """`benchmarks/needle_attention.py` on a tiny untrained ensemble: needle hidden, noise, phantom moved."""
-    import importlib.util
-
-    from lerobot.configs.types import FeatureType, PolicyFeature
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
-    from lerobot_policy_ensemble_diffusion.testing import save_untrained_policy, tiny_config
+    from lerobot_policy_ensemble_diffusion.testing import save_untrained_policy
 
-    spec = importlib.util.spec_from_file_location(
-        "needle_attention", Path(__file__).resolve().parents[1] / "benchmarks" / "needle_attention.py"
-    )
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = _load_benchmark("needle_attention")
 
     torch.manual_seed(0)
-    config = tiny_config(
-        n_members=2,
-        num_inference_steps=2,
-        noise_scheduler_type="DDIM",
-        resize_shape=None,
-        crop_ratio=1.0,
-        input_features={
-            "observation.images.endoscope": PolicyFeature(FeatureType.VISUAL, (3, 96, 96)),
-            "observation.state": PolicyFeature(FeatureType.STATE, (10,)),
-        },
-    )
+    config = _tiny_visual_config(image_size=96)
     stats = LeRobotDataset(REPO_ID, root=tiny.root).meta.stats
     directory = save_untrained_policy(config, stats, tmp_path / "pretrained_model")
     first = bench.needle_attention(directory, episodes=1, probe_steps=[3], device="cpu")
