@@ -13,8 +13,12 @@ prints one JSON line of medians over the probed frames:
 - ``hidden_shift_mm``: how far the ensemble's first predicted jaw position moves when the needle is
   hidden; ``noise_shift_mm``: how far it moves with another noise draw instead;
 - ``phantom_shift_mm``: how far it moves when the phantom is shown 3 mm away instead (the control);
+  ``phantom_score_ratio``: the uncertainty score then, over the score with the phantom in place;
 - ``hidden_score_ratio``: the uncertainty score with the needle hidden over the score with it shown;
-  ``noise_score_ratio``: the same for another noise draw.
+  ``noise_score_ratio``: the same for another noise draw;
+- ``inserted``: the same medians over only the probed frames where the needle is already in the tissue
+  (``frames`` of them; the fields are null when there is none). Experiment 3.2 moves the phantom in
+  this phase, so its ``phantom_shift_mm`` says whether the members still watch the phantom there.
 
 A ``hidden_shift_mm`` far below ``noise_shift_mm`` and a ``hidden_score_ratio`` of 1 mean that the
 members ignore the needle, so its absence (experiment 1) is not out of distribution for them; a
@@ -101,7 +105,7 @@ def needle_attention(checkpoint: Path, episodes: int, probe_steps: list[int], de
                 shown_pos, shown_score = _prediction(runner, observation, noise)
                 hidden_pos, hidden_score = _prediction(runner, hidden, noise)
                 other_pos, other_score = _prediction(runner, observation, other_noise)
-                moved_pos, _ = _prediction(runner, moved, noise)
+                moved_pos, moved_score = _prediction(runner, moved, noise)
                 changed = observation["pixels"]["endoscope"] != hidden["pixels"]["endoscope"]
                 rows.append(
                     (
@@ -111,6 +115,8 @@ def needle_attention(checkpoint: Path, episodes: int, probe_steps: list[int], de
                         np.linalg.norm(moved_pos - shown_pos),
                         hidden_score / shown_score,
                         other_score / shown_score,
+                        moved_score / shown_score,
+                        float(env.unwrapped.needle_in_tissue),
                     )
                 )
             observation, _, terminated, truncated, _ = env.step(expert.act(env))
@@ -119,17 +125,32 @@ def needle_attention(checkpoint: Path, episodes: int, probe_steps: list[int], de
     env.close()
     if not rows:
         raise ValueError(f"No frame was probed: every episode ended before the probe steps {probe_steps}.")
-    medians = np.median(np.array(rows, dtype=float), axis=0)
+    rows = np.array(rows, dtype=float)
+    inserted = rows[rows[:, -1] == 1.0]
     return {
         "checkpoint": str(checkpoint),
-        "frames": len(rows),
-        "needle_pixels": round(float(medians[0]), 1),
-        "hidden_shift_mm": round(float(medians[1]), 4),
-        "noise_shift_mm": round(float(medians[2]), 4),
-        "phantom_shift_mm": round(float(medians[3]), 4),
-        "hidden_score_ratio": round(float(medians[4]), 4),
-        "noise_score_ratio": round(float(medians[5]), 4),
+        **_medians(rows),
+        "inserted": _medians(inserted),
         "seconds": round(time.perf_counter() - started, 1),
+    }
+
+
+def _medians(rows: np.ndarray) -> dict:
+    """The report's medians over probed frames (one row each); nulls for no frame."""
+    medians = np.median(rows, axis=0) if len(rows) else np.full(rows.shape[1], np.nan)
+
+    def field(column: int, digits: int) -> float | None:
+        return None if np.isnan(medians[column]) else round(float(medians[column]), digits)
+
+    return {
+        "frames": len(rows),
+        "needle_pixels": field(0, 1),
+        "hidden_shift_mm": field(1, 4),
+        "noise_shift_mm": field(2, 4),
+        "phantom_shift_mm": field(3, 4),
+        "hidden_score_ratio": field(4, 4),
+        "noise_score_ratio": field(5, 4),
+        "phantom_score_ratio": field(6, 4),
     }
 
 

@@ -502,11 +502,24 @@ def test_needle_attention_benchmark_probes_a_checkpoint(tiny, tmp_path):
     config = _tiny_visual_config(image_size=96)
     stats = LeRobotDataset(REPO_ID, root=tiny.root).meta.stats
     directory = save_untrained_policy(config, stats, tmp_path / "pretrained_model")
-    first = bench.needle_attention(directory, episodes=1, probe_steps=[3], device="cpu")
-    again = bench.needle_attention(directory, episodes=1, probe_steps=[3], device="cpu")
-    assert first["frames"] == 1 and first["needle_pixels"] > 0
-    for key in ("hidden_shift_mm", "noise_shift_mm", "phantom_shift_mm", "hidden_score_ratio"):
-        assert math.isfinite(first[key]) and first[key] >= 0
+    # Probe seed 3,000,000: the expert's needle enters the tissue at step 19, so step 25 is inserted.
+    first = bench.needle_attention(directory, episodes=1, probe_steps=[3, 25], device="cpu")
+    again = bench.needle_attention(directory, episodes=1, probe_steps=[3, 25], device="cpu")
+    assert first["frames"] == 2 and first["needle_pixels"] > 0
+    assert first["inserted"]["frames"] == 1
+    for report in (first, first["inserted"]):
+        for key in (
+            "hidden_shift_mm",
+            "noise_shift_mm",
+            "phantom_shift_mm",
+            "hidden_score_ratio",
+            "phantom_score_ratio",
+        ):
+            assert math.isfinite(report[key]) and report[key] >= 0
+    before_insertion = bench.needle_attention(directory, episodes=1, probe_steps=[3], device="cpu")
+    assert before_insertion["inserted"] == {"frames": 0} | {
+        key: None for key in before_insertion["inserted"] if key != "frames"
+    }
     # Seeded: the same probe seeds and diffusion noise give the same numbers.
     assert {k: v for k, v in first.items() if k != "seconds"} == {
         k: v for k, v in again.items() if k != "seconds"

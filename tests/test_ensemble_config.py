@@ -6,7 +6,9 @@ from pathlib import Path
 
 import draccus
 import pytest
+import torch
 from lerobot.configs import PreTrainedConfig
+from lerobot.optim import OptimizerConfig
 from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
 from lerobot.policies.factory import get_policy_class, make_policy_config
 from lerobot_policy_ensemble_diffusion import EnsembleDiffusionConfig, EnsembleOODConfig
@@ -33,7 +35,38 @@ def test_defaults_are_the_paper_and_offline():
     assert config.uncertainty_score == "max_abs_cov" and config.uncertainty_space == "normalized"
     assert config.ood.enforce is False
     optimizer = config.get_optimizer_preset()
-    assert optimizer.type == "adamw" and optimizer.weight_decay == 0.1
+    assert optimizer.type == "adamw_fused" and optimizer.weight_decay == 0.1
+
+
+@pytest.mark.parametrize("name", ["adamw", "adam"])
+def test_fused_optimizer_preset_matches_pytorch_default(name):
+    """The preset's fused kernel takes the same steps as PyTorch's default Adam(W), and resumes by name."""
+    config = EnsembleDiffusionConfig(device="cpu", optimizer_name=name, optimizer_lr=1e-2)
+    preset = config.get_optimizer_preset()
+    assert preset.type == f"{name}_fused"
+    assert OptimizerConfig.get_choice_class(preset.type) is type(preset)  # what a resume looks up
+
+    torch.manual_seed(0)
+    start = [torch.randn(7, 5), torch.randn(3)]
+    grads = [[torch.randn_like(p) for p in start] for _ in range(4)]
+    default_cls = torch.optim.AdamW if name == "adamw" else torch.optim.Adam
+    kwargs = {"lr": preset.lr, "betas": preset.betas, "eps": preset.eps, "weight_decay": preset.weight_decay}
+
+    def run(build) -> tuple[list[torch.Tensor], torch.optim.Optimizer]:
+        params = [p.clone().requires_grad_() for p in start]
+        optimizer = build(params)
+        for step_grads in grads:
+            for p, g in zip(params, step_grads, strict=True):
+                p.grad = g.clone()
+            optimizer.step()
+        return params, optimizer
+
+    fused, fused_optimizer = run(preset.build)
+    default, _ = run(lambda params: default_cls(params, foreach=False, **kwargs))
+    assert fused_optimizer.defaults["fused"] is True
+    for p_fused, p_default, p_start in zip(fused, default, start, strict=True):
+        torch.testing.assert_close(p_fused, p_default, rtol=1e-5, atol=1e-6)
+        assert not torch.allclose(p_fused, p_start)  # the steps did move the parameters
 
 
 def test_every_diffusion_field_is_reused():

@@ -23,8 +23,9 @@ import copy
 from dataclasses import dataclass, field, fields
 
 from lerobot.configs import PreTrainedConfig
-from lerobot.optim import AdamConfig, AdamWConfig
 from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
+
+from .optim import FusedAdamConfig, FusedAdamWConfig
 
 UNCERTAINTY_SCORES = ("max_abs_cov", "trace", "logdet")
 UNCERTAINTY_SPACES = ("normalized", "unnormalized")
@@ -108,7 +109,8 @@ class EnsembleDiffusionConfig(DiffusionConfig):
             matrix, whose plain log-determinant is -inf).
         ood: Options of the out-of-distribution gate (see `EnsembleOODConfig`).
         optimizer_name: "adamw" (default; decoupled weight decay, as the paper's 0.1 is meant) or "adam"
-            (LeRobot's diffusion preset; L2 penalty).
+            (LeRobot's diffusion preset; L2 penalty). Either is built with PyTorch's fused kernel
+            (optimizer types `adamw_fused` / `adam_fused`, see `optim.py`).
     """
 
     # Inputs / output structure (paper, Table I).
@@ -215,8 +217,8 @@ class EnsembleDiffusionConfig(DiffusionConfig):
         kwargs.update(ensemble_kwargs)
         return cls(**kwargs)
 
-    def get_optimizer_preset(self) -> AdamConfig | AdamWConfig:
-        optimizer_cls = AdamWConfig if self.optimizer_name == "adamw" else AdamConfig
+    def get_optimizer_preset(self) -> FusedAdamConfig | FusedAdamWConfig:
+        optimizer_cls = FusedAdamWConfig if self.optimizer_name == "adamw" else FusedAdamConfig
         return optimizer_cls(
             lr=self.optimizer_lr,
             betas=self.optimizer_betas,
