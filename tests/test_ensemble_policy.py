@@ -140,6 +140,18 @@ def test_batched_members_equal_member_loop(policy):
             torch.testing.assert_close(fused_net.unet(x, t, cond), expected, rtol=1e-4, atol=1e-5)
 
 
+def test_inference_stays_full_precision_under_autocast(policy):
+    """lerobot-eval autocasts when `use_amp` is set; the ensemble still samples and scores in fp32."""
+    obs = random_observation(policy.config, batch_size=2)
+    noise = torch.randn(2, 3, 1, policy.config.horizon, 10)
+    plain = policy.predict_action_distribution(obs, noise=noise)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        autocast = policy.predict_action_distribution(obs, noise=noise)
+    assert autocast.normalized.samples.dtype == torch.float32
+    torch.testing.assert_close(autocast.normalized.samples, plain.normalized.samples, rtol=0, atol=0)
+    torch.testing.assert_close(autocast.score, plain.score, rtol=0, atol=0)
+
+
 @pytest.mark.parametrize("mode", ["gemm", "grouped"])
 @pytest.mark.parametrize(("kernel", "stride", "padding"), [(5, 1, 2), (3, 2, 1), (1, 1, 0)])
 def test_fused_conv_equals_member_convs(mode, kernel, stride, padding):
