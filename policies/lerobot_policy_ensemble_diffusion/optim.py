@@ -1,9 +1,9 @@
 """LeRobot's Adam and AdamW optimizer configs, built with PyTorch's fused kernel.
 
-The ensemble has many parameters (about 62 M for 4 members of the CPU preset), and PyTorch's default
-Adam(W) on the CPU loops over them one tensor and one operation at a time: on 2 cores that took about a
-third of a training step. The fused kernel makes one pass per tensor; the update is the same
-arithmetic (tests compare it with the default to float precision). Registered as optimizer types
+The ensemble has many parameters (about 62 M in 848 tensors for 4 members of the CPU preset), and
+PyTorch's default Adam(W) on the CPU loops over them one tensor and one operation at a time: 0.30 s
+per step on 2 cores, against 0.05 s for the fused kernel, which makes one pass per tensor. The update
+is the same arithmetic (tests compare it with the default to float precision). Registered as optimizer types
 `adamw_fused` and `adam_fused`, so a run's `train_config.json` resumes with the same optimizer.
 """
 
