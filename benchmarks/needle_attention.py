@@ -69,11 +69,10 @@ def _phantom_moved_observation(sim) -> dict:
     position, yaw = sim.phantom_position.copy(), sim.phantom_yaw
     try:
         sim.set_phantom_pose(position + PHANTOM_PROBE_SHIFT, yaw)
-        mujoco.mj_forward(sim.model, sim.data)  # place the phantom's mocap body before rendering
-        return sim.observe()
+        return sim.observe()  # places the moved mocap body (kinematics) before rendering
     finally:
         sim.set_phantom_pose(position, yaw)
-        mujoco.mj_forward(sim.model, sim.data)
+        mujoco.mj_forward(sim.model, sim.data)  # the episode goes on from the phantom's true pose
 
 
 def needle_attention(checkpoint: Path, episodes: int, probe_steps: list[int], device: str) -> dict:
