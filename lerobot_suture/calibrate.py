@@ -139,6 +139,7 @@ def run_calibration(cfg: CalibrateConfig) -> dict:
         episode_ids=ids,
         score_name=config.uncertainty_score,
         space=config.uncertainty_space,
+        score_settings=config.score_settings(),
     )
     path = save_calibration(calibration, cfg.policy.path, filename=config.ood.calibration_file)
     report = {

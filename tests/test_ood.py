@@ -248,6 +248,7 @@ _GOOD = np.random.default_rng(9).lognormal(-2.0, 0.3, size=50)
         ({"mode": "episode"}, "`mode` must be one of"),
         ({"space": "joint"}, "`space` must be one of"),
         ({"score_name": "var"}, "Valid names"),
+        ({"score_settings": {"uncertainty_source": ["total"]}}, "`score_settings` must map"),
         ({"mode": "per_episode"}, "`episode_ids` is required"),
         ({"episode_ids": np.zeros(3)}, "`episode_ids` must have the shape"),
     ],
@@ -311,7 +312,10 @@ def test_gate_without_calibration():
 @pytest.mark.parametrize("mode", ["per_prediction", "per_episode"])
 def test_calibration_json_round_trip(tmp_path, mode):
     scores, ids = _ar1_lognormal_episodes(np.random.default_rng(13), 30, 25)
-    cal = fit_calibration(scores, model="lognormal", h=1.3, mode=mode, episode_ids=ids, score_name="trace")
+    settings = {"uncertainty_samples_per_member": 8, "uncertainty_source": "total", "num_inference_steps": None}
+    cal = fit_calibration(
+        scores, model="lognormal", h=1.3, mode=mode, episode_ids=ids, score_name="trace", score_settings=settings
+    )
     path = save_calibration(cal, tmp_path / "pretrained_model")
     assert path == tmp_path / "pretrained_model" / CALIBRATION_FILENAME
     assert json.loads(path.read_text())["version"] == CALIBRATION_FORMAT_VERSION

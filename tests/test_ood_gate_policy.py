@@ -92,3 +92,16 @@ def test_calibration_is_loaded_from_the_policy_directory(tmp_path):
     save_calibration(wrong, tmp_path, filename=policy.config.ood.calibration_file)
     with pytest.raises(ValueError, match="fitted on score 'trace'"):
         policy.load_ood_calibration(tmp_path)
+
+
+def test_calibration_fitted_with_other_score_settings_is_refused(tmp_path):
+    policy = _policy(enforce=False)
+    scores = np.abs(np.random.default_rng(1).normal(1, 0.1, 50))
+    settings = policy.config.score_settings()
+    matching = fit_calibration(scores, score_settings=settings)
+    save_calibration(matching, tmp_path, filename=policy.config.ood.calibration_file)
+    assert policy.load_ood_calibration(tmp_path).score_settings == settings
+    other = fit_calibration(scores, score_settings={**settings, "uncertainty_samples_per_member": 8})
+    save_calibration(other, tmp_path, filename=policy.config.ood.calibration_file)
+    with pytest.raises(ValueError, match="uncertainty_samples_per_member=8 \\(this policy: 1\\)"):
+        policy.load_ood_calibration(tmp_path)

@@ -269,6 +269,19 @@ def _check_h(h: Any) -> None:
         raise ValueError(f"`h` must be a finite number > 0 (1.0 is the fitted spread). Got {h!r}.")
 
 
+def _check_score_settings(settings: Any) -> dict[str, Any]:
+    """A copy of ``settings`` if it maps names to JSON scalars (what the calibration file can hold)."""
+    if not isinstance(settings, dict) or not all(
+        isinstance(key, str) and (value is None or isinstance(value, (str, int, float, bool)))
+        for key, value in settings.items()
+    ):
+        raise ValueError(
+            "`score_settings` must map setting names to plain values (str, int, float, bool or None). "
+            f"Got {settings!r}."
+        )
+    return dict(settings)
+
+
 def _transform(scores: np.ndarray, model: CalibrationModel) -> np.ndarray:
     """g(score): identity for ``normal``, natural log for ``lognormal`` (log 0 = -inf)."""
     if model is CalibrationModel.LOGNORMAL:
@@ -319,6 +332,9 @@ class OODCalibration:
         n_samples: Number of I.D. per-step scores used for ``mean`` and ``std``.
         score_name: Name of the score (see :class:`ScoreName`).
         space: ``"normalized"`` or ``"unnormalized"`` action space of the covariance.
+        score_settings: The scorer's other settings that shape the score's distribution (e.g. the
+            samples per member), name -> value, as the policy reported them at fit time; the policy
+            refuses a calibration whose settings differ from its own. None: not recorded.
         n_episodes: Number of I.D. episodes (required for ``per_episode``, else optional).
         quantile_rank: ``per_episode`` only: rank k of the episode maximum used as threshold (at h = 1).
         mean_episode_length: ``per_episode`` only: mean number of scores per calibration episode; the
@@ -337,6 +353,7 @@ class OODCalibration:
     n_samples: int
     score_name: str = ScoreName.MAX_ABS_COV.value
     space: str = ScoreSpace.NORMALIZED.value
+    score_settings: dict[str, Any] | None = None
     n_episodes: int | None = None
     quantile_rank: int | None = None
     mean_episode_length: float | None = None
@@ -357,6 +374,8 @@ class OODCalibration:
         object.__setattr__(self, "mode", _parse_enum(CalibrationMode, self.mode, "mode").value)
         object.__setattr__(self, "space", _parse_enum(ScoreSpace, self.space, "space").value)
         object.__setattr__(self, "score_name", ScoreName.parse(self.score_name).value)
+        if self.score_settings is not None:
+            object.__setattr__(self, "score_settings", _check_score_settings(self.score_settings))
         for name in ("mean", "std", "threshold", "critical_value"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
@@ -443,6 +462,7 @@ def fit_calibration(
     *,
     score_name: str = ScoreName.MAX_ABS_COV.value,
     space: str = ScoreSpace.NORMALIZED.value,
+    score_settings: dict[str, Any] | None = None,
 ) -> OODCalibration:
     """Fit the I.D. score model and the threshold of the one-sided likelihood-ratio test.
 
@@ -489,6 +509,9 @@ def fit_calibration(
             only to count episodes in ``per_prediction`` mode.
         score_name: Name of the score the values come from (see :class:`ScoreName`).
         space: ``"normalized"`` or ``"unnormalized"`` action space of the covariance.
+        score_settings: The scorer's other settings that shape the score's distribution, recorded so
+            that a policy can refuse a calibration fitted with different ones (see
+            :class:`OODCalibration`).
 
     Returns:
         The frozen calibration.
@@ -556,6 +579,7 @@ def fit_calibration(
         "n_samples": int(scores.size),
         "score_name": ScoreName.parse(score_name).value,
         "space": space,
+        "score_settings": score_settings,
         "n_episodes": n_episodes,
     }
     if mode_ is CalibrationMode.PER_PREDICTION:

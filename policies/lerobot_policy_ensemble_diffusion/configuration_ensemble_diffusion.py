@@ -91,8 +91,9 @@ class EnsembleDiffusionConfig(DiffusionConfig):
             inference. False: loop over the members' own `DiffusionModel`s (same results up to float
             rounding, slower, no extra memory for the fused weight copy).
         uncertainty_samples_per_member: K, the number of action chunks each member samples (with different
-            diffusion noise) in `select_action`. K = 1 is the paper. K > 1 allows the covariance to be split
-            into aleatoric and epistemic parts (law of total covariance).
+            diffusion noise) in `select_action`. K = 1 is the paper. The executed action is the mean of all
+            N * K chunks, so K > 1 also averages out the diffusion noise of a single draw; and it allows the
+            covariance to be split into aleatoric and epistemic parts (law of total covariance).
         uncertainty_score: Scalar score of a prediction's covariance Sigma (T, A, A): "max_abs_cov" (the
             paper's sigma_hat = max_t max_ij |Sigma_t,ij|), "trace" (max_t tr Sigma_t) or "logdet"
             (max_t log det(Sigma_t + logdet_eps * I)).
@@ -216,6 +217,21 @@ class EnsembleDiffusionConfig(DiffusionConfig):
         kwargs = {f.name: copy.deepcopy(getattr(member, f.name)) for f in fields(DiffusionConfig) if f.init}
         kwargs.update(ensemble_kwargs)
         return cls(**kwargs)
+
+    def score_settings(self) -> dict:
+        """The settings besides the score's name and space that shape its distribution on a given policy.
+
+        The gate's calibration records them, and a policy refuses a calibration fitted with others: a
+        threshold fitted at K = 1 sample per member is not one for K = 8.
+        """
+        return {
+            "uncertainty_source": self.uncertainty_source,
+            "uncertainty_samples_per_member": self.uncertainty_samples_per_member,
+            "uncertainty_steps": self.uncertainty_steps,
+            "covariance_correction": self.covariance_correction,
+            "noise_scheduler_type": self.noise_scheduler_type,
+            "num_inference_steps": self.num_inference_steps,
+        }
 
     def get_optimizer_preset(self) -> FusedAdamConfig | FusedAdamWConfig:
         optimizer_cls = FusedAdamWConfig if self.optimizer_name == "adamw" else FusedAdamConfig

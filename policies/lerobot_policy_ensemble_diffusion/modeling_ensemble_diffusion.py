@@ -500,6 +500,22 @@ class EnsembleDiffusionPolicy(PreTrainedPolicy):
                 f"{self.config.uncertainty_space} space. Recalibrate with `lerobot-suture calibrate "
                 f"--policy.path={directory}` or set the policy's uncertainty options to match."
             )
+        if calibration.score_settings is not None:  # None: a file from before they were recorded
+            ours = self.config.score_settings()
+            differ = {
+                key: (value, ours.get(key))
+                for key, value in calibration.score_settings.items()
+                if ours.get(key) != value
+            }
+            if differ:
+                described = ", ".join(
+                    f"{key}={fitted!r} (this policy: {current!r})" for key, (fitted, current) in differ.items()
+                )
+                raise ValueError(
+                    f"The calibration in {directory} was fitted with {described}; its threshold does not hold "
+                    f"for this policy's scores. Recalibrate with `lerobot-suture calibrate "
+                    f"--policy.path={directory}` or set the policy's options back."
+                )
         self.ood_calibration = calibration
         self._ood_gates = []
         return calibration
