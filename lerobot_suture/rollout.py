@@ -56,6 +56,8 @@ class EpisodeLog:
     steps: list[StepLog] = field(default_factory=list)
     handover_step: int | None = None
     tissue_strain: float = 0.0
+    entry_error_m: float = math.inf  # where the tip entered, from the marked entry point (inf: never)
+    exit_error_m: float = math.inf
     h_min_physics: float = math.nan
 
     @property
@@ -160,6 +162,8 @@ def rollout_episodes(
     for log, info, h in zip(logs, infos, h_physics, strict=True):
         log.success = bool(info["is_success"])
         log.tissue_strain = float(info["tissue_strain"])
+        log.entry_error_m = float(info["entry_error_m"])
+        log.exit_error_m = float(info["exit_error_m"])
         log.h_min_physics = min(h, default=math.nan)
     return logs
 

@@ -40,6 +40,17 @@ def test_alarm_rates_per_step_and_per_episode():
     assert rates["per_step"] == pytest.approx(1 / 6) and rates["per_episode"] == pytest.approx(1 / 3)
 
 
+def test_insertion_accuracy_counts_tolerances_and_missed_crossings():
+    inf = math.inf
+    result = metrics.insertion_accuracy([0.001, 0.003, 0.0015, inf], [0.001, 0.001, 0.004, inf], 0.002, 0.002)
+    assert result["episodes"] == 4 and result["never_entered"] == 1 and result["never_emerged"] == 1
+    assert result["entry_within_tolerance"] == 0.5 and result["exit_within_tolerance"] == 0.5
+    assert result["both_within_tolerance"] == 0.25
+    assert result["entry_error_mm"]["n"] == 3 and result["entry_error_mm"]["median"] == pytest.approx(1.5)
+    with pytest.raises(ValueError, match="one entry and one exit error per episode"):
+        metrics.insertion_accuracy([0.001], [], 0.002, 0.002)
+
+
 def test_episode_score_ignores_nan_and_starts_where_asked():
     assert metrics.episode_score([math.nan, 1.0, 3.0, 2.0]) == 3.0
     assert metrics.episode_score([5.0, 1.0], start=1) == 1.0

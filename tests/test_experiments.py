@@ -46,8 +46,10 @@ def test_experiments_write_figures_metrics_and_report(tiny_policy_dir, tmp_path)
         "phantom_servo",
         "phantom_moved_after_insertion",
     }
+    assert result["nominal"]["insertion"]["episodes"] == 2
     report = (out / "report.md").read_text()
     assert "| 1 | needle_drop | 1 |" in report
+    assert "Where the needle crossed the tissue" in report
     for name in result["figures"].values():
         image = np.asarray(Image.open(out / name).convert("L"), dtype=float)
         assert image.std() > 5, f"{name} is blank"

@@ -312,9 +312,19 @@ def test_gate_without_calibration():
 @pytest.mark.parametrize("mode", ["per_prediction", "per_episode"])
 def test_calibration_json_round_trip(tmp_path, mode):
     scores, ids = _ar1_lognormal_episodes(np.random.default_rng(13), 30, 25)
-    settings = {"uncertainty_samples_per_member": 8, "uncertainty_source": "total", "num_inference_steps": None}
+    settings = {
+        "uncertainty_samples_per_member": 8,
+        "uncertainty_source": "total",
+        "num_inference_steps": None,
+    }
     cal = fit_calibration(
-        scores, model="lognormal", h=1.3, mode=mode, episode_ids=ids, score_name="trace", score_settings=settings
+        scores,
+        model="lognormal",
+        h=1.3,
+        mode=mode,
+        episode_ids=ids,
+        score_name="trace",
+        score_settings=settings,
     )
     path = save_calibration(cal, tmp_path / "pretrained_model")
     assert path == tmp_path / "pretrained_model" / CALIBRATION_FILENAME

@@ -84,3 +84,38 @@ def alarm_rates(alarm_sequences: Sequence[Sequence[bool]]) -> dict:
         "per_episode": float(np.mean([any(a) for a in alarm_sequences])) if alarm_sequences else math.nan,
         "episodes": len(alarm_sequences),
     }
+
+
+def insertion_accuracy(
+    entry_errors_m: Sequence[float],
+    exit_errors_m: Sequence[float],
+    entry_tolerance_m: float,
+    exit_tolerance_m: float,
+) -> dict:
+    """Where the needle crossed the tissue surface, over episodes: why insertions fail.
+
+    ``entry_errors_m`` / ``exit_errors_m``: per episode, the distance (m) in the tissue surface from the
+    marked point to where the tip crossed it at the episode's end, ``inf`` where it never did. Returns
+    the fraction of episodes within each tolerance and the spread of the finite errors in mm.
+    """
+    entry = np.asarray(entry_errors_m, dtype=np.float64)
+    exit_ = np.asarray(exit_errors_m, dtype=np.float64)
+    if entry.shape != exit_.shape or entry.ndim != 1:
+        raise ValueError(
+            f"Need one entry and one exit error per episode. Got shapes {entry.shape} and {exit_.shape}."
+        )
+    n = entry.size
+    return {
+        "episodes": n,
+        "entry_within_tolerance": float(np.mean(entry <= entry_tolerance_m)) if n else math.nan,
+        "exit_within_tolerance": float(np.mean(exit_ <= exit_tolerance_m)) if n else math.nan,
+        "both_within_tolerance": float(np.mean((entry <= entry_tolerance_m) & (exit_ <= exit_tolerance_m)))
+        if n
+        else math.nan,
+        "never_entered": int(np.sum(~np.isfinite(entry))),
+        "never_emerged": int(np.sum(~np.isfinite(exit_))),
+        "entry_error_mm": summarize(1e3 * entry[np.isfinite(entry)]),
+        "exit_error_mm": summarize(1e3 * exit_[np.isfinite(exit_)]),
+        "entry_tolerance_mm": 1e3 * entry_tolerance_m,
+        "exit_tolerance_mm": 1e3 * exit_tolerance_m,
+    }

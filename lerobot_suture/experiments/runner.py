@@ -38,6 +38,7 @@ from lerobot_suture.registration import ENV_ID
 from lerobot_suture.rollout import EpisodeLog, rollout_seeds
 from lerobot_suture.rollout_expert import run_expert_episode
 from lerobot_suture.safety.cbf import CBFConfig
+from lerobot_suture.sim.suture_env import ENTRY_TOLERANCE, EXIT_TOLERANCE
 
 logger = logging.getLogger(__name__)
 
@@ -250,6 +251,12 @@ def run_experiments(cfg: ExperimentsConfig) -> dict:
             "expert_success_rate": expert_successes / len(expert) if expert else None,
             "expert_success_rate_wilson95": metrics.wilson_interval(expert_successes, len(expert)),
             "false_alarms": metrics.alarm_rates([_alarms(log) for log in nominal]),
+            "insertion": metrics.insertion_accuracy(
+                [log.entry_error_m for log in nominal],
+                [log.exit_error_m for log in nominal],
+                ENTRY_TOLERANCE,
+                EXIT_TOLERANCE,
+            ),
         },
         "experiments": {},
         "figures": {},
@@ -296,6 +303,33 @@ def _fmt(value, digits: int = 3) -> str:
     return str(value)
 
 
+def _settings_note(calibration: dict) -> str:
+    settings = calibration.get("score_settings") or {}
+    if "uncertainty_samples_per_member" not in settings:
+        return ""
+    return (
+        f", {settings['uncertainty_source']} covariance of {settings['uncertainty_samples_per_member']} "
+        "sample(s) per member"
+    )
+
+
+def _insertion_lines(insertion: dict | None) -> list[str]:
+    """Where the policy's needle crossed the tissue (absent from results written before it was kept)."""
+    if not insertion:
+        return []
+    entry, exit_ = insertion["entry_error_mm"], insertion["exit_error_mm"]
+    return [
+        f"Where the needle crossed the tissue, over the policy's nominal episodes: entry within "
+        f"{_fmt(insertion['entry_tolerance_mm'])} mm of the mark in {_fmt(insertion['entry_within_tolerance'])} "
+        f"(median {_fmt(entry['median'])} mm [{_fmt(entry['q25'])}, {_fmt(entry['q75'])}]), exit within "
+        f"{_fmt(insertion['exit_tolerance_mm'])} mm in {_fmt(insertion['exit_within_tolerance'])} (median "
+        f"{_fmt(exit_['median'])} mm [{_fmt(exit_['q25'])}, {_fmt(exit_['q75'])}]), both in "
+        f"{_fmt(insertion['both_within_tolerance'])}; {insertion['never_entered']} never entered, "
+        f"{insertion['never_emerged']} never emerged.",
+        "",
+    ]
+
+
 def render_report(result: dict) -> str:
     """``report.md``: the results tables and the figures."""
     nominal = result["nominal"]
@@ -306,7 +340,8 @@ def render_report(result: dict) -> str:
         "# Results: safe, uncertainty-aware needle insertion",
         "",
         f"Policy: `{result['policy_path']}`. Gate: {cal['model']} model of the {cal['score_name']} score "
-        f"({cal['space']} space), {cal['mode']} mode, alpha {cal['alpha']}, threshold {_fmt(cal['threshold'], 4)}.",
+        f"({cal['space']} space{_settings_note(cal)}), {cal['mode']} mode, alpha {cal['alpha']}, "
+        f"threshold {_fmt(cal['threshold'], 4)}.",
         "",
         "## In distribution (nominal)",
         "",
@@ -319,6 +354,7 @@ def render_report(result: dict) -> str:
         f"False alarms on nominal episodes: {_fmt(nominal['false_alarms']['per_step'])} per step, "
         f"{_fmt(nominal['false_alarms']['per_episode'])} per episode.",
         "",
+        *_insertion_lines(nominal.get("insertion")),
         "## Out of distribution (gate reporting, as in the paper)",
         "",
         "| experiment | scenario | runs | AUROC vs nominal | TPR at threshold | detection delay (steps), median [IQR] |",

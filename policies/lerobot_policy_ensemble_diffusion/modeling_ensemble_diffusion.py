@@ -509,7 +509,8 @@ class EnsembleDiffusionPolicy(PreTrainedPolicy):
             }
             if differ:
                 described = ", ".join(
-                    f"{key}={fitted!r} (this policy: {current!r})" for key, (fitted, current) in differ.items()
+                    f"{key}={fitted!r} (this policy: {current!r})"
+                    for key, (fitted, current) in differ.items()
                 )
                 raise ValueError(
                     f"The calibration in {directory} was fitted with {described}; its threshold does not hold "
