@@ -8,7 +8,7 @@ re-tracking). The weights are untrained (latency does not depend on them); the p
 loaded as lerobot-train's output is. Prints JSON. Bar (issue 7): >= 10 control steps per second
 (the paper's simulator loop ran at 1 Hz).
 
-    python benchmarks/closed_loop.py [--steps 200] [--threads 2]
+    python benchmarks/closed_loop.py [--steps 200] [--threads 2] [--samples-per-member K]
 """
 
 from __future__ import annotations
@@ -34,13 +34,14 @@ from lerobot_suture.safety.cbf import CBFConfig  # noqa: E402
 from lerobot_suture.safety.ood import fit_calibration, save_calibration  # noqa: E402
 
 
-def saved_ensemble(directory: Path, n_members: int) -> Path:
+def saved_ensemble(directory: Path, n_members: int, samples_per_member: int | None = None) -> Path:
     import sys
 
     sys.path.insert(0, str(Path(__file__).parent))
     from ensemble_latency import load_preset_config
 
-    config = load_preset_config("cpu", n_members=n_members, device="cpu")
+    overrides = {} if samples_per_member is None else {"uncertainty_samples_per_member": samples_per_member}
+    config = load_preset_config("cpu", n_members=n_members, device="cpu", **overrides)
     save_untrained_policy(config, fake_dataset_stats(), directory)
     rng = np.random.default_rng(0)
     save_calibration(fit_calibration(rng.lognormal(0, 0.3, 200), model="lognormal"), directory)
@@ -52,11 +53,14 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=200)
     parser.add_argument("--members", type=int, default=5)
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
+    parser.add_argument(
+        "--samples-per-member", type=int, default=None, help="K chunks per member (default: the preset's)"
+    )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
 
     with tempfile.TemporaryDirectory() as tmp:
-        policy_dir = saved_ensemble(Path(tmp) / "pretrained_model", args.members)
+        policy_dir = saved_ensemble(Path(tmp) / "pretrained_model", args.members, args.samples_per_member)
         runner = PolicyRunner.from_pretrained(policy_dir)
         env = gym.make(
             lerobot_suture.ENV_ID,
@@ -84,6 +88,7 @@ def main() -> None:
     result = {
         "benchmark": "closed_loop",
         "members": args.members,
+        "samples_per_member": runner.policy.config.uncertainty_samples_per_member,
         "torch_threads": args.threads,
         "image_px": env_kwargs_for_policy(runner.policy.config).get("image_size"),
         "inference": f"{runner.policy.config.noise_scheduler_type}-{runner.policy.config.num_inference_steps}",

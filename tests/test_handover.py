@@ -135,6 +135,7 @@ def test_calibrate_command_writes_a_calibration_the_policy_loads(tiny_policy_dir
     assert report["calibration_seeds"] == [1_000_000, 1_000_001]
     runner = PolicyRunner.from_pretrained(directory)
     assert runner.policy.ood_calibration == calibration
+    assert calibration.score_settings == runner.policy.config.score_settings()
 
 
 def test_calibrate_rejects_too_few_episodes_for_per_episode_mode(tiny_policy_dir, capsys):
