@@ -120,7 +120,8 @@ def main() -> None:
             member.generate_actions(model_batch)
 
     def batched():
-        policy.predict_action_distribution(batch)
+        # One chunk per member, like for like with `one_member` (the preset may sample K > 1 per member).
+        policy.predict_action_distribution(batch, samples_per_member=1)
 
     fused = policy._fused_members()
 
