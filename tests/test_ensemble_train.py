@@ -138,10 +138,12 @@ def test_assembled_members_equal_the_jointly_trained_ensemble(trained, tmp_path)
     joint = _pretrained(trained[0], 2)
     members = [export_member(joint, n, tmp_path / f"member_{n}") for n in range(2)]
     assert json.loads((members[0] / "config.json").read_text())["type"] == "diffusion"
-    assembled = assemble_members(members, tmp_path / "assembled")
+    joint_config = json.loads((joint / "config.json").read_text())
+    # Ensemble-level options are not in the members; the CPU preset's K is passed as a user would.
+    samples = joint_config["uncertainty_samples_per_member"]
+    assembled = assemble_members(members, tmp_path / "assembled", uncertainty_samples_per_member=samples)
 
     assert _files(assembled) == _files(joint) - {"train_config.json"}
-    joint_config = json.loads((joint / "config.json").read_text())
     assembled_config = json.loads((assembled / "config.json").read_text())
     assert assembled_config == joint_config
     a, b = load_file(str(joint / "model.safetensors")), load_file(str(assembled / "model.safetensors"))
