@@ -104,14 +104,16 @@ def insertion_accuracy(
         raise ValueError(
             f"Need one entry and one exit error per episode. Got shapes {entry.shape} and {exit_.shape}."
         )
-    n = entry.size
+    entry_ok, exit_ok = entry <= entry_tolerance_m, exit_ <= exit_tolerance_m
+
+    def share(mask: np.ndarray) -> float:
+        return float(np.mean(mask)) if mask.size else math.nan
+
     return {
-        "episodes": n,
-        "entry_within_tolerance": float(np.mean(entry <= entry_tolerance_m)) if n else math.nan,
-        "exit_within_tolerance": float(np.mean(exit_ <= exit_tolerance_m)) if n else math.nan,
-        "both_within_tolerance": float(np.mean((entry <= entry_tolerance_m) & (exit_ <= exit_tolerance_m)))
-        if n
-        else math.nan,
+        "episodes": entry.size,
+        "entry_within_tolerance": share(entry_ok),
+        "exit_within_tolerance": share(exit_ok),
+        "both_within_tolerance": share(entry_ok & exit_ok),
         "never_entered": int(np.sum(~np.isfinite(entry))),
         "never_emerged": int(np.sum(~np.isfinite(exit_))),
         "entry_error_mm": summarize(1e3 * entry[np.isfinite(entry)]),
