@@ -41,6 +41,9 @@ class ExpertConfig:
         protrusion_angle: how far past the exit point the needle is driven (rad of arc).
         position_tolerance: distance to a waypoint that counts as reached (m).
         angle_tolerance: angle to a waypoint orientation that counts as reached (rad).
+        assume_nominal_grasp: plan with the env's nominal grasp of the needle instead of the true one, as a
+            policy that cannot see how the needle sits in the jaw must: a bound on what such a policy can
+            reach (``benchmarks/expert_quality.py --assume-nominal-grasp``). Never for recording.
     """
 
     approach_height: float = 0.012
@@ -51,6 +54,7 @@ class ExpertConfig:
     protrusion_angle: float = 0.5
     position_tolerance: float = 0.0005
     angle_tolerance: float = 0.03
+    assume_nominal_grasp: bool = False
 
     def __post_init__(self):
         for name in (
@@ -103,7 +107,9 @@ class ScriptedExpert:
             return pose_vector(jaw_pos, jaw_rot, 1.0).astype(np.float32)
 
         frame = u.insertion_frame()
-        centre, rotation = u.needle_pose()
+        grasp_pos, grasp_rot = u.nominal_grasp_in_jaw if cfg.assume_nominal_grasp else u.grasp_in_jaw
+        # The needle as the expert believes it is held (the true pose unless it assumes the nominal grasp).
+        centre, rotation = jaw_pos + jaw_rot @ grasp_pos, jaw_rot @ grasp_rot
         normal = u.phantom_rotation[:, 2]
         if self.phase is None:
             self._infer_phase(u, frame, rotation)
@@ -145,7 +151,6 @@ class ScriptedExpert:
             target = (frame.centre, frame.needle_rotation(final_angle))
 
         needle_pos, needle_rot = target
-        grasp_pos, grasp_rot = u.grasp_in_jaw
         target_jaw_rot = needle_rot @ grasp_rot.T
         target_jaw_pos = needle_pos - target_jaw_rot @ grasp_pos
         return pose_vector(target_jaw_pos, target_jaw_rot, 1.0).astype(np.float32)

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 import gymnasium as gym
 import numpy as np
 
-from lerobot_suture.expert import ScriptedExpert
+from lerobot_suture.expert import ExpertConfig, ScriptedExpert
 from lerobot_suture.registration import ENV_ID
 
 
@@ -73,9 +73,15 @@ class ExpertEpisode:
 
 
 def run_expert_episode(
-    seed: int, scenario: str = "nominal", n_frames: int = 0, frame_size: int = 160, env: gym.Env | None = None
+    seed: int,
+    scenario: str = "nominal",
+    n_frames: int = 0,
+    frame_size: int = 160,
+    env: gym.Env | None = None,
+    expert_config: ExpertConfig | None = None,
 ) -> ExpertEpisode:
-    """Run the expert for one episode; keep ``n_frames`` evenly spaced endoscope frames."""
+    """Run the expert (default settings unless ``expert_config``) for one episode; keep ``n_frames``
+    evenly spaced endoscope frames."""
     own_env = env is None
     if own_env:
         env = gym.make(
@@ -86,7 +92,7 @@ def run_expert_episode(
         frames = [env.render()] if n_frames else []
         onset = 0 if env.unwrapped.scenario.perturbed else None
         steps = 0
-        for steps, step in enumerate(iter_expert_steps(env, ScriptedExpert(), obs), start=1):
+        for steps, step in enumerate(iter_expert_steps(env, ScriptedExpert(expert_config), obs), start=1):
             info = step.info
             if onset is None and info["perturbed"]:
                 onset = steps - 1

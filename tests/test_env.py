@@ -14,7 +14,7 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import lerobot_suture
-from lerobot_suture.expert import ScriptedExpert
+from lerobot_suture.expert import ExpertConfig, ScriptedExpert
 from lerobot_suture.rollout_expert import iter_expert_steps
 from lerobot_suture.sim import suture_env
 from lerobot_suture.sim.geometry import pose_vector
@@ -27,8 +27,8 @@ def make(**kwargs) -> gym.Env:
     return gym.make(lerobot_suture.ENV_ID, disable_env_checker=True, **kwargs)
 
 
-def run_expert(env: gym.Env, seed: int, max_steps: int = 100):
-    expert = ScriptedExpert()
+def run_expert(env: gym.Env, seed: int, max_steps: int = 100, expert: ScriptedExpert | None = None):
+    expert = expert or ScriptedExpert()
     obs, info = env.reset(seed=seed)
     expert.reset(env)
     history = [(obs, info)]
@@ -182,6 +182,19 @@ def test_expert_inserts_the_needle():
         assert info["exit_error_m"] <= suture_env.EXIT_TOLERANCE
         assert info["needle_in_tissue"] and info["needle_grasped"]
     assert successes == 5
+
+
+def test_expert_assuming_the_nominal_grasp_misses_by_the_grasp_error():
+    env = make()
+    env.reset(seed=0)
+    grasp_rot, nominal_rot = env.unwrapped.grasp_in_jaw[1], env.unwrapped.nominal_grasp_in_jaw[1]
+    assert not np.allclose(grasp_rot, nominal_rot)  # the grasp is randomized per episode
+    true_entry = run_expert(env, seed=0)[-1][1]["entry_error_m"]
+    blind = ScriptedExpert(ExpertConfig(assume_nominal_grasp=True))
+    _, info = run_expert(env, seed=0, expert=blind)[-1]
+    # Planning with the wrong grasp puts the tip off the mark by about the grasp's error.
+    assert true_entry < 1e-4 < info["entry_error_m"] < 2 * suture_env.ENTRY_TOLERANCE
+    assert info["needle_in_tissue"]
 
 
 @pytest.mark.parametrize("scenario", [s for s in SCENARIOS if s != "nominal"])

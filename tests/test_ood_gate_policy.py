@@ -105,3 +105,8 @@ def test_calibration_fitted_with_other_score_settings_is_refused(tmp_path):
     save_calibration(other, tmp_path, filename=policy.config.ood.calibration_file)
     with pytest.raises(ValueError, match="uncertainty_samples_per_member=8 \\(this policy: 1\\)"):
         policy.load_ood_calibration(tmp_path)
+    steps = policy.config.n_action_steps
+    other = fit_calibration(scores, score_settings={**settings, "n_action_steps": steps + 1})
+    save_calibration(other, tmp_path, filename=policy.config.ood.calibration_file)
+    with pytest.raises(ValueError, match=f"n_action_steps={steps + 1} \\(this policy: {steps}\\)"):
+        policy.load_ood_calibration(tmp_path)

@@ -301,6 +301,11 @@ class SutureEnv(gym.Env):
         return self._grasp_pos, self._grasp_rot
 
     @property
+    def nominal_grasp_in_jaw(self) -> tuple[np.ndarray, np.ndarray]:
+        """The grasp before its per-episode randomization: (position (3,) m, rotation (3, 3)) in the jaw."""
+        return grasp_transform(GRASP_ANGLE, 0.0, 0.0)
+
+    @property
     def needle_tip_pos(self) -> np.ndarray:
         centre, rotation = self.needle_pose()
         return centre + rotation @ self._tip_local

@@ -222,7 +222,9 @@ class EnsembleDiffusionConfig(DiffusionConfig):
         """The settings besides the score's name and space that shape its distribution on a given policy.
 
         The gate's calibration records them, and a policy refuses a calibration fitted with others: a
-        threshold fitted at K = 1 sample per member is not one for K = 8.
+        threshold fitted at K = 1 sample per member is not one for K = 8, and the per-episode threshold,
+        a maximum over the episode's predictions, is not one for another `n_action_steps` (a prediction
+        every n steps).
         """
         return {
             "uncertainty_source": self.uncertainty_source,
@@ -231,6 +233,7 @@ class EnsembleDiffusionConfig(DiffusionConfig):
             "covariance_correction": self.covariance_correction,
             "noise_scheduler_type": self.noise_scheduler_type,
             "num_inference_steps": self.num_inference_steps,
+            "n_action_steps": self.n_action_steps,
         }
 
     def get_optimizer_preset(self) -> FusedAdamConfig | FusedAdamWConfig:
