@@ -115,6 +115,7 @@ TOY_POLICY_FLAGS = [
     "--policy.diffusion_step_embed_dim=16",
     "--policy.spatial_softmax_num_keypoints=8",
     "--policy.noise_scheduler_type=DDIM",
+    "--policy.prediction_type=sample",
     "--policy.num_train_timesteps=20",
     "--policy.num_inference_steps=5",
     "--policy.pretrained_backbone_weights=null",
