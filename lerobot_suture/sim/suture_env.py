@@ -530,7 +530,7 @@ class SutureEnv(gym.Env):
         self._phantom_pos = PHANTOM_NOMINAL.copy()
         self._phantom_yaw = 0.0
         self._phantom_rot = np.eye(3)
-        self._grasp_pos, self._grasp_rot = grasp_transform(GRASP_ANGLE, 0.0, 0.0)
+        self._grasp_pos, self._grasp_rot = self.nominal_grasp_in_jaw
 
     def _validated_action(self, action) -> np.ndarray:
         a = np.asarray(action, dtype=np.float64)
