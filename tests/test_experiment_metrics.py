@@ -26,6 +26,30 @@ def test_auroc_matches_the_pairwise_definition():
     assert math.isnan(metrics.auroc([], [1.0]))
 
 
+def test_auroc_over_common_steps_ignores_steps_only_one_episode_reached():
+    nominal = [[0.1, 0.2, 0.1], [0.1, 0.3]]  # nominal episodes end early, at success
+    # A perturbed run as quiet as nominal while both last, loud only after they have ended.
+    late = [[0.1, 0.1, 0.1, 0.1, 9.0]]
+    assert metrics.auroc([metrics.episode_score(n) for n in nominal], [9.0]) == 1.0
+    assert metrics.auroc_over_common_steps(nominal, late) == 0.0
+    # One loud while both last wins every pair; a tie counts a half.
+    assert metrics.auroc_over_common_steps(nominal, [[0.1, 5.0, 0.0, 0.0]]) == 1.0
+    assert metrics.auroc_over_common_steps([[0.2, 0.3]], [[0.2]]) == 0.5
+    # The pairwise definition on random runs of random lengths, NaN scores skipped.
+    rng = np.random.default_rng(0)
+    neg = [rng.normal(0, 1, rng.integers(3, 30)) for _ in range(20)]
+    pos = [rng.normal(0.5, 1, rng.integers(3, 30)) for _ in range(15)]
+    pos[0][0] = np.nan
+    expected = []
+    for p in pos:
+        for n in neg:
+            k = min(len(p), len(n))
+            a, b = np.nanmax(p[:k]), np.nanmax(n[:k])
+            expected.append((a > b) + 0.5 * (a == b))
+    assert metrics.auroc_over_common_steps(neg, pos) == pytest.approx(np.mean(expected))
+    assert math.isnan(metrics.auroc_over_common_steps([], [[1.0]]))
+
+
 def test_detection_delay_counts_from_onset_to_the_first_alarm_at_or_after_it():
     alarms = [True, False, False, False, True, True]  # an early false alarm does not count
     assert metrics.first_alarm_after(alarms, 2) == 4

@@ -47,9 +47,19 @@ def test_experiments_write_figures_metrics_and_report(tiny_policy_dir, tmp_path)
         "phantom_moved_after_insertion",
     }
     assert result["nominal"]["insertion"]["episodes"] == 2
+    for entry in result["experiments"].values():
+        assert 0.0 <= entry["auroc_common_steps"] <= 1.0
+    traces = json.loads((out / result["traces"]).read_text())
+    assert len(traces["nominal"]) == 2 and len(traces["needle_drop"]) == 1
+    drop = traces["needle_drop"][0]
+    assert len(drop["scores"]) == len(drop["alarms"]) > drop["onset_step"] >= 0
+    assert traces["threshold"] == result["calibration"]["threshold"]
+    for entry in result["gate_enforced"].values():
+        assert entry["handover_step"]["n"] == round(entry["handover_rate"] * entry["runs"])
     report = (out / "report.md").read_text()
     assert "| 1 | needle_drop | 1 |" in report
     assert "Where the needle crossed the tissue" in report
+    assert "AUROC over common steps" in report and "needle in tissue at handover" in report
     for name in result["figures"].values():
         image = np.asarray(Image.open(out / name).convert("L"), dtype=float)
         assert image.std() > 5, f"{name} is blank"

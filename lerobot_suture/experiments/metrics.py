@@ -44,6 +44,36 @@ def episode_score(scores: Sequence[float], start: int = 0) -> float:
     return float(tail.max()) if tail.size else math.nan
 
 
+def auroc_over_common_steps(
+    negatives: Sequence[Sequence[float]], positives: Sequence[Sequence[float]]
+) -> float:
+    """Episode-level AUROC with each (negative, positive) pair compared over the control steps both lasted.
+
+    Each episode's score is its maximum score over the first ``min(len(negative), len(positive))``
+    steps. An episode that runs on (a failed one goes to the time limit; a nominal one ends at success)
+    then cannot win on steps the other never reached: this AUROC measures what the score says while
+    both episodes are under way. NaN scores are ignored; nan when either side is empty.
+    """
+    neg = [_running_max(run) for run in negatives if len(run)]
+    pos = [_running_max(run) for run in positives if len(run)]
+    wins = ties = pairs = 0
+    for p in pos:
+        for n in neg:
+            steps = min(len(p), len(n))
+            a, b = p[steps - 1], n[steps - 1]
+            if math.isnan(a) or math.isnan(b):
+                continue
+            pairs += 1
+            wins += a > b
+            ties += a == b
+    return (wins + 0.5 * ties) / pairs if pairs else math.nan
+
+
+def _running_max(scores: Sequence[float]) -> np.ndarray:
+    """Maximum of the scores up to each step, NaN ignored (NaN until the first finite score)."""
+    return np.fmax.accumulate(np.asarray(scores, dtype=np.float64))
+
+
 def first_alarm_after(alarms: Sequence[bool], onset: int) -> int | None:
     """First control step at or after ``onset`` with an alarm, or None."""
     return next((k for k in range(onset, len(alarms)) if alarms[k]), None)

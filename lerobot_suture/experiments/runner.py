@@ -10,8 +10,8 @@ With the gate in reporting mode (as the paper ran them) it rolls the policy out 
 
 then experiment 4, the CBF (the offline replay figure, and live runs of the policy and of an adversary
 that pulls the needle sideways, with and without the filter), and finally the gate enforced with the
-scripted surgeon taking over. It writes one figure per experiment, ``metrics.json`` and ``report.md``
-into ``--output_dir``. Every episode's seed is derived from ``--seed``, so a rerun gives the same
+scripted surgeon taking over. It writes one figure per experiment, ``metrics.json``, ``report.md``
+and ``traces.json`` (every episode's score and alarm per step) into ``--output_dir``. Every episode's seed is derived from ``--seed``, so a rerun gives the same
 numbers. The seeds are disjoint from the recording seeds (0...) and the calibration seeds (the
 dataset's validation episodes, or 1,000,000...): nothing here is tuned on them.
 """
@@ -50,6 +50,7 @@ EXPERIMENTS = (
     ("3.2", "phantom_moved_after_insertion", "Experiment 3.2: phantom moved after insertion"),
 )
 _SEED_STRIDE = 10_000  # seeds of different groups never overlap
+TRACES_FILE = "traces.json"
 
 
 @dataclass
@@ -125,6 +126,22 @@ def _rollouts(
     )
 
 
+def _traces(logs: list[EpisodeLog]) -> list[dict]:
+    """Per episode, what the figures and the metrics are computed from: the score and the gate's
+    alarm at every control step, the onset and the outcome (``traces.json``, for analyses of your own).
+    """
+    return [
+        {
+            "seed": log.seed,
+            "success": log.success,
+            "onset_step": log.onset_step,
+            "scores": [float(f"{x:.6g}") for x in log.scores],
+            "alarms": [int(a) for a in _alarms(log)],
+        }
+        for log in logs
+    ]
+
+
 def _alarms(log: EpisodeLog) -> list[bool]:
     return [s.ood for s in log.steps]
 
@@ -144,6 +161,9 @@ def ood_metrics(nominal: list[EpisodeLog], runs: list[EpisodeLog]) -> dict:
         "auroc": metrics.auroc(
             [metrics.episode_score(log.scores) for log in nominal],
             [metrics.episode_score(log.scores) for log in runs],
+        ),
+        "auroc_common_steps": metrics.auroc_over_common_steps(
+            [log.scores for log in nominal], [log.scores for log in runs]
         ),
         "tpr_at_threshold": float(np.mean(flagged)) if runs else math.nan,
         "detection_delay_steps": metrics.summarize(delays),
@@ -210,6 +230,13 @@ def enforced(cfg: ExperimentsConfig, runner, env_kwargs: dict) -> dict:
                 "success_after_handover_rate": float(np.mean([log.success for log in handed]))
                 if handed
                 else None,
+                # A surgeon cannot undo a needle already through the tissue at the wrong place.
+                "handover_in_tissue_rate": float(
+                    np.mean([log.steps[log.handover_step].needle_in_tissue for log in handed])
+                )
+                if handed
+                else None,
+                "handover_step": metrics.summarize([log.handover_step for log in handed]),
                 "success_rate": float(np.mean([log.success for log in logs])) if logs else math.nan,
             }
         return out
@@ -262,8 +289,10 @@ def run_experiments(cfg: ExperimentsConfig) -> dict:
         "figures": {},
     }
     nominal_scores = [log.scores for log in nominal]
+    traces = {"threshold": threshold, "nominal": _traces(nominal)}
     for group, (exp_id, scenario, title) in enumerate(EXPERIMENTS, start=2):
         runs = _rollouts(cfg, runner, env_kwargs, scenario, _seeds(cfg, group, cfg.runs(scenario)), title)
+        traces[scenario] = _traces(runs)
         entry = ood_metrics(nominal, runs)
         entry["scenario"] = scenario
         result["experiments"][exp_id] = entry
@@ -277,6 +306,8 @@ def run_experiments(cfg: ExperimentsConfig) -> dict:
         )
         result["figures"][exp_id] = figure.name
 
+    (cfg.output_dir / TRACES_FILE).write_text(json.dumps(traces, default=_json_default))
+    result["traces"] = TRACES_FILE
     replay = run_cbf_replay(CBFReplayConfig(output_dir=cfg.output_dir, seed=cfg.seed))
     result["cbf"] = {"offline_replay": replay, "live": cbf_live(cfg, runner, env_kwargs)}
     result["figures"]["4"] = "cbf_replay.png"
@@ -357,16 +388,22 @@ def render_report(result: dict) -> str:
         *_insertion_lines(nominal.get("insertion")),
         "## Out of distribution (gate reporting, as in the paper)",
         "",
-        "| experiment | scenario | runs | AUROC vs nominal | TPR at threshold | detection delay (steps), median [IQR] |",
-        "|---|---|---|---|---|---|",
+        "| experiment | scenario | runs | AUROC vs nominal | AUROC over common steps | TPR at threshold | detection delay (steps), median [IQR] |",
+        "|---|---|---|---|---|---|---|",
     ]
     for exp_id, entry in result["experiments"].items():
         d = entry["detection_delay_steps"]
         delay = f"{_fmt(d['median'])} [{_fmt(d['q25'])}, {_fmt(d['q75'])}] (n={d['n']})" if d["n"] else "none"
         lines.append(
             f"| {exp_id} | {entry['scenario']} | {entry['runs']} | {_fmt(entry['auroc'])} | "
-            f"{_fmt(entry['tpr_at_threshold'])} | {delay} |"
+            f"{_fmt(entry.get('auroc_common_steps'))} | {_fmt(entry['tpr_at_threshold'])} | {delay} |"
         )
+    lines += [
+        "",
+        "AUROC vs nominal compares each episode's largest score; a perturbed run that fails goes on to "
+        "the time limit, past where nominal episodes end at success. AUROC over common steps compares "
+        "each pair of episodes over the control steps both lasted.",
+    ]
     lines += ["", "## Control barrier function (experiment 4)", ""]
     replay = result["cbf"]["offline_replay"]
     lines.append(
@@ -387,12 +424,14 @@ def render_report(result: dict) -> str:
         "",
         "## Gate enforced, scripted surgeon taking over",
         "",
-        "| scenario | runs | autonomous success | handover rate | success after handover | overall success |",
-        "|---|---|---|---|---|---|",
+        "| scenario | runs | autonomous success | handover rate | handover step, median | needle in tissue at handover | success after handover | overall success |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for scenario, entry in result["gate_enforced"].items():
+        step = (entry.get("handover_step") or {}).get("median")
         lines.append(
             f"| {scenario} | {entry['runs']} | {_fmt(entry['autonomous_success_rate'])} | {_fmt(entry['handover_rate'])} | "
+            f"{_fmt(step)} | {_fmt(entry.get('handover_in_tissue_rate'))} | "
             f"{_fmt(entry['success_after_handover_rate'])} | {_fmt(entry['success_rate'])} |"
         )
     lines += ["", "## Figures", ""]
