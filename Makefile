@@ -8,6 +8,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 PYTHON ?= $(shell command -v python3.12 || command -v python3)
 APT_PACKAGES := libegl1 libgl1-mesa-dri libglib2.0-0
+INSTALL_GB := 7
 export MUJOCO_GL ?= egl
 export PYOPENGL_PLATFORM ?= egl
 
@@ -26,6 +27,10 @@ $(STAMP): pyproject.toml envs/pyproject.toml policies/pyproject.toml
 	  $(PYTHON) -c 'import sys; sys.exit(sys.version_info < (3, 12))' || \
 	    { echo "Python >= 3.12 is required (found $$($(PYTHON) --version)); set PYTHON=/path/to/python3.12"; exit 1; }; \
 	  $(PYTHON) -m venv $(VENV); }
+	@free=$$(df -Pk . | awk 'NR==2 {print int($$4 / 1048576)}'); \
+	if [ "$$free" -lt $(INSTALL_GB) ]; then \
+	  echo "warning: $$free GB free here; the install needs about $(INSTALL_GB) GB (torch's CUDA build and its libraries). Free some space if pip fails with 'No space left on device'."; \
+	fi
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q -e ".[test]" -e ./envs -e ./policies
 	@touch $(STAMP)
