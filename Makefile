@@ -8,7 +8,8 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 PYTHON ?= $(shell command -v python3.12 || command -v python3)
 APT_PACKAGES := libegl1 libgl1-mesa-dri libglib2.0-0
-INSTALL_GB := 7
+# Disk space (GiB) the install takes: torch's CUDA build and its libraries.
+INSTALL_GIB := 7
 export MUJOCO_GL ?= egl
 export PYOPENGL_PLATFORM ?= egl
 
@@ -28,8 +29,8 @@ $(STAMP): pyproject.toml envs/pyproject.toml policies/pyproject.toml
 	    { echo "Python >= 3.12 is required (found $$($(PYTHON) --version)); set PYTHON=/path/to/python3.12"; exit 1; }; \
 	  $(PYTHON) -m venv $(VENV); }
 	@free=$$(df -Pk . | awk 'NR==2 {print int($$4 / 1048576)}'); \
-	if [ "$$free" -lt $(INSTALL_GB) ]; then \
-	  echo "warning: $$free GB free here; the install needs about $(INSTALL_GB) GB (torch's CUDA build and its libraries). Free some space if pip fails with 'No space left on device'."; \
+	if [ "$${free:-0}" -lt $(INSTALL_GIB) ]; then \
+	  echo "warning: $${free:-?} GiB free here; the install needs about $(INSTALL_GIB) GiB (torch's CUDA build and its libraries). Free some space if pip fails with 'No space left on device'."; \
 	fi
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q -e ".[test]" -e ./envs -e ./policies

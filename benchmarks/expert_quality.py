@@ -4,7 +4,7 @@ Prints JSON. Bar (issue 2): >= 98% success over 200 seeded nominal episodes.
 
 ``--assume-nominal-grasp`` runs the expert as if the needle sat in the jaw at its nominal grasp (it does
 not: the grasp is randomized per episode). That is all a policy which cannot see the needle in the jaw
-can know, so it bounds such a policy's success and entry error from below by the grasp's share alone.
+can know. So its success is an upper bound on such a policy's, and its entry error a lower bound.
 """
 
 from __future__ import annotations

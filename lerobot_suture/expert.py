@@ -42,8 +42,9 @@ class ExpertConfig:
         position_tolerance: distance to a waypoint that counts as reached (m).
         angle_tolerance: angle to a waypoint orientation that counts as reached (rad).
         assume_nominal_grasp: plan with the env's nominal grasp of the needle instead of the true one, as a
-            policy that cannot see how the needle sits in the jaw must: a bound on what such a policy can
-            reach (``benchmarks/expert_quality.py --assume-nominal-grasp``). Never for recording.
+            policy that cannot see how the needle sits in the jaw must: an upper bound on such a policy's
+            success, a lower bound on its entry error (``benchmarks/expert_quality.py
+            --assume-nominal-grasp``). Never for recording.
     """
 
     approach_height: float = 0.012

@@ -192,9 +192,9 @@ def test_expert_assuming_the_nominal_grasp_misses_by_the_grasp_error():
     true_entry = run_expert(env, seed=0)[-1][1]["entry_error_m"]
     blind = ScriptedExpert(ExpertConfig(assume_nominal_grasp=True))
     _, info = run_expert(env, seed=0, expert=blind)[-1]
-    # Planning with the wrong grasp puts the tip off the mark by about the grasp's error.
-    assert true_entry < 1e-4 < info["entry_error_m"] < 2 * suture_env.ENTRY_TOLERANCE
-    assert info["needle_in_tissue"]
+    # Planning with the wrong grasp puts the tip off the mark by the grasp's error, within tolerance.
+    assert true_entry < 1e-4 < info["entry_error_m"] < suture_env.ENTRY_TOLERANCE
+    assert info["needle_in_tissue"] and info["is_success"]
 
 
 @pytest.mark.parametrize("scenario", [s for s in SCENARIOS if s != "nominal"])

@@ -48,6 +48,12 @@ def test_auroc_over_common_steps_ignores_steps_only_one_episode_reached():
             expected.append((a > b) + 0.5 * (a == b))
     assert metrics.auroc_over_common_steps(neg, pos) == pytest.approx(np.mean(expected))
     assert math.isnan(metrics.auroc_over_common_steps([], [[1.0]]))
+    # A pair NaN over all its common steps, or ending before the perturbation began, is skipped.
+    assert metrics.auroc_over_common_steps([[np.nan], [0.2, 0.2, 0.2]], [[np.nan, 0.4, 0.1]]) == 1.0
+    assert metrics.auroc_over_common_steps([[0.3], [0.1, 0.1, 0.1]], [[0.2, 0.2, 0.2]], onsets=[1]) == 1.0
+    assert math.isnan(metrics.auroc_over_common_steps([[0.3]], [[0.2, 0.2]], onsets=[1]))
+    with pytest.raises(ValueError, match="one onset per positive"):
+        metrics.auroc_over_common_steps([[0.3]], [[0.2]], onsets=[])
 
 
 def test_detection_delay_counts_from_onset_to_the_first_alarm_at_or_after_it():

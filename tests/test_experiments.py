@@ -8,7 +8,23 @@ import pytest
 from PIL import Image
 
 from lerobot_suture.cli import main as cli_main
+from lerobot_suture.experiments.runner import _in_tissue_at_handover
+from lerobot_suture.rollout import EpisodeLog, StepLog
 from lerobot_suture.safety.ood import fit_calibration, save_calibration
+
+
+def _step(in_tissue: bool) -> StepLog:
+    return StepLog(0.0, 1.0, False, False, False, "policy", False, in_tissue)
+
+
+def test_needle_in_tissue_at_handover_is_read_before_the_surgeon_acts():
+    log = EpisodeLog(seed=0, scenario="nominal", steps=[_step(False), _step(True), _step(True)])
+    log.handover_step = 1  # released after step 0: the needle was not in yet
+    assert not _in_tissue_at_handover(log)
+    log.handover_step = 2
+    assert _in_tissue_at_handover(log)
+    log.handover_step = 0  # released before any step: the episode's start, needle outside
+    assert not _in_tissue_at_handover(log)
 
 
 @pytest.mark.slow
@@ -56,6 +72,10 @@ def test_experiments_write_figures_metrics_and_report(tiny_policy_dir, tmp_path)
     assert traces["threshold"] == result["calibration"]["threshold"]
     for entry in result["gate_enforced"].values():
         assert entry["handover_step"]["n"] == round(entry["handover_rate"] * entry["runs"])
+        if entry["handover_rate"] == 0:
+            assert entry["handover_in_tissue_rate"] is None
+        else:
+            assert 0.0 <= entry["handover_in_tissue_rate"] <= 1.0
     report = (out / "report.md").read_text()
     assert "| 1 | needle_drop | 1 |" in report
     assert "Where the needle crossed the tissue" in report

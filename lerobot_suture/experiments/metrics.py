@@ -45,28 +45,37 @@ def episode_score(scores: Sequence[float], start: int = 0) -> float:
 
 
 def auroc_over_common_steps(
-    negatives: Sequence[Sequence[float]], positives: Sequence[Sequence[float]]
+    negatives: Sequence[Sequence[float]],
+    positives: Sequence[Sequence[float]],
+    onsets: Sequence[int | None] | None = None,
 ) -> float:
     """Episode-level AUROC with each (negative, positive) pair compared over the control steps both lasted.
 
     Each episode's score is its maximum score over the first ``min(len(negative), len(positive))``
     steps. An episode that runs on (a failed one goes to the time limit; a nominal one ends at success)
     then cannot win on steps the other never reached: this AUROC measures what the score says while
-    both episodes are under way. NaN scores are ignored; nan when either side is empty.
+    both episodes are under way. With ``onsets`` (the positives' perturbation onset steps), a pair that
+    ends at or before its positive's onset says nothing about the perturbation and is skipped, as is a
+    pair whose scores are NaN over all its common steps. nan when no pair is left.
     """
+    onsets = [None] * len(positives) if onsets is None else list(onsets)
+    if len(onsets) != len(positives):
+        raise ValueError(f"Need one onset per positive run. Got {len(onsets)} for {len(positives)} runs.")
     neg = [_running_max(run) for run in negatives if len(run)]
-    pos = [_running_max(run) for run in positives if len(run)]
     wins = ties = pairs = 0
-    for p in pos:
+    for run, onset in zip(positives, onsets, strict=True):
+        if not len(run):
+            continue
+        p = _running_max(run)
         for n in neg:
             steps = min(len(p), len(n))
             a, b = p[steps - 1], n[steps - 1]
-            if math.isnan(a) or math.isnan(b):
+            if (onset is not None and steps <= onset) or math.isnan(a) or math.isnan(b):
                 continue
             pairs += 1
-            wins += a > b
-            ties += a == b
-    return (wins + 0.5 * ties) / pairs if pairs else math.nan
+            wins += int(a > b)
+            ties += int(a == b)
+    return float((wins + 0.5 * ties) / pairs) if pairs else math.nan
 
 
 def _running_max(scores: Sequence[float]) -> np.ndarray:

@@ -11,7 +11,8 @@ With the gate in reporting mode (as the paper ran them) it rolls the policy out 
 then experiment 4, the CBF (the offline replay figure, and live runs of the policy and of an adversary
 that pulls the needle sideways, with and without the filter), and finally the gate enforced with the
 scripted surgeon taking over. It writes one figure per experiment, ``metrics.json``, ``report.md``
-and ``traces.json`` (every episode's score and alarm per step) into ``--output_dir``. Every episode's seed is derived from ``--seed``, so a rerun gives the same
+and ``traces.json`` into ``--output_dir``. ``traces.json`` holds the score and the alarm per step of
+every episode run with the gate reporting (the nominal runs and experiments 1 to 3.2). Every episode's seed is derived from ``--seed``, so a rerun gives the same
 numbers. The seeds are disjoint from the recording seeds (0...) and the calibration seeds (the
 dataset's validation episodes, or 1,000,000...): nothing here is tuned on them.
 """
@@ -57,7 +58,7 @@ TRACES_FILE = "traces.json"
 class ExperimentsConfig:
     """Args:
     policy: ``--policy.path=DIR``, a trained and calibrated ensemble (``lerobot-suture calibrate``).
-    output_dir: where figures, ``metrics.json`` and ``report.md`` go.
+    output_dir: where figures, ``metrics.json``, ``report.md`` and ``traces.json`` go.
     seed: base of every episode seed (test seeds: disjoint from recording and calibration).
     nominal_episodes: nominal runs (success rate with a 95% Wilson interval; false alarms).
     expert_episodes: nominal runs of the scripted expert, for its success rate beside the policy's.
@@ -127,8 +128,8 @@ def _rollouts(
 
 
 def _traces(logs: list[EpisodeLog]) -> list[dict]:
-    """Per episode, what the figures and the metrics are computed from: the score and the gate's
-    alarm at every control step, the onset and the outcome (``traces.json``, for analyses of your own).
+    """Per episode, what the figures and the O.O.D. metrics are computed from: the score and the
+    gate's alarm at every control step, the onset and the outcome (``traces.json``).
     """
     return [
         {
@@ -140,6 +141,12 @@ def _traces(logs: list[EpisodeLog]) -> list[dict]:
         }
         for log in logs
     ]
+
+
+def _in_tissue_at_handover(log: EpisodeLog) -> bool:
+    """Whether the needle was in tissue when the gate released control (before the surgeon acted)."""
+    step = log.handover_step
+    return bool(step) and log.steps[step - 1].needle_in_tissue  # no step before: the episode's start
 
 
 def _alarms(log: EpisodeLog) -> list[bool]:
@@ -163,7 +170,7 @@ def ood_metrics(nominal: list[EpisodeLog], runs: list[EpisodeLog]) -> dict:
             [metrics.episode_score(log.scores) for log in runs],
         ),
         "auroc_common_steps": metrics.auroc_over_common_steps(
-            [log.scores for log in nominal], [log.scores for log in runs]
+            [log.scores for log in nominal], [log.scores for log in runs], onsets
         ),
         "tpr_at_threshold": float(np.mean(flagged)) if runs else math.nan,
         "detection_delay_steps": metrics.summarize(delays),
@@ -231,9 +238,7 @@ def enforced(cfg: ExperimentsConfig, runner, env_kwargs: dict) -> dict:
                 if handed
                 else None,
                 # A surgeon cannot undo a needle already through the tissue at the wrong place.
-                "handover_in_tissue_rate": float(
-                    np.mean([log.steps[log.handover_step].needle_in_tissue for log in handed])
-                )
+                "handover_in_tissue_rate": float(np.mean([_in_tissue_at_handover(log) for log in handed]))
                 if handed
                 else None,
                 "handover_step": metrics.summarize([log.handover_step for log in handed]),
