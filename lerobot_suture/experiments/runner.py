@@ -13,8 +13,9 @@ that pulls the needle sideways, with and without the filter), and finally the ga
 scripted surgeon taking over. It writes one figure per experiment, ``metrics.json``, ``report.md``
 and ``traces.json`` into ``--output_dir``. ``traces.json`` holds the score and the alarm per step of
 every episode run with the gate reporting (the nominal runs and experiments 1 to 3.2). Every episode's
-seed is derived from ``--seed``, so a rerun gives the same numbers. The seeds are disjoint from the recording seeds (0...) and the calibration seeds (the
-dataset's validation episodes, or 1,000,000...): nothing here is tuned on them.
+seed is derived from ``--seed``, so a rerun gives the same numbers. The seeds are disjoint from the
+recording seeds (0...) and the calibration seeds (the dataset's validation episodes, or 1,000,000...):
+nothing here is tuned on them.
 """
 
 from __future__ import annotations
