@@ -23,7 +23,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lerobot_suture.sim.geometry import matrix_from_rotvec, pose_vector, rotvec_from_matrix
+from lerobot_suture.sim.geometry import (
+    jaw_holding,
+    matrix_from_rotvec,
+    needle_in_world,
+    pose_vector,
+    rotvec_from_matrix,
+)
 
 PHASES = ("approach", "descend", "drive", "hold")
 
@@ -110,7 +116,7 @@ class ScriptedExpert:
         frame = u.insertion_frame()
         grasp_pos, grasp_rot = u.nominal_grasp_in_jaw if cfg.assume_nominal_grasp else u.grasp_in_jaw
         # The needle as the expert believes it is held (the true pose unless it assumes the nominal grasp).
-        centre, rotation = jaw_pos + jaw_rot @ grasp_pos, jaw_rot @ grasp_rot
+        centre, rotation = needle_in_world(jaw_pos, jaw_rot, grasp_pos, grasp_rot)
         normal = u.phantom_rotation[:, 2]
         if self.phase is None:
             self._infer_phase(u, frame, rotation)
@@ -151,9 +157,7 @@ class ScriptedExpert:
         elif self.phase == "hold":
             target = (frame.centre, frame.needle_rotation(final_angle))
 
-        needle_pos, needle_rot = target
-        target_jaw_rot = needle_rot @ grasp_rot.T
-        target_jaw_pos = needle_pos - target_jaw_rot @ grasp_pos
+        target_jaw_pos, target_jaw_rot = jaw_holding(*target, grasp_pos, grasp_rot)
         return pose_vector(target_jaw_pos, target_jaw_rot, 1.0).astype(np.float32)
 
     def _infer_phase(self, u, frame, rotation) -> None:

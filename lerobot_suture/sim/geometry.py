@@ -195,6 +195,24 @@ def insertion_frame(
     return InsertionFrame(centre=centre, axis=axis, start_rotation=start, exit_angle=exit_angle)
 
 
+def needle_in_world(
+    jaw_pos: np.ndarray, jaw_rot: np.ndarray, grasp_pos: np.ndarray, grasp_rot: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The needle's world pose (centre (3,) m, rotation (3, 3)) held by the jaw at ``jaw_pos``,
+    ``jaw_rot`` with the grasp ``grasp_pos``, ``grasp_rot`` (the needle's pose in the jaw frame)."""
+    return jaw_pos + jaw_rot @ grasp_pos, jaw_rot @ grasp_rot
+
+
+def jaw_holding(
+    needle_pos: np.ndarray, needle_rot: np.ndarray, grasp_pos: np.ndarray, grasp_rot: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The jaw's world pose (position (3,) m, rotation (3, 3)) that puts the needle it holds with the
+    grasp ``grasp_pos``, ``grasp_rot`` at ``needle_pos``, ``needle_rot``: the inverse of
+    :func:`needle_in_world`."""
+    jaw_rot = needle_rot @ grasp_rot.T
+    return needle_pos - jaw_rot @ grasp_pos, jaw_rot
+
+
 def grasp_transform(grasp_angle: float, offset_along_jaw: float, roll: float, radius: float = NEEDLE_RADIUS):
     """Needle pose in the jaw frame for a grasp at arc angle ``grasp_angle`` (rad).
 

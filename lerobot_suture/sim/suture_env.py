@@ -98,8 +98,10 @@ from lerobot_suture.sim.geometry import (
     cross3,
     grasp_transform,
     insertion_frame,
+    jaw_holding,
     matrix_from_rot6,
     needle_arc_points,
+    needle_in_world,
     pose_vector,
     quat_from_matrix,
     rot6_from_matrix,
@@ -318,8 +320,7 @@ class SutureEnv(gym.Env):
     def needle_pose(self) -> tuple[np.ndarray, np.ndarray]:
         """Needle centre and orientation, world: (position (3,) m, rotation (3, 3))."""
         if self._grasped:
-            p, r = self.jaw_pose()
-            return p + r @ self._grasp_pos, r @ self._grasp_rot
+            return needle_in_world(*self.jaw_pose(), self._grasp_pos, self._grasp_rot)
         d = self.data
         return d.xpos[self._needle_body].copy(), d.xmat[self._needle_body].reshape(3, 3).copy()
 
@@ -548,8 +549,7 @@ class SutureEnv(gym.Env):
         self._reset_state()
         frame = self.insertion_frame()
         centre = frame.centre + np.array([0.0, 0.0, 0.025])
-        target_rot = frame.start_rotation @ self._grasp_rot.T
-        target_pos = centre - target_rot @ self._grasp_pos
+        target_pos, target_rot = jaw_holding(centre, frame.start_rotation, self._grasp_pos, self._grasp_rot)
         d, m = self.data, self.model
         mujoco.mj_resetData(m, d)
         jacp, jacr = np.zeros((3, m.nv)), np.zeros((3, m.nv))
