@@ -28,6 +28,8 @@ logger = logging.getLogger(__name__)
 
 FRESH_SEED_BASE = 1_000_000
 """First of the fresh seeds used when no dataset gives validation seeds (far from recording seeds)."""
+SCORE_CHOICE_FIELDS = ("uncertainty_score", "uncertainty_space", "uncertainty_source", "uncertainty_steps")
+"""The ensemble's config fields that choose how a prediction is scored (``lerobot-suture score-study``)."""
 
 
 @dataclass
@@ -52,6 +54,9 @@ class CalibrateConfig:
     h: width factor of the in-distribution model, Normal(mean, h * std).
     batch_envs: envs run in lockstep with one batched policy call per step (faster on any device).
     device: torch device of the policy.
+    uncertainty_score, uncertainty_space, uncertainty_source, uncertainty_steps: a choice of score (e.g.
+        from ``lerobot-suture score-study``) to calibrate the gate for; it is written into the policy's
+        ``config.json`` beside the calibration. Unset: the policy's own.
     """
 
     policy: PolicyPathConfig = field(default_factory=PolicyPathConfig)
@@ -64,6 +69,10 @@ class CalibrateConfig:
     h: float = 1.0
     batch_envs: int = 8
     device: str = "cpu"
+    uncertainty_score: str | None = None
+    uncertainty_space: str | None = None
+    uncertainty_source: str | None = None
+    uncertainty_steps: str | None = None
 
     def __post_init__(self):
         if self.policy.path is None:
@@ -83,6 +92,31 @@ class CalibrateConfig:
                 f"{min_calibration_episodes(self.alpha)} calibration episodes. Got {self.calibration_episodes}; "
                 "raise `--calibration_episodes` or use `--mode=per_prediction`."
             )
+
+    def score_choice(self) -> dict[str, str]:
+        """The score settings given on the command line (field -> value)."""
+        return {name: getattr(self, name) for name in SCORE_CHOICE_FIELDS if getattr(self, name) is not None}
+
+
+def apply_score_choice(config, choice: dict[str, str]) -> None:
+    """Set a score choice on a loaded ensemble config, refusing values this policy cannot use."""
+    if not choice:
+        return
+    if not hasattr(config, "score_choices"):
+        raise ValueError(f"A {config.type!r} policy has no score settings; drop {sorted(choice)}.")
+    allowed = config.score_choices()
+    for name, value in choice.items():
+        if value not in allowed[name]:
+            raise ValueError(f"`{name}` must be one of {list(allowed[name])} for this policy. Got {value!r}.")
+        setattr(config, name, value)
+
+
+def write_score_choice(policy_dir: Path, choice: dict[str, str]) -> None:
+    """Record a score choice in the policy's ``config.json`` (only those fields change)."""
+    path = Path(policy_dir) / "config.json"
+    config = json.loads(path.read_text())
+    config.update(choice)
+    path.write_text(json.dumps(config, indent=4))
 
 
 def calibration_seeds(cfg: CalibrateConfig) -> list[int]:
@@ -127,6 +161,8 @@ def run_calibration(cfg: CalibrateConfig) -> dict:
     if config.ood.enforce:
         # Calibrating needs the gate to report, not to stop the rollouts.
         config.ood.enforce = False
+    choice = cfg.score_choice()
+    apply_score_choice(config, choice)
     env_kwargs = env_kwargs_for_policy(config)
     seeds = calibration_seeds(cfg)
     fit_seeds, holdout_seeds = seeds[: cfg.calibration_episodes], seeds[cfg.calibration_episodes :]
@@ -144,9 +180,12 @@ def run_calibration(cfg: CalibrateConfig) -> dict:
         space=config.uncertainty_space,
         score_settings=config.score_settings(),
     )
+    # The choice goes into config.json only with a calibration fitted for it.
+    write_score_choice(cfg.policy.path, choice)
     path = save_calibration(calibration, cfg.policy.path, filename=config.ood.calibration_file)
     report = {
         "calibration_file": str(path),
+        "score_choice_written": choice,
         "calibration": calibration.to_dict(),
         "calibration_seeds": fit_seeds,
         "calibration_success_rate": float(np.mean([log.success for log in fit_logs])),

@@ -26,6 +26,10 @@ SUBCOMMANDS = {
         "lerobot_suture.experiments.runner",
         "run the paper's experiments: figures, metrics, report",
     ),
+    "score-study": (
+        "lerobot_suture.experiments.score_study",
+        "compare the gate's uncertainty scores on validation seeds",
+    ),
     "cbf-replay": (
         "lerobot_suture.experiments.cbf_offline",
         "filter a recorded unsafe throw offline, plot it",

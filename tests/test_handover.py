@@ -138,6 +138,21 @@ def test_calibrate_command_writes_a_calibration_the_policy_loads(tiny_policy_dir
     assert calibration.score_settings == runner.policy.config.score_settings()
 
 
+def test_calibrate_with_a_score_choice_writes_it_beside_its_calibration(tiny_policy_dir, tmp_path):
+    directory = tmp_path / "policy"
+    shutil.copytree(tiny_policy_dir, directory)
+    args = ["calibrate", f"--policy.path={directory}", "--calibration_episodes=2", "--holdout_episodes=0"]
+    with pytest.raises(ValueError, match="`uncertainty_source` must be one of \\['total'\\]"):
+        cli_main([*args, "--uncertainty_source=aleatoric", "--mode=per_prediction"])  # one sample per member
+    assert json.loads((directory / "config.json").read_text())["uncertainty_source"] == "total"
+    cli_main([*args, "--uncertainty_score=trace", "--uncertainty_steps=action", "--mode=per_prediction"])
+    runner = PolicyRunner.from_pretrained(directory)
+    config = runner.policy.config
+    assert (config.uncertainty_score, config.uncertainty_steps) == ("trace", "action")
+    calibration = runner.policy.ood_calibration
+    assert calibration.score_name == "trace" and calibration.score_settings["uncertainty_steps"] == "action"
+
+
 def test_calibrate_rejects_too_few_episodes_for_per_episode_mode(tiny_policy_dir, capsys):
     with pytest.raises(SystemExit) as exit_info:
         cli_main(["calibrate", f"--policy.path={tiny_policy_dir}", "--calibration_episodes=5"])

@@ -109,7 +109,9 @@ def _seeds(cfg: ExperimentsConfig, group: int, n: int) -> list[int]:
     return [cfg.seed + group * _SEED_STRIDE + k for k in range(n)]
 
 
-def _make_env(env_kwargs: dict, scenario: str, cbf: CBFConfig | None = None, trace: bool = False) -> gym.Env:
+def make_scenario_env(
+    env_kwargs: dict, scenario: str, cbf: CBFConfig | None = None, trace: bool = False
+) -> gym.Env:
     return gym.make(
         ENV_ID,
         disable_env_checker=True,
@@ -124,7 +126,12 @@ def _rollouts(
     cfg: ExperimentsConfig, runner, env_kwargs, scenario, seeds, desc, surgeon="none", cbf=None, trace=False
 ) -> list[EpisodeLog]:
     return rollout_seeds(
-        lambda: _make_env(env_kwargs, scenario, cbf, trace), runner, seeds, cfg.batch_envs, surgeon, desc
+        lambda: make_scenario_env(env_kwargs, scenario, cbf, trace),
+        runner,
+        seeds,
+        cfg.batch_envs,
+        surgeon,
+        desc,
     )
 
 
@@ -312,19 +319,19 @@ def run_experiments(cfg: ExperimentsConfig) -> dict:
         )
         result["figures"][exp_id] = figure.name
 
-    (cfg.output_dir / TRACES_FILE).write_text(json.dumps(traces, default=_json_default))
+    (cfg.output_dir / TRACES_FILE).write_text(json.dumps(traces, default=json_default))
     result["traces"] = TRACES_FILE
     replay = run_cbf_replay(CBFReplayConfig(output_dir=cfg.output_dir, seed=cfg.seed))
     result["cbf"] = {"offline_replay": replay, "live": cbf_live(cfg, runner, env_kwargs)}
     result["figures"]["4"] = "cbf_replay.png"
     result["gate_enforced"] = enforced(cfg, runner, env_kwargs)
     result["seconds"] = round(time.perf_counter() - started, 1)
-    (cfg.output_dir / "metrics.json").write_text(json.dumps(result, indent=2, default=_json_default))
+    (cfg.output_dir / "metrics.json").write_text(json.dumps(result, indent=2, default=json_default))
     (cfg.output_dir / "report.md").write_text(render_report(result))
     return result
 
 
-def _json_default(value):
+def json_default(value):
     if isinstance(value, np.generic):
         return value.item()
     if isinstance(value, Path):

@@ -31,6 +31,14 @@ UNCERTAINTY_SCORES = ("max_abs_cov", "trace", "logdet")
 UNCERTAINTY_SPACES = ("normalized", "unnormalized")
 UNCERTAINTY_SOURCES = ("total", "epistemic", "aleatoric")
 UNCERTAINTY_STEPS = ("horizon", "action")
+# The config fields that choose how a prediction is scored, and their allowed values.
+SCORE_CHOICES = {
+    "uncertainty_score": UNCERTAINTY_SCORES,
+    "uncertainty_space": UNCERTAINTY_SPACES,
+    "uncertainty_source": UNCERTAINTY_SOURCES,
+    "uncertainty_steps": UNCERTAINTY_STEPS,
+}
+SCORE_CHOICE_FIELDS = tuple(SCORE_CHOICES)
 OPTIMIZER_NAMES = ("adam", "adamw")
 
 
@@ -169,13 +177,7 @@ class EnsembleDiffusionConfig(DiffusionConfig):
             raise ValueError(
                 f"`uncertainty_samples_per_member` must be >= 1. Got {self.uncertainty_samples_per_member}."
             )
-        for name, allowed in (
-            ("uncertainty_score", UNCERTAINTY_SCORES),
-            ("uncertainty_space", UNCERTAINTY_SPACES),
-            ("uncertainty_source", UNCERTAINTY_SOURCES),
-            ("uncertainty_steps", UNCERTAINTY_STEPS),
-            ("optimizer_name", OPTIMIZER_NAMES),
-        ):
+        for name, allowed in (*SCORE_CHOICES.items(), ("optimizer_name", OPTIMIZER_NAMES)):
             if getattr(self, name) not in allowed:
                 raise ValueError(f"`{name}` must be one of {list(allowed)}. Got {getattr(self, name)!r}.")
         if self.uncertainty_source == "aleatoric" and self.uncertainty_samples_per_member < 2:
@@ -217,6 +219,16 @@ class EnsembleDiffusionConfig(DiffusionConfig):
         kwargs = {f.name: copy.deepcopy(getattr(member, f.name)) for f in fields(DiffusionConfig) if f.init}
         kwargs.update(ensemble_kwargs)
         return cls(**kwargs)
+
+    def score_choices(self) -> dict[str, tuple[str, ...]]:
+        """Every distinct way this policy can score a prediction: config field -> the values it can take
+        here. With one sample per member only `total` is a source (`epistemic` equals it, and `aleatoric`
+        needs two samples). `EnsembleDiffusionPolicy.rescore` takes them.
+        """
+        choices = dict(SCORE_CHOICES)
+        if self.uncertainty_samples_per_member < 2:
+            choices["uncertainty_source"] = (self.uncertainty_source,)
+        return choices
 
     def score_settings(self) -> dict:
         """The settings besides the score's name and space that shape its distribution on a given policy.

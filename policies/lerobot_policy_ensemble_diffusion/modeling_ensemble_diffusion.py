@@ -45,8 +45,9 @@ from torch import Tensor, nn
 from lerobot_suture.safety.ood import OODCalibration, OODGate, load_calibration
 
 from .batched_members import FusedDiffusionEnsemble
-from .configuration_ensemble_diffusion import EnsembleDiffusionConfig
-from .ensemble_stats import EnsembleActionStats, compute_ensemble_stats, uncertainty_score
+from .configuration_ensemble_diffusion import SCORE_CHOICE_FIELDS, EnsembleDiffusionConfig
+from .ensemble_stats import EnsembleActionStats, compute_ensemble_stats
+from .ensemble_stats import uncertainty_score as uncertainty_score_of
 
 if TYPE_CHECKING:
     from lerobot.datasets import LeRobotDatasetMetadata
@@ -128,6 +129,48 @@ def action_affine_from_stats(
     denom = high - low
     denom = torch.where(denom == 0, torch.tensor(eps), denom)
     return denom / 2, low + denom / 2
+
+
+def score_ensemble_stats(
+    normalized: EnsembleActionStats,
+    unnormalized: EnsembleActionStats | None,
+    action_steps: slice,
+    uncertainty_score: str,
+    uncertainty_space: str,
+    uncertainty_source: str,
+    uncertainty_steps: str,
+    logdet_eps: float = 1e-6,
+) -> Tensor:
+    """(B,) the uncertainty score of one prediction's statistics, for one choice of score (the config
+    fields of the same names; see `EnsembleDiffusionConfig`).
+
+    Args:
+        normalized: the statistics in the normalized action space.
+        unnormalized: the same in dataset units; None when the policy holds no action statistics.
+        action_steps: the executed steps of the T predicted ones (used with `uncertainty_steps`="action").
+    """
+    if uncertainty_space == "normalized":
+        scored = normalized
+    elif unnormalized is not None:
+        scored = unnormalized
+    else:
+        raise ValueError(
+            "`uncertainty_space`='unnormalized' needs the action statistics, which this policy does not "
+            "hold: build it with `dataset_stats` (lerobot-train does) or load a trained checkpoint."
+        )
+    if uncertainty_steps == "action":
+        scored = scored.select_steps(action_steps)
+    if uncertainty_source == "aleatoric" and scored.aleatoric is None:
+        raise ValueError(
+            "`uncertainty_source`='aleatoric' needs `uncertainty_samples_per_member` >= 2 (the members' own "
+            "covariances need two samples each)."
+        )
+    covariances = {"total": scored.covariance, "epistemic": scored.epistemic, "aleatoric": scored.aleatoric}
+    if uncertainty_source not in covariances:
+        raise ValueError(
+            f"`uncertainty_source` must be one of {list(covariances)}. Got {uncertainty_source!r}."
+        )
+    return uncertainty_score_of(covariances[uncertainty_source], uncertainty_score, logdet_eps=logdet_eps)
 
 
 class EnsembleDiffusionPolicy(PreTrainedPolicy):
@@ -397,22 +440,14 @@ class EnsembleDiffusionPolicy(PreTrainedPolicy):
         unnormalized = None
         if self.has_action_stats:
             unnormalized = normalized.affine(self.action_unnormalize_scale, self.action_unnormalize_offset)
-        elif self.config.uncertainty_space == "unnormalized":
-            raise ValueError(
-                "`uncertainty_space`='unnormalized' needs the action statistics, which this policy does not "
-                "hold: build it with `dataset_stats` (lerobot-train does) or load a trained checkpoint."
-            )
-
         start = self.config.n_obs_steps - 1
         action_steps = slice(start, start + self.config.n_action_steps)
-        scored = normalized if self.config.uncertainty_space == "normalized" else unnormalized
-        if self.config.uncertainty_steps == "action":
-            scored = scored.select_steps(action_steps)
-        cov = {"total": scored.covariance, "epistemic": scored.epistemic, "aleatoric": scored.aleatoric}[
-            self.config.uncertainty_source
-        ]
-        score = uncertainty_score(
-            cov, self.config.uncertainty_score, logdet_eps=self.config.logdet_eps
+        score = score_ensemble_stats(
+            normalized,
+            unnormalized,
+            action_steps,
+            logdet_eps=self.config.logdet_eps,
+            **self._score_choice(),
         )  # (B,)
 
         prediction = EnsemblePrediction(
@@ -431,6 +466,29 @@ class EnsembleDiffusionPolicy(PreTrainedPolicy):
     def uncertainty(self) -> Tensor | None:
         """(B,) the last prediction's uncertainty score (sigma_hat by default); None before the first."""
         return None if self.last_prediction is None else self.last_prediction.score
+
+    def _score_choice(self) -> dict[str, str]:
+        return {name: getattr(self.config, name) for name in SCORE_CHOICE_FIELDS}
+
+    def rescore(self, prediction: EnsemblePrediction, **choice: str) -> Tensor:
+        """(B,) `prediction`'s uncertainty score under another choice of score: the same samples, scored
+        another way (what `lerobot-suture score-study` compares on validation episodes).
+
+        Args:
+            prediction: a prediction of this policy (e.g. `self.last_prediction`).
+            choice: any of the config fields `uncertainty_score`, `uncertainty_space`,
+                `uncertainty_source`, `uncertainty_steps`; those left out keep this policy's values.
+        """
+        unknown = sorted(set(choice) - set(SCORE_CHOICE_FIELDS))
+        if unknown:
+            raise ValueError(f"Unknown score settings {unknown}: choose among {list(SCORE_CHOICE_FIELDS)}.")
+        return score_ensemble_stats(
+            prediction.normalized,
+            prediction.unnormalized,
+            prediction.action_steps,
+            logdet_eps=self.config.logdet_eps,
+            **{**self._score_choice(), **choice},
+        )
 
     @torch.no_grad()
     def predict_action_chunk(self, batch: dict[str, Tensor], noise: Tensor | None = None) -> Tensor:

@@ -1,0 +1,330 @@
+"""``lerobot-suture score-study``: which uncertainty score separates the perturbations best, on validation seeds.
+
+The gate reads one number per prediction, and the ensemble's config chooses how it is computed from the
+members' samples: the score (``uncertainty_score``), the action space (``uncertainty_space``), the
+covariance (``uncertainty_source``) and the predicted steps (``uncertainty_steps``). This study rolls the
+policy out once, nominal and in each perturbation scenario, on seeds kept apart from the experiments'
+test seeds, and scores every prediction in every way the policy can (:meth:`rescore`, the same samples).
+Per choice it fits the per-episode threshold on the nominal runs (as ``calibrate`` does) and reports
+what ``experiments`` reports per scenario: episode AUROC, AUROC over the steps both episodes lasted,
+true-positive rate and detection delay at that threshold. It writes ``score_study.json``,
+``score_study.md`` (a table, best first) and ``score_study.png`` (AUROC per choice and scenario).
+
+Choose on these numbers, then set the choice on the policy (``--policy.uncertainty_steps=action``, or
+in its ``config.json``), calibrate, and run the experiments on the test seeds. The seeds here
+(1,500,000...) are disjoint from the recording (0...), calibration (1,000,000...) and test
+(2,000,000...) seeds, so choosing here does not tune on the test seeds.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import logging
+import math
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import draccus
+import numpy as np
+
+from lerobot_suture.calibrate import SCORE_CHOICE_FIELDS, PolicyPathConfig
+from lerobot_suture.experiments.runner import EXPERIMENTS, json_default, make_scenario_env, ood_metrics
+from lerobot_suture.rollout import EpisodeLog, rollout_seeds
+from lerobot_suture.safety.ood import OODGate, fit_calibration, min_calibration_episodes
+
+logger = logging.getLogger(__name__)
+
+_SEED_STRIDE = 10_000
+END_STEPS = 8  # "end of the task": the last control steps of a successful nominal episode
+
+
+@dataclass
+class ScoreStudyConfig:
+    """Args:
+    policy: ``--policy.path=DIR``, a trained ensemble (no calibration needed).
+    output_dir: where ``score_study.json``, ``score_study.md`` and ``score_study.png`` go.
+    seed: base of every episode seed (validation seeds, disjoint from recording, calibration and test).
+    nominal_episodes: nominal runs the per-episode threshold of each choice is fitted on.
+    runs_per_scenario: runs of each perturbation scenario (experiments 1, 2, 3.1, 3.2).
+    alpha: per-episode false-alarm rate the thresholds are fitted for.
+    batch_envs: envs run in lockstep with one batched policy call per step.
+    device: torch device of the policy.
+    """
+
+    policy: PolicyPathConfig = field(default_factory=PolicyPathConfig)
+    output_dir: Path = Path("outputs/score_study")
+    seed: int = 1_500_000
+    nominal_episodes: int = 40
+    runs_per_scenario: int = 12
+    alpha: float = 0.05
+    batch_envs: int = 8
+    device: str = "cpu"
+
+    def __post_init__(self):
+        if self.policy.path is None:
+            raise ValueError("`--policy.path` is required: a trained ensemble's pretrained_model directory.")
+        if self.runs_per_scenario < 1 or self.batch_envs < 1:
+            raise ValueError(
+                f"`runs_per_scenario` and `batch_envs` must be >= 1. Got {self.runs_per_scenario}, "
+                f"{self.batch_envs}."
+            )
+        needed = min_calibration_episodes(self.alpha)
+        if self.nominal_episodes < needed:
+            raise ValueError(
+                f"A per-episode threshold at alpha={self.alpha} needs at least {needed} nominal episodes. "
+                f"Got `nominal_episodes`={self.nominal_episodes}; raise it or raise `--alpha`."
+            )
+
+
+def score_choices(policy) -> list[dict[str, str]]:
+    """Every choice of score the policy can make, the policy's own first."""
+    choices = policy.config.score_choices()
+    own = {name: getattr(policy.config, name) for name in choices}
+    grid = [dict(zip(choices, values, strict=True)) for values in itertools.product(*choices.values())]
+    return [own] + [c for c in grid if c != own]
+
+
+def choice_label(choice: dict[str, str]) -> str:
+    """A short name of a score choice, e.g. ``max_abs_cov/normalized/total/horizon``."""
+    return "/".join(choice[k] for k in SCORE_CHOICE_FIELDS)
+
+
+class RescoringRunner:
+    """A :class:`~lerobot_suture.policy_runner.PolicyRunner` that also scores each new prediction in
+    every way of ``choices``: ``episodes[e][c]`` is, per control step of the e-th episode of the current
+    batch, the latest prediction's score under choice c (as the gate holds its score between predictions).
+    """
+
+    def __init__(self, runner, choices: list[dict[str, str]]):
+        self.runner, self.choices = runner, choices
+        self.policy = runner.policy
+        self._calls: list[np.ndarray] = []  # per act_batch call: (B, C)
+        self.batches: list[np.ndarray] = []  # per rollout batch: (calls, B, C)
+
+    def reset(self) -> None:
+        self._close_batch()
+        self.runner.reset()
+
+    def act_batch(self, observations: list[dict]) -> np.ndarray:
+        actions = self.runner.act_batch(observations)
+        if self.policy.ood_status(0)["new_prediction"]:
+            prediction = self.policy.last_prediction
+            scores = [self.policy.rescore(prediction, **c).float().cpu().numpy() for c in self.choices]
+            self._calls.append(np.stack(scores, axis=1))
+        else:
+            self._calls.append(self._calls[-1])
+        return actions
+
+    def _close_batch(self) -> None:
+        if self._calls:
+            self.batches.append(np.stack(self._calls))
+        self._calls = []
+
+    def take(self, logs: list[EpisodeLog]) -> list[np.ndarray]:
+        """Per episode of ``logs`` (the rollouts since the last ``take``, in order): (steps, C) scores."""
+        self._close_batch()
+        out, batches = [], iter(self.batches)
+        batch, row = None, 0
+        for log in logs:
+            if batch is None or row == batch.shape[1]:
+                batch, row = next(batches), 0
+            out.append(batch[: len(log.steps), row])
+            row += 1
+        self.batches = []
+        return out
+
+
+def with_scores(log: EpisodeLog, scores: np.ndarray, gate: OODGate) -> EpisodeLog:
+    """``log`` with its scores replaced by ``scores`` (one per step) and its alarms replayed through
+    ``gate`` (updated at each new prediction, as the policy's own gate is)."""
+    gate.reset()
+    steps = []
+    for step, score in zip(log.steps, scores, strict=True):
+        if step.new_prediction:
+            gate.update(float(score))
+        steps.append(replace(step, score=float(score), ood=gate.decision, threshold=gate.threshold))
+    return replace(log, steps=steps)
+
+
+def end_share(nominal: list[EpisodeLog], end_steps: int = END_STEPS) -> float:
+    """Share of the successful nominal episodes whose largest score falls in their last ``end_steps``
+    steps: how much the end of the task, rather than anything unusual, sets the threshold."""
+    ends = [int(np.argmax(log.scores)) >= len(log.steps) - end_steps for log in nominal if log.success]
+    return float(np.mean(ends)) if ends else math.nan
+
+
+def evaluate_choice(
+    nominal: list[EpisodeLog],
+    nominal_scores: list[np.ndarray],
+    scenarios: dict[str, tuple[list[EpisodeLog], list[np.ndarray]]],
+    alpha: float,
+    model: str = "lognormal",
+) -> dict:
+    """One score choice's numbers: its per-episode threshold fitted on ``nominal`` and, per scenario,
+    the experiments' O.O.D. metrics (:func:`~lerobot_suture.experiments.runner.ood_metrics`).
+
+    ``model``: the calibration's I.D. model, ``normal`` for scores that can be negative (``logdet``).
+    """
+    predictions = [
+        (score, episode)
+        for episode, (log, scores) in enumerate(zip(nominal, nominal_scores, strict=True))
+        for step, score in zip(log.steps, scores, strict=True)
+        if step.new_prediction
+    ]
+    values, ids = (np.asarray(x) for x in zip(*predictions, strict=True))
+    calibration = fit_calibration(values, model=model, alpha=alpha, mode="per_episode", episode_ids=ids)
+    gate = OODGate(calibration)
+    nominal_v = [with_scores(log, s, gate) for log, s in zip(nominal, nominal_scores, strict=True)]
+    result = {
+        "threshold": calibration.threshold,
+        "false_alarm_per_episode_in_sample": float(
+            np.mean([any(s.ood for s in log.steps) for log in nominal_v])
+        ),
+        "nominal_max_in_last_steps": end_share(nominal_v),
+        "scenarios": {},
+    }
+    for scenario, (logs, scores) in scenarios.items():
+        runs = [with_scores(log, s, gate) for log, s in zip(logs, scores, strict=True)]
+        result["scenarios"][scenario] = ood_metrics(nominal_v, runs)
+    aurocs = [m["auroc"] for m in result["scenarios"].values()]
+    result["mean_auroc"] = float(np.nanmean(aurocs)) if aurocs else math.nan
+    result["min_auroc"] = float(np.nanmin(aurocs)) if aurocs else math.nan
+    return result
+
+
+def run_score_study(cfg: ScoreStudyConfig) -> dict:
+    from lerobot_suture.policy_runner import PolicyRunner, env_kwargs_for_policy
+
+    cfg.output_dir.mkdir(parents=True, exist_ok=True)
+    base = PolicyRunner.from_pretrained(cfg.policy.path, cfg.device)
+    if not hasattr(base.policy, "rescore"):
+        raise ValueError(
+            f"The policy at {cfg.policy.path} is a {base.policy.config.type!r} policy; the score study needs an "
+            "ensemble_diffusion policy, which can score a prediction in several ways."
+        )
+    base.policy.config.ood.enforce = False  # report, never stop a rollout
+    choices = score_choices(base.policy)
+    runner = RescoringRunner(base, choices)
+    env_kwargs = env_kwargs_for_policy(base.policy.config)
+
+    def rollouts(group: int, scenario: str, n: int, desc: str) -> tuple[list[EpisodeLog], list[np.ndarray]]:
+        seeds = [cfg.seed + group * _SEED_STRIDE + k for k in range(n)]
+        logs = rollout_seeds(
+            lambda: make_scenario_env(env_kwargs, scenario), runner, seeds, cfg.batch_envs, desc=desc
+        )
+        return logs, runner.take(logs)
+
+    nominal, nominal_scores = rollouts(0, "nominal", cfg.nominal_episodes, "nominal (validation seeds)")
+    scenarios = {
+        scenario: rollouts(group, scenario, cfg.runs_per_scenario, title)
+        for group, (_, scenario, title) in enumerate(EXPERIMENTS, start=2)
+    }
+    per_choice = []
+    for c, choice in enumerate(choices):
+        numbers = evaluate_choice(
+            nominal,
+            [s[:, c] for s in nominal_scores],
+            {name: (logs, [s[:, c] for s in scores]) for name, (logs, scores) in scenarios.items()},
+            cfg.alpha,
+            model="normal" if choice["uncertainty_score"] == "logdet" else "lognormal",
+        )
+        per_choice.append({"choice": choice, "label": choice_label(choice), "policy_own": c == 0, **numbers})
+    result = {
+        "policy_path": str(cfg.policy.path),
+        "seed": cfg.seed,
+        "alpha": cfg.alpha,
+        "nominal_episodes": len(nominal),
+        "nominal_success_rate": float(np.mean([log.success for log in nominal])),
+        "runs_per_scenario": cfg.runs_per_scenario,
+        "choices": sorted(per_choice, key=lambda r: (-_nan_low(r["mean_auroc"]), -_nan_low(r["min_auroc"]))),
+    }
+    (cfg.output_dir / "score_study.json").write_text(json.dumps(result, indent=2, default=json_default))
+    (cfg.output_dir / "score_study.md").write_text(render_table(result))
+    plot_score_study(result, cfg.output_dir / "score_study.png")
+    return result
+
+
+def _nan_low(x: float) -> float:
+    return -math.inf if x is None or math.isnan(x) else x
+
+
+def _fmt(x) -> str:
+    return "n/a" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.3f}"
+
+
+def render_table(result: dict) -> str:
+    """``score_study.md``: one row per score choice, best mean episode AUROC first."""
+    scenarios = [s for _, s, _ in EXPERIMENTS]
+    head = (
+        ["score / space / source / steps", "mean AUROC"]
+        + [f"AUROC {s} (common steps)" for s in scenarios]
+        + ["needle-drop delay", "nominal max in last 8 steps"]
+    )
+    lines = [
+        f"# Score study: {result['policy_path']}",
+        "",
+        f"Validation seeds from {result['seed']}: {result['nominal_episodes']} nominal episodes (policy "
+        f"success {result['nominal_success_rate']:.0%}) and {result['runs_per_scenario']} runs per scenario. "
+        f"Each choice's per-episode threshold is fitted on the nominal episodes at alpha = {result['alpha']}. "
+        "The policy's own choice is in bold.",
+        "",
+        "| " + " | ".join(head) + " |",
+        "|" + "---|" * len(head),
+    ]
+    for row in result["choices"]:
+        label = f"**{row['label']}**" if row["policy_own"] else row["label"]
+        cells = [label, _fmt(row["mean_auroc"])]
+        for s in scenarios:
+            m = row["scenarios"][s]
+            cells.append(f"{_fmt(m['auroc'])} ({_fmt(m['auroc_common_steps'])})")
+        delay = row["scenarios"]["needle_drop"]["detection_delay_steps"]
+        cells.append(f"{delay['median']} ({delay['n']} detected)" if delay["n"] else "none detected")
+        cells.append(_fmt(row["nominal_max_in_last_steps"]))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def plot_score_study(result: dict, path: Path) -> Path:
+    """AUROC per score choice (rows) and scenario (columns) as two heatmaps, per episode and over the
+    steps both episodes lasted; the policy's own choice is marked with an asterisk."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenarios = [s for _, s, _ in EXPERIMENTS]
+    rows = result["choices"]
+    fig, axes = plt.subplots(1, 2, figsize=(11, 0.28 * len(rows) + 1.8), sharey=True)
+    for ax, key, title in (
+        (axes[0], "auroc", "episode AUROC"),
+        (axes[1], "auroc_common_steps", "AUROC over the steps both episodes lasted"),
+    ):
+        values = np.array([[r["scenarios"][s][key] for s in scenarios] for r in rows], dtype=float)
+        image = ax.imshow(values, cmap="RdYlGn", vmin=0.0, vmax=1.0, aspect="auto")
+        ax.set_xticks(range(len(scenarios)), [s.replace("_", "\n") for s in scenarios], fontsize=8)
+        for i, j in itertools.product(range(values.shape[0]), range(values.shape[1])):
+            if not math.isnan(values[i, j]):
+                ax.text(j, i, f"{values[i, j]:.2f}", ha="center", va="center", fontsize=6)
+        ax.set_title(title, fontsize=9)
+    axes[0].set_yticks(
+        range(len(rows)), [("* " if r["policy_own"] else "") + r["label"] for r in rows], fontsize=7
+    )
+    fig.colorbar(image, ax=axes, label="AUROC against nominal episodes", shrink=0.8)
+    fig.suptitle(
+        "Score choices on validation seeds (* the policy's own), best mean episode AUROC first", fontsize=9
+    )
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def main(argv: list[str] | None = None) -> None:
+    cfg = draccus.parse(config_class=ScoreStudyConfig, args=argv)
+    result = run_score_study(cfg)
+    best = result["choices"][0]
+    own = next(r for r in result["choices"] if r["policy_own"])
+    print(
+        f"Best mean episode AUROC: {best['label']} ({best['mean_auroc']:.3f}); the policy's own "
+        f"{own['label']}: {own['mean_auroc']:.3f}. Table: {cfg.output_dir / 'score_study.md'}"
+    )

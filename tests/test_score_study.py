@@ -1,0 +1,125 @@
+"""`lerobot-suture score-study`: every score choice from the same samples, its gate replayed, its metrics."""
+
+import json
+import math
+import shutil
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import lerobot_suture
+from lerobot_suture.calibrate import PolicyPathConfig
+from lerobot_suture.cli import main as cli_main
+from lerobot_suture.experiments.score_study import (
+    RescoringRunner,
+    ScoreStudyConfig,
+    choice_label,
+    end_share,
+    score_choices,
+    with_scores,
+)
+from lerobot_suture.policy_runner import PolicyRunner, env_kwargs_for_policy
+from lerobot_suture.rollout import EpisodeLog, StepLog, rollout_seeds
+from lerobot_suture.safety.ood import OODGate, fit_calibration
+
+
+def _log(scores, new_prediction, success=True, perturbed_from=None) -> EpisodeLog:
+    steps = [
+        StepLog(
+            s,
+            math.nan,
+            False,
+            False,
+            new,
+            "policy",
+            perturbed_from is not None and k >= perturbed_from,
+            False,
+        )
+        for k, (s, new) in enumerate(zip(scores, new_prediction, strict=True))
+    ]
+    return EpisodeLog(seed=0, scenario="nominal", success=success, steps=steps)
+
+
+def test_replayed_gate_decides_at_new_predictions_only_and_latches():
+    calibration = fit_calibration(
+        np.abs(np.random.default_rng(0).lognormal(0, 0.1, 40)),
+        model="lognormal",
+        mode="per_episode",
+        episode_ids=np.repeat(np.arange(20), 2),
+    )
+    t = calibration.threshold
+    log = _log([0.0] * 6, [True, False, True, False, True, False])
+    # Over the threshold on a step without a new prediction: the gate has not seen it yet.
+    replayed = with_scores(
+        log, np.array([0.5 * t, 2 * t, 2 * t, 0.1 * t, 0.1 * t, 0.1 * t]), OODGate(calibration)
+    )
+    assert [s.ood for s in replayed.steps] == [False, False, True, True, True, True]
+    assert replayed.scores.tolist()[1] == 2 * t
+    assert [s.ood for s in log.steps] == [False] * 6  # the original log is left alone
+
+
+def test_end_share_counts_successful_episodes_peaking_in_their_last_steps():
+    late = _log(list(range(20)), [True] * 20)  # max at the last step
+    early = _log([5.0] + [0.0] * 19, [True] * 20)
+    failed = _log(list(range(20)), [True] * 20, success=False)
+    assert end_share([late, early, failed], end_steps=8) == 0.5
+
+
+def test_score_study_needs_enough_nominal_episodes_for_its_threshold(tiny_policy_dir):
+    with pytest.raises(ValueError, match="at least 19 nominal episodes"):
+        ScoreStudyConfig(policy=PolicyPathConfig(path=tiny_policy_dir), nominal_episodes=10)
+
+
+def test_rescoring_with_the_policy_own_choice_gives_its_logged_score(tiny_policy_dir):
+    runner = PolicyRunner.from_pretrained(tiny_policy_dir)
+    assert len(score_choices(runner.policy)) == 3 * 2 * 2  # one sample per member: one source
+    runner.policy.config.uncertainty_samples_per_member = 2
+    choices = score_choices(runner.policy)
+    assert choices[0] == {name: getattr(runner.policy.config, name) for name in choices[0]}
+    assert len({choice_label(c) for c in choices}) == len(choices) == 3 * 2 * 3 * 2
+    rescoring = RescoringRunner(runner, choices)
+
+    def make_env():
+        kwargs = env_kwargs_for_policy(runner.policy.config)
+        return gym.make(lerobot_suture.ENV_ID, disable_env_checker=True, max_episode_steps=9, **kwargs)
+
+    logs = rollout_seeds(make_env, rescoring, [0, 1, 2], batch_envs=2)
+    traces = rescoring.take(logs)
+    assert [t.shape for t in traces] == [(9, len(choices))] * 3
+    for log, trace in zip(logs, traces, strict=True):
+        np.testing.assert_allclose(trace[:, 0], log.scores, rtol=1e-6)
+        assert np.all(np.isfinite(trace)) and len(np.unique(trace[0])) > len(choices) // 2
+
+
+@pytest.mark.slow
+def test_score_study_writes_table_figure_and_numbers(tiny_policy_dir, tmp_path):
+    policy = tmp_path / "policy"
+    shutil.copytree(tiny_policy_dir, policy)  # no calibration: the study needs none
+    out = tmp_path / "study"
+    cli_main(
+        [
+            "score-study",
+            f"--policy.path={policy}",
+            f"--output_dir={out}",
+            "--nominal_episodes=2",
+            "--runs_per_scenario=1",
+            "--alpha=0.4",
+        ]
+    )
+    result = json.loads((out / "score_study.json").read_text())
+    assert len(result["choices"]) == 12  # the tiny policy draws one sample per member
+    assert sum(row["policy_own"] for row in result["choices"]) == 1
+    row = result["choices"][0]
+    assert set(row["scenarios"]) == {
+        "needle_drop",
+        "camera_moved",
+        "phantom_servo",
+        "phantom_moved_after_insertion",
+    }
+    assert all(math.isfinite(r["threshold"]) for r in result["choices"])
+    own = next(r for r in result["choices"] if r["policy_own"])
+    assert own["label"] == "max_abs_cov/normalized/total/horizon" and own["threshold"] > 0
+    table = (out / "score_study.md").read_text()
+    assert table.count("\n| ") == 1 + 12 and "**" in table
+    assert (out / "score_study.png").stat().st_size > 10_000
