@@ -187,9 +187,9 @@ def evaluate_choice(
     for scenario, (logs, scores) in scenarios.items():
         runs = [with_scores(log, s, gate) for log, s in zip(logs, scores, strict=True)]
         result["scenarios"][scenario] = ood_metrics(nominal_v, runs)
-    aurocs = [m["auroc"] for m in result["scenarios"].values()]
-    result["mean_auroc"] = float(np.nanmean(aurocs)) if aurocs else math.nan
-    result["min_auroc"] = float(np.nanmin(aurocs)) if aurocs else math.nan
+    result["mean_auroc"] = _mean([m["auroc"] for m in result["scenarios"].values()])
+    result["mean_auroc_common_steps"] = _mean([m["auroc_common_steps"] for m in result["scenarios"].values()])
+    result["rank_score"] = _mean([result["mean_auroc"], result["mean_auroc_common_steps"]])
     return result
 
 
@@ -237,12 +237,20 @@ def run_score_study(cfg: ScoreStudyConfig) -> dict:
         "nominal_episodes": len(nominal),
         "nominal_success_rate": float(np.mean([log.success for log in nominal])),
         "runs_per_scenario": cfg.runs_per_scenario,
-        "choices": sorted(per_choice, key=lambda r: (-_nan_low(r["mean_auroc"]), -_nan_low(r["min_auroc"]))),
+        # Episode AUROC alone rewards a score that grows once a failed run goes on past where nominal
+        # episodes end; the AUROC over common steps asks what the score says while both are under way.
+        "ranked_by": "mean of the mean episode AUROC and the mean AUROC over common steps",
+        "choices": sorted(per_choice, key=lambda r: -_nan_low(r["rank_score"])),
     }
     (cfg.output_dir / "score_study.json").write_text(json.dumps(result, indent=2, default=json_default))
     (cfg.output_dir / "score_study.md").write_text(render_table(result))
     plot_score_study(result, cfg.output_dir / "score_study.png")
     return result
+
+
+def _mean(values: list[float]) -> float:
+    finite = [v for v in values if v is not None and not math.isnan(v)]
+    return float(np.mean(finite)) if finite else math.nan
 
 
 def _nan_low(x: float) -> float:
@@ -254,10 +262,10 @@ def _fmt(x) -> str:
 
 
 def render_table(result: dict) -> str:
-    """``score_study.md``: one row per score choice, best mean episode AUROC first."""
+    """``score_study.md``: one row per score choice, best rank score first."""
     scenarios = [s for _, s, _ in EXPERIMENTS]
     head = (
-        ["score / space / source / steps", "mean AUROC"]
+        ["score / space / source / steps", "rank score", "mean AUROC (common steps)"]
         + [f"AUROC {s} (common steps)" for s in scenarios]
         + ["needle-drop delay", "nominal max in last 8 steps"]
     )
@@ -267,14 +275,20 @@ def render_table(result: dict) -> str:
         f"Validation seeds from {result['seed']}: {result['nominal_episodes']} nominal episodes (policy "
         f"success {result['nominal_success_rate']:.0%}) and {result['runs_per_scenario']} runs per scenario. "
         f"Each choice's per-episode threshold is fitted on the nominal episodes at alpha = {result['alpha']}. "
-        "The policy's own choice is in bold.",
+        "Rank score: the mean of the mean episode AUROC and the mean AUROC over the steps both episodes "
+        "lasted (episode AUROC alone rewards a score that grows once a failed run goes on past where "
+        "nominal episodes end). The policy's own choice is in bold.",
         "",
         "| " + " | ".join(head) + " |",
         "|" + "---|" * len(head),
     ]
     for row in result["choices"]:
         label = f"**{row['label']}**" if row["policy_own"] else row["label"]
-        cells = [label, _fmt(row["mean_auroc"])]
+        cells = [
+            label,
+            _fmt(row["rank_score"]),
+            f"{_fmt(row['mean_auroc'])} ({_fmt(row['mean_auroc_common_steps'])})",
+        ]
         for s in scenarios:
             m = row["scenarios"][s]
             cells.append(f"{_fmt(m['auroc'])} ({_fmt(m['auroc_common_steps'])})")
@@ -311,9 +325,7 @@ def plot_score_study(result: dict, path: Path) -> Path:
         range(len(rows)), [("* " if r["policy_own"] else "") + r["label"] for r in rows], fontsize=7
     )
     fig.colorbar(image, ax=axes, label="AUROC against nominal episodes", shrink=0.8)
-    fig.suptitle(
-        "Score choices on validation seeds (* the policy's own), best mean episode AUROC first", fontsize=9
-    )
+    fig.suptitle("Score choices on validation seeds (* the policy's own), best rank score first", fontsize=9)
     fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return path
@@ -325,6 +337,7 @@ def main(argv: list[str] | None = None) -> None:
     best = result["choices"][0]
     own = next(r for r in result["choices"] if r["policy_own"])
     print(
-        f"Best mean episode AUROC: {best['label']} ({best['mean_auroc']:.3f}); the policy's own "
-        f"{own['label']}: {own['mean_auroc']:.3f}. Table: {cfg.output_dir / 'score_study.md'}"
+        f"Best: {best['label']} (rank score {best['rank_score']:.3f}: mean AUROC {best['mean_auroc']:.3f}, "
+        f"{best['mean_auroc_common_steps']:.3f} over common steps); the policy's own {own['label']}: "
+        f"{own['rank_score']:.3f}. Table: {cfg.output_dir / 'score_study.md'}"
     )
