@@ -9,6 +9,7 @@ directory, where ``from_pretrained`` finds it.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 from dataclasses import asdict, dataclass, field
@@ -17,7 +18,9 @@ from pathlib import Path
 import draccus
 import numpy as np
 
+from lerobot_suture.datasets.metadata import write_json_atomic
 from lerobot_suture.safety.ood import (
+    default_model,
     false_alarm_rates,
     fit_calibration,
     min_calibration_episodes,
@@ -47,7 +50,8 @@ class CalibrateConfig:
         rate on new episodes scatters widely around alpha (11% on the bf16 reference's test seeds); 100
         pin it to about +-2%. Validation seeds come first, then fresh ones.
     holdout_episodes: further nominal episodes on which the false-alarm rate is measured.
-    model: ``normal`` (the paper's) or ``lognormal`` (the score is positive and skewed).
+    model: ``normal`` (the paper's) or ``lognormal`` (the score is positive and skewed). Unset:
+        ``lognormal``, or ``normal`` for the ``logdet`` score, which can be negative.
     mode: ``per_prediction`` (the paper's test on every prediction) or ``per_episode`` (a threshold on
         the running maximum holding the per-episode false-alarm rate near alpha).
     alpha: significance of the one-sided likelihood-ratio test.
@@ -63,7 +67,7 @@ class CalibrateConfig:
     dataset_root: Path | None = None
     calibration_episodes: int = 100
     holdout_episodes: int = 20
-    model: str = "lognormal"
+    model: str | None = None
     mode: str = "per_episode"
     alpha: float = 0.05
     h: float = 1.0
@@ -99,24 +103,22 @@ class CalibrateConfig:
 
 
 def apply_score_choice(config, choice: dict[str, str]) -> None:
-    """Set a score choice on a loaded ensemble config, refusing values this policy cannot use."""
+    """Set a score choice on a loaded ensemble config; the config's own validation judges it."""
     if not choice:
         return
     if not hasattr(config, "score_choices"):
         raise ValueError(f"A {config.type!r} policy has no score settings; drop {sorted(choice)}.")
-    allowed = config.score_choices()
+    dataclasses.replace(config, **choice)  # raises, naming the field, for a value the config refuses
     for name, value in choice.items():
-        if value not in allowed[name]:
-            raise ValueError(f"`{name}` must be one of {list(allowed[name])} for this policy. Got {value!r}.")
         setattr(config, name, value)
 
 
 def write_score_choice(policy_dir: Path, choice: dict[str, str]) -> None:
-    """Record a score choice in the policy's ``config.json`` (only those fields change)."""
+    """Record a score choice in the policy's ``config.json`` (only those fields change, atomically)."""
+    if not choice:
+        return
     path = Path(policy_dir) / "config.json"
-    config = json.loads(path.read_text())
-    config.update(choice)
-    path.write_text(json.dumps(config, indent=4))
+    write_json_atomic(path, {**json.loads(path.read_text()), **choice})
 
 
 def calibration_seeds(cfg: CalibrateConfig) -> list[int]:
@@ -171,7 +173,7 @@ def run_calibration(cfg: CalibrateConfig) -> dict:
     )
     calibration = fit_calibration(
         scores,
-        model=cfg.model,
+        model=cfg.model or default_model(config.uncertainty_score),
         h=cfg.h,
         alpha=cfg.alpha,
         mode=cfg.mode,
@@ -180,9 +182,8 @@ def run_calibration(cfg: CalibrateConfig) -> dict:
         space=config.uncertainty_space,
         score_settings=config.score_settings(),
     )
-    # The choice goes into config.json only with a calibration fitted for it.
-    write_score_choice(cfg.policy.path, choice)
     path = save_calibration(calibration, cfg.policy.path, filename=config.ood.calibration_file)
+    write_score_choice(cfg.policy.path, choice)  # only now that a calibration fitted for it is there
     report = {
         "calibration_file": str(path),
         "score_choice_written": choice,

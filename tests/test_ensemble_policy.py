@@ -226,6 +226,32 @@ def test_score_options():
     torch.testing.assert_close(pred.score, pred.normalized.aleatoric.abs().amax(dim=(-3, -2, -1)))
 
 
+def test_rescore_equals_the_policy_configured_for_that_choice(policy):
+    obs = random_observation(policy.config, batch_size=2)
+    noise = torch.randn(2, 3, 2, policy.config.horizon, 10)  # (B, N, K, T, A)
+    pred = policy.predict_action_distribution(obs, samples_per_member=2, noise=noise)
+    torch.testing.assert_close(policy.rescore(pred), pred.score, rtol=0, atol=0)
+    choices = [
+        {"uncertainty_score": "trace", "uncertainty_steps": "action"},
+        {"uncertainty_score": "logdet", "uncertainty_space": "unnormalized"},
+        {"uncertainty_source": "aleatoric"},
+        {"uncertainty_source": "epistemic", "uncertainty_steps": "action"},
+    ]
+    for choice in choices:
+        configured = copy.deepcopy(policy)
+        for name, value in choice.items():
+            setattr(configured.config, name, value)
+        expected = configured.predict_action_distribution(obs, samples_per_member=2, noise=noise).score
+        torch.testing.assert_close(policy.rescore(pred, **choice), expected, rtol=1e-6, atol=0)
+    with pytest.raises(ValueError, match="`uncertainty_steps` must be one of"):
+        policy.rescore(pred, uncertainty_steps="executed")
+    with pytest.raises(ValueError, match="Unknown score settings \\['uncertainty_scale'\\]"):
+        policy.rescore(pred, uncertainty_scale="max")
+    k1 = policy.predict_action_distribution(obs, samples_per_member=1)
+    with pytest.raises(ValueError, match="aleatoric.*two samples"):
+        policy.rescore(k1, uncertainty_source="aleatoric")
+
+
 def test_select_action_queue_semantics_and_no_mutation(policy):
     policy.reset()
     chunks = []

@@ -118,6 +118,7 @@ def test_enforcing_without_calibration_fails_at_load_with_the_fix(tiny_policy_di
 def test_calibrate_command_writes_a_calibration_the_policy_loads(tiny_policy_dir, tmp_path, capsys):
     directory = tmp_path / "policy"
     shutil.copytree(tiny_policy_dir, directory)
+    config_json = (directory / "config.json").read_bytes()
     cli_main(
         [
             "calibrate",
@@ -136,13 +137,16 @@ def test_calibrate_command_writes_a_calibration_the_policy_loads(tiny_policy_dir
     runner = PolicyRunner.from_pretrained(directory)
     assert runner.policy.ood_calibration == calibration
     assert calibration.score_settings == runner.policy.config.score_settings()
+    assert (directory / "config.json").read_bytes() == config_json  # no score flags: the config is kept
 
 
 def test_calibrate_with_a_score_choice_writes_it_beside_its_calibration(tiny_policy_dir, tmp_path):
     directory = tmp_path / "policy"
     shutil.copytree(tiny_policy_dir, directory)
     args = ["calibrate", f"--policy.path={directory}", "--calibration_episodes=2", "--holdout_episodes=0"]
-    with pytest.raises(ValueError, match="`uncertainty_source` must be one of \\['total'\\]"):
+    with pytest.raises(
+        ValueError, match="`uncertainty_source`=.aleatoric. needs `uncertainty_samples_per_member` >= 2"
+    ):
         cli_main([*args, "--uncertainty_source=aleatoric", "--mode=per_prediction"])  # one sample per member
     assert json.loads((directory / "config.json").read_text())["uncertainty_source"] == "total"
     cli_main([*args, "--uncertainty_score=trace", "--uncertainty_steps=action", "--mode=per_prediction"])

@@ -7,16 +7,17 @@ import shutil
 import gymnasium as gym
 import numpy as np
 import pytest
+import torch
 
 import lerobot_suture
-from lerobot_suture.calibrate import PolicyPathConfig
+from lerobot_suture.calibrate import SCORE_CHOICE_FIELDS, PolicyPathConfig
 from lerobot_suture.cli import main as cli_main
 from lerobot_suture.experiments.score_study import (
     RescoringRunner,
     ScoreStudyConfig,
+    choice_grid,
     choice_label,
     end_share,
-    score_choices,
     with_scores,
 )
 from lerobot_suture.policy_runner import PolicyRunner, env_kwargs_for_policy
@@ -66,6 +67,62 @@ def test_end_share_counts_successful_episodes_peaking_in_their_last_steps():
     assert end_share([late, early, failed], end_steps=8) == 0.5
 
 
+class _StubPolicy:
+    """Predicts every 2nd call; the prediction is the call index, its score under choice c is c + index."""
+
+    def __init__(self):
+        self.calls, self.last_prediction = 0, None
+        self.config = type("Config", (), {"ood": type("OOD", (), {"enforce": False})()})()
+
+    def ood_status(self, index):
+        return {"new_prediction": self.calls % 2 == 1}
+
+    def rescore(self, prediction, offset):
+        return torch.tensor([offset + prediction, 100.0 + offset + prediction])  # two envs
+
+
+class _StubRunner:
+    def __init__(self):
+        self.policy = _StubPolicy()
+
+    def reset(self):
+        self.policy.calls = 0
+
+    def act_batch(self, observations):
+        if self.policy.calls % 2 == 0:
+            self.policy.last_prediction = self.policy.calls
+        self.policy.calls += 1
+        return np.zeros((len(observations), 10))
+
+
+def test_rescoring_runner_hands_each_episode_its_rows_held_between_predictions():
+    runner = RescoringRunner(_StubRunner(), [{"offset": 0.0}, {"offset": 0.5}])
+    for calls in (5, 3):  # two rollout batches: 5 then 3 control steps
+        runner.reset()
+        for _ in range(calls):
+            runner.act_batch([{}, {}])
+    logs = [_log([0.0] * n, [True] * n) for n in (5, 2, 3, 1)]  # env 1 of batch 1 ended after 2 steps
+    traces = runner.take(logs)
+    np.testing.assert_array_equal(traces[0][:, 0], [0, 0, 2, 2, 4])  # a prediction every 2nd call, held
+    np.testing.assert_array_equal(traces[1][:, 1], [100.5, 100.5])
+    np.testing.assert_array_equal(traces[2][:, 0], [0, 0, 2])
+    assert traces[3].shape == (1, 2)
+    runner.reset()
+    runner.act_batch([{}, {}])
+    with pytest.raises(ValueError, match="3 episodes were logged but 2 were scored"):
+        runner.take(logs[:3])
+    runner.reset()
+    runner.act_batch([{}, {}])
+    with pytest.raises(ValueError, match="has 5 steps but 1 scored calls"):
+        runner.take(logs[:2])
+
+
+def test_the_calibrate_flags_are_the_policy_score_choices():
+    from lerobot_policy_ensemble_diffusion.configuration_ensemble_diffusion import SCORE_CHOICES
+
+    assert tuple(SCORE_CHOICES) == SCORE_CHOICE_FIELDS
+
+
 def test_score_study_needs_enough_nominal_episodes_for_its_threshold(tiny_policy_dir):
     with pytest.raises(ValueError, match="at least 19 nominal episodes"):
         ScoreStudyConfig(policy=PolicyPathConfig(path=tiny_policy_dir), nominal_episodes=10)
@@ -73,10 +130,10 @@ def test_score_study_needs_enough_nominal_episodes_for_its_threshold(tiny_policy
 
 def test_rescoring_with_the_policy_own_choice_gives_its_logged_score(tiny_policy_dir):
     runner = PolicyRunner.from_pretrained(tiny_policy_dir)
-    assert len(score_choices(runner.policy)) == 3 * 2 * 2  # one sample per member: one source
+    assert len(choice_grid(runner.policy)) == 3 * 2 * 2  # one sample per member: one source
     runner.policy.config.uncertainty_samples_per_member = 2
-    choices = score_choices(runner.policy)
-    assert choices[0] == {name: getattr(runner.policy.config, name) for name in choices[0]}
+    choices = choice_grid(runner.policy)
+    assert choices[0] == {name: getattr(runner.policy.config, name) for name in SCORE_CHOICE_FIELDS}
     assert len({choice_label(c) for c in choices}) == len(choices) == 3 * 2 * 3 * 2
     rescoring = RescoringRunner(runner, choices)
 

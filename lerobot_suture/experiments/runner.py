@@ -105,8 +105,9 @@ class ExperimentsConfig:
         return getattr(self, f"{scenario}_runs")
 
 
-def _seeds(cfg: ExperimentsConfig, group: int, n: int) -> list[int]:
-    return [cfg.seed + group * _SEED_STRIDE + k for k in range(n)]
+def episode_seeds(base: int, group: int, n: int) -> list[int]:
+    """The seeds of ``n`` episodes of one group (a scenario, an arm) under the base seed ``base``."""
+    return [base + group * _SEED_STRIDE + k for k in range(n)]
 
 
 def make_scenario_env(
@@ -190,7 +191,7 @@ def ood_metrics(nominal: list[EpisodeLog], runs: list[EpisodeLog]) -> dict:
 def cbf_live(cfg: ExperimentsConfig, runner, env_kwargs: dict) -> dict:
     """Experiment 4 live: the policy (nominal) and the adversary, each with the filter on and off."""
     cbf_on, cbf_off = CBFConfig(enabled=True), CBFConfig(enabled=False)
-    seeds = _seeds(cfg, 40, cfg.cbf_runs)
+    seeds = episode_seeds(cfg.seed, 40, cfg.cbf_runs)
     result = {}
     for name, cbf in (("filter_on", cbf_on), ("filter_off", cbf_off)):
         logs = _rollouts(
@@ -231,7 +232,7 @@ def enforced(cfg: ExperimentsConfig, runner, env_kwargs: dict) -> dict:
                 runner,
                 env_kwargs,
                 scenario,
-                _seeds(cfg, 50 + group, cfg.enforced_runs),
+                episode_seeds(cfg.seed, 50 + group, cfg.enforced_runs),
                 f"enforced, {scenario}",
                 "expert",
             )
@@ -274,9 +275,12 @@ def run_experiments(cfg: ExperimentsConfig) -> dict:
     env_kwargs = env_kwargs_for_policy(policy.config)
     threshold = policy.ood_calibration.threshold
 
-    nominal = _rollouts(cfg, runner, env_kwargs, "nominal", _seeds(cfg, 0, cfg.nominal_episodes), "nominal")
+    nominal = _rollouts(
+        cfg, runner, env_kwargs, "nominal", episode_seeds(cfg.seed, 0, cfg.nominal_episodes), "nominal"
+    )
     expert = [
-        run_expert_episode(s) for s in tqdm(_seeds(cfg, 1, cfg.expert_episodes), desc="expert, nominal")
+        run_expert_episode(s)
+        for s in tqdm(episode_seeds(cfg.seed, 1, cfg.expert_episodes), desc="expert, nominal")
     ]
     successes = sum(log.success for log in nominal)
     expert_successes = sum(e.success for e in expert)
@@ -304,7 +308,9 @@ def run_experiments(cfg: ExperimentsConfig) -> dict:
     nominal_scores = [log.scores for log in nominal]
     traces = {"threshold": threshold, "nominal": _traces(nominal)}
     for group, (exp_id, scenario, title) in enumerate(EXPERIMENTS, start=2):
-        runs = _rollouts(cfg, runner, env_kwargs, scenario, _seeds(cfg, group, cfg.runs(scenario)), title)
+        runs = _rollouts(
+            cfg, runner, env_kwargs, scenario, episode_seeds(cfg.seed, group, cfg.runs(scenario)), title
+        )
         traces[scenario] = _traces(runs)
         entry = ood_metrics(nominal, runs)
         entry["scenario"] = scenario

@@ -10,8 +10,9 @@ what ``experiments`` reports per scenario: episode AUROC, AUROC over the steps b
 true-positive rate and detection delay at that threshold. It writes ``score_study.json``,
 ``score_study.md`` (a table, best first) and ``score_study.png`` (AUROC per choice and scenario).
 
-Choose on these numbers, then set the choice on the policy (``--policy.uncertainty_steps=action``, or
-in its ``config.json``), calibrate, and run the experiments on the test seeds. The seeds here
+Choose on these numbers, then calibrate for the choice (``lerobot-suture calibrate --policy.path=DIR
+--uncertainty_steps=action``, which writes it into the policy's ``config.json``) and run the experiments
+on the test seeds. The seeds here
 (1,500,000...) are disjoint from the recording (0...), calibration (1,000,000...) and test
 (2,000,000...) seeds, so choosing here does not tune on the test seeds.
 """
@@ -28,14 +29,19 @@ from pathlib import Path
 import draccus
 import numpy as np
 
-from lerobot_suture.calibrate import SCORE_CHOICE_FIELDS, PolicyPathConfig
-from lerobot_suture.experiments.runner import EXPERIMENTS, json_default, make_scenario_env, ood_metrics
+from lerobot_suture.calibrate import PolicyPathConfig
+from lerobot_suture.experiments.runner import (
+    EXPERIMENTS,
+    episode_seeds,
+    json_default,
+    make_scenario_env,
+    ood_metrics,
+)
 from lerobot_suture.rollout import EpisodeLog, rollout_seeds
-from lerobot_suture.safety.ood import OODGate, fit_calibration, min_calibration_episodes
+from lerobot_suture.safety.ood import OODGate, default_model, fit_calibration, min_calibration_episodes
 
 logger = logging.getLogger(__name__)
 
-_SEED_STRIDE = 10_000
 END_STEPS = 8  # "end of the task": the last control steps of a successful nominal episode
 
 
@@ -77,26 +83,31 @@ class ScoreStudyConfig:
             )
 
 
-def score_choices(policy) -> list[dict[str, str]]:
-    """Every choice of score the policy can make, the policy's own first."""
+def choice_grid(policy) -> list[dict[str, str]]:
+    """Every distinct choice of score the policy can make (config field -> value), its own first."""
     choices = policy.config.score_choices()
+    if not policy.has_action_stats:  # dataset units need the action statistics
+        choices["uncertainty_space"] = ("normalized",)
     own = {name: getattr(policy.config, name) for name in choices}
     grid = [dict(zip(choices, values, strict=True)) for values in itertools.product(*choices.values())]
     return [own] + [c for c in grid if c != own]
 
 
 def choice_label(choice: dict[str, str]) -> str:
-    """A short name of a score choice, e.g. ``max_abs_cov/normalized/total/horizon``."""
-    return "/".join(choice[k] for k in SCORE_CHOICE_FIELDS)
+    """A short name of a score choice, e.g. ``max_abs_cov/normalized/total/horizon`` (its values in order)."""
+    return "/".join(choice.values())
 
 
 class RescoringRunner:
-    """A :class:`~lerobot_suture.policy_runner.PolicyRunner` that also scores each new prediction in
-    every way of ``choices``: ``episodes[e][c]`` is, per control step of the e-th episode of the current
-    batch, the latest prediction's score under choice c (as the gate holds its score between predictions).
+    """Wraps a :class:`~lerobot_suture.policy_runner.PolicyRunner` (for the rollout functions) and scores
+    each new prediction in every way of ``choices``. Per control step it keeps the latest prediction's
+    scores (as the gate holds its score between predictions); :meth:`take` hands them out per episode.
     """
 
     def __init__(self, runner, choices: list[dict[str, str]]):
+        if runner.policy.config.ood.enforce:
+            # An enforced gate stops asking the policy, and the steps would no longer match the calls.
+            raise ValueError("The score study runs the gate in reporting mode: set `ood.enforce` to false.")
         self.runner, self.choices = runner, choices
         self.policy = runner.policy
         self._calls: list[np.ndarray] = []  # per act_batch call: (B, C)
@@ -122,16 +133,23 @@ class RescoringRunner:
         self._calls = []
 
     def take(self, logs: list[EpisodeLog]) -> list[np.ndarray]:
-        """Per episode of ``logs`` (the rollouts since the last ``take``, in order): (steps, C) scores."""
+        """Per episode of ``logs`` (the rollouts since the last ``take``, in order): (steps, C) scores.
+
+        Each rollout batch (one ``reset``) holds one row per env; an episode that ended early keeps its
+        row, and its steps are the first ``len(log.steps)`` calls.
+        """
         self._close_batch()
-        out, batches = [], iter(self.batches)
-        batch, row = None, 0
-        for log in logs:
-            if batch is None or row == batch.shape[1]:
-                batch, row = next(batches), 0
-            out.append(batch[: len(log.steps), row])
-            row += 1
-        self.batches = []
+        batches, self.batches = self.batches, []
+        rows = [(b, r) for b, batch in enumerate(batches) for r in range(batch.shape[1])]
+        if len(rows) != len(logs):
+            raise ValueError(f"{len(logs)} episodes were logged but {len(rows)} were scored.")
+        out = []
+        for log, (b, r) in zip(logs, rows, strict=True):
+            if batches[b].shape[0] < len(log.steps):
+                raise ValueError(
+                    f"Episode {log.seed} has {len(log.steps)} steps but {batches[b].shape[0]} scored calls."
+                )
+            out.append(batches[b][: len(log.steps), r])
         return out
 
 
@@ -204,12 +222,12 @@ def run_score_study(cfg: ScoreStudyConfig) -> dict:
             "ensemble_diffusion policy, which can score a prediction in several ways."
         )
     base.policy.config.ood.enforce = False  # report, never stop a rollout
-    choices = score_choices(base.policy)
+    choices = choice_grid(base.policy)
     runner = RescoringRunner(base, choices)
     env_kwargs = env_kwargs_for_policy(base.policy.config)
 
     def rollouts(group: int, scenario: str, n: int, desc: str) -> tuple[list[EpisodeLog], list[np.ndarray]]:
-        seeds = [cfg.seed + group * _SEED_STRIDE + k for k in range(n)]
+        seeds = episode_seeds(cfg.seed, group, n)
         logs = rollout_seeds(
             lambda: make_scenario_env(env_kwargs, scenario), runner, seeds, cfg.batch_envs, desc=desc
         )
@@ -222,13 +240,17 @@ def run_score_study(cfg: ScoreStudyConfig) -> dict:
     }
     per_choice = []
     for c, choice in enumerate(choices):
-        numbers = evaluate_choice(
-            nominal,
-            [s[:, c] for s in nominal_scores],
-            {name: (logs, [s[:, c] for s in scores]) for name, (logs, scores) in scenarios.items()},
-            cfg.alpha,
-            model="normal" if choice["uncertainty_score"] == "logdet" else "lognormal",
-        )
+        try:
+            numbers = evaluate_choice(
+                nominal,
+                [s[:, c] for s in nominal_scores],
+                {name: (logs, [s[:, c] for s in scores]) for name, (logs, scores) in scenarios.items()},
+                cfg.alpha,
+                model=default_model(choice["uncertainty_score"]),
+            )
+        except ValueError as exc:  # one choice's calibration failing costs that row, not the rollouts
+            logger.warning("Score choice %s: %s", choice_label(choice), exc)
+            numbers = {"error": str(exc), "rank_score": math.nan, "scenarios": {}}
         per_choice.append({"choice": choice, "label": choice_label(choice), "policy_own": c == 0, **numbers})
     result = {
         "policy_path": str(cfg.policy.path),
@@ -267,7 +289,7 @@ def render_table(result: dict) -> str:
     head = (
         ["score / space / source / steps", "rank score", "mean AUROC (common steps)"]
         + [f"AUROC {s} (common steps)" for s in scenarios]
-        + ["needle-drop delay", "nominal max in last 8 steps"]
+        + ["needle-drop delay", f"nominal max in last {END_STEPS} steps"]
     )
     lines = [
         f"# Score study: {result['policy_path']}",
@@ -284,6 +306,9 @@ def render_table(result: dict) -> str:
     ]
     for row in result["choices"]:
         label = f"**{row['label']}**" if row["policy_own"] else row["label"]
+        if "error" in row:
+            lines.append(f"| {label} | failed: {row['error']} |" + " |" * (len(head) - 2))
+            continue
         cells = [
             label,
             _fmt(row["rank_score"]),
@@ -314,7 +339,10 @@ def plot_score_study(result: dict, path: Path) -> Path:
         (axes[0], "auroc", "episode AUROC"),
         (axes[1], "auroc_common_steps", "AUROC over the steps both episodes lasted"),
     ):
-        values = np.array([[r["scenarios"][s][key] for s in scenarios] for r in rows], dtype=float)
+        values = np.array(
+            [[r["scenarios"][s][key] if s in r["scenarios"] else math.nan for s in scenarios] for r in rows],
+            dtype=float,
+        )
         image = ax.imshow(values, cmap="RdYlGn", vmin=0.0, vmax=1.0, aspect="auto")
         ax.set_xticks(range(len(scenarios)), [s.replace("_", "\n") for s in scenarios], fontsize=8)
         for i, j in itertools.product(range(values.shape[0]), range(values.shape[1])):
@@ -337,7 +365,6 @@ def main(argv: list[str] | None = None) -> None:
     best = result["choices"][0]
     own = next(r for r in result["choices"] if r["policy_own"])
     print(
-        f"Best: {best['label']} (rank score {best['rank_score']:.3f}: mean AUROC {best['mean_auroc']:.3f}, "
-        f"{best['mean_auroc_common_steps']:.3f} over common steps); the policy's own {own['label']}: "
-        f"{own['rank_score']:.3f}. Table: {cfg.output_dir / 'score_study.md'}"
+        f"Best: {best['label']} (rank score {_fmt(best['rank_score'])}); the policy's own {own['label']}: "
+        f"{_fmt(own['rank_score'])}. Table: {cfg.output_dir / 'score_study.md'}"
     )

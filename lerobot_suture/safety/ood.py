@@ -294,6 +294,13 @@ def _inverse_transform(x: float, model: CalibrationModel) -> float:
     return math.exp(x) if model is CalibrationModel.LOGNORMAL else x
 
 
+def default_model(score_name: str | ScoreName) -> str:
+    """The I.D. model for a score: ``lognormal`` (positive, skewed scores), ``normal`` for ``logdet``,
+    which can be negative."""
+    name = ScoreName.parse(score_name)
+    return (CalibrationModel.NORMAL if name == ScoreName.LOGDET else CalibrationModel.LOGNORMAL).value
+
+
 def min_calibration_episodes(alpha: float) -> int:
     """Fewest I.D. episodes for a ``per_episode`` calibration at level ``alpha``.
 

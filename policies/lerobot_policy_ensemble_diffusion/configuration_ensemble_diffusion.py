@@ -38,7 +38,6 @@ SCORE_CHOICES = {
     "uncertainty_source": UNCERTAINTY_SOURCES,
     "uncertainty_steps": UNCERTAINTY_STEPS,
 }
-SCORE_CHOICE_FIELDS = tuple(SCORE_CHOICES)
 OPTIMIZER_NAMES = ("adam", "adamw")
 
 
@@ -221,9 +220,9 @@ class EnsembleDiffusionConfig(DiffusionConfig):
         return cls(**kwargs)
 
     def score_choices(self) -> dict[str, tuple[str, ...]]:
-        """Every distinct way this policy can score a prediction: config field -> the values it can take
-        here. With one sample per member only `total` is a source (`epistemic` equals it, and `aleatoric`
-        needs two samples). `EnsembleDiffusionPolicy.rescore` takes them.
+        """The distinct ways this policy can score a prediction: config field -> values. With one sample
+        per member only the configured source is listed (`total` and `epistemic` are then equal, and
+        `aleatoric` needs two samples). `EnsembleDiffusionPolicy.rescore` takes them.
         """
         choices = dict(SCORE_CHOICES)
         if self.uncertainty_samples_per_member < 2:

@@ -25,6 +25,7 @@ import logging
 import math
 import re
 from collections import deque
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -45,9 +46,8 @@ from torch import Tensor, nn
 from lerobot_suture.safety.ood import OODCalibration, OODGate, load_calibration
 
 from .batched_members import FusedDiffusionEnsemble
-from .configuration_ensemble_diffusion import SCORE_CHOICE_FIELDS, EnsembleDiffusionConfig
-from .ensemble_stats import EnsembleActionStats, compute_ensemble_stats
-from .ensemble_stats import uncertainty_score as uncertainty_score_of
+from .configuration_ensemble_diffusion import SCORE_CHOICES, EnsembleDiffusionConfig
+from .ensemble_stats import EnsembleActionStats, compute_ensemble_stats, uncertainty_score
 
 if TYPE_CHECKING:
     from lerobot.datasets import LeRobotDatasetMetadata
@@ -135,42 +135,43 @@ def score_ensemble_stats(
     normalized: EnsembleActionStats,
     unnormalized: EnsembleActionStats | None,
     action_steps: slice,
-    uncertainty_score: str,
-    uncertainty_space: str,
-    uncertainty_source: str,
-    uncertainty_steps: str,
-    logdet_eps: float = 1e-6,
+    choice: Mapping[str, str],
+    *,
+    logdet_eps: float,
 ) -> Tensor:
-    """(B,) the uncertainty score of one prediction's statistics, for one choice of score (the config
-    fields of the same names; see `EnsembleDiffusionConfig`).
+    """(B,) the uncertainty score of one prediction's statistics under one choice of score.
 
     Args:
         normalized: the statistics in the normalized action space.
         unnormalized: the same in dataset units; None when the policy holds no action statistics.
         action_steps: the executed steps of the T predicted ones (used with `uncertainty_steps`="action").
+        choice: a value for each of `SCORE_CHOICES`' fields (`uncertainty_score`, `uncertainty_space`,
+            `uncertainty_source`, `uncertainty_steps`; see `EnsembleDiffusionConfig`).
+        logdet_eps: the config's `logdet_eps`.
     """
-    if uncertainty_space == "normalized":
-        scored = normalized
-    elif unnormalized is not None:
+    if set(choice) != set(SCORE_CHOICES):
+        raise ValueError(f"A score choice names each of {list(SCORE_CHOICES)}. Got {sorted(choice)}.")
+    for name, allowed in SCORE_CHOICES.items():
+        if choice[name] not in allowed:
+            raise ValueError(f"`{name}` must be one of {list(allowed)}. Got {choice[name]!r}.")
+    scored = normalized
+    if choice["uncertainty_space"] == "unnormalized":
+        if unnormalized is None:
+            raise ValueError(
+                "`uncertainty_space`='unnormalized' needs the action statistics, which this policy does not "
+                "hold: build it with `dataset_stats` (lerobot-train does) or load a trained checkpoint."
+            )
         scored = unnormalized
-    else:
-        raise ValueError(
-            "`uncertainty_space`='unnormalized' needs the action statistics, which this policy does not "
-            "hold: build it with `dataset_stats` (lerobot-train does) or load a trained checkpoint."
-        )
-    if uncertainty_steps == "action":
+    if choice["uncertainty_steps"] == "action":
         scored = scored.select_steps(action_steps)
-    if uncertainty_source == "aleatoric" and scored.aleatoric is None:
+    source = choice["uncertainty_source"]
+    if source == "aleatoric" and scored.aleatoric is None:
         raise ValueError(
             "`uncertainty_source`='aleatoric' needs `uncertainty_samples_per_member` >= 2 (the members' own "
             "covariances need two samples each)."
         )
-    covariances = {"total": scored.covariance, "epistemic": scored.epistemic, "aleatoric": scored.aleatoric}
-    if uncertainty_source not in covariances:
-        raise ValueError(
-            f"`uncertainty_source` must be one of {list(covariances)}. Got {uncertainty_source!r}."
-        )
-    return uncertainty_score_of(covariances[uncertainty_source], uncertainty_score, logdet_eps=logdet_eps)
+    cov = {"total": scored.covariance, "epistemic": scored.epistemic, "aleatoric": scored.aleatoric}[source]
+    return uncertainty_score(cov, choice["uncertainty_score"], logdet_eps=logdet_eps)
 
 
 class EnsembleDiffusionPolicy(PreTrainedPolicy):
@@ -443,11 +444,7 @@ class EnsembleDiffusionPolicy(PreTrainedPolicy):
         start = self.config.n_obs_steps - 1
         action_steps = slice(start, start + self.config.n_action_steps)
         score = score_ensemble_stats(
-            normalized,
-            unnormalized,
-            action_steps,
-            logdet_eps=self.config.logdet_eps,
-            **self._score_choice(),
+            normalized, unnormalized, action_steps, self._score_choice(), logdet_eps=self.config.logdet_eps
         )  # (B,)
 
         prediction = EnsemblePrediction(
@@ -468,7 +465,7 @@ class EnsembleDiffusionPolicy(PreTrainedPolicy):
         return None if self.last_prediction is None else self.last_prediction.score
 
     def _score_choice(self) -> dict[str, str]:
-        return {name: getattr(self.config, name) for name in SCORE_CHOICE_FIELDS}
+        return {name: getattr(self.config, name) for name in SCORE_CHOICES}
 
     def rescore(self, prediction: EnsemblePrediction, **choice: str) -> Tensor:
         """(B,) `prediction`'s uncertainty score under another choice of score: the same samples, scored
@@ -479,15 +476,15 @@ class EnsembleDiffusionPolicy(PreTrainedPolicy):
             choice: any of the config fields `uncertainty_score`, `uncertainty_space`,
                 `uncertainty_source`, `uncertainty_steps`; those left out keep this policy's values.
         """
-        unknown = sorted(set(choice) - set(SCORE_CHOICE_FIELDS))
+        unknown = sorted(set(choice) - set(SCORE_CHOICES))
         if unknown:
-            raise ValueError(f"Unknown score settings {unknown}: choose among {list(SCORE_CHOICE_FIELDS)}.")
+            raise ValueError(f"Unknown score settings {unknown}: choose among {list(SCORE_CHOICES)}.")
         return score_ensemble_stats(
             prediction.normalized,
             prediction.unnormalized,
             prediction.action_steps,
+            {**self._score_choice(), **choice},
             logdet_eps=self.config.logdet_eps,
-            **{**self._score_choice(), **choice},
         )
 
     @torch.no_grad()
