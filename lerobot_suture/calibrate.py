@@ -137,15 +137,11 @@ def collect_scores(
     runner, env_kwargs: dict, seeds: list[int], desc: str, batch_envs: int = 8
 ) -> tuple[np.ndarray, np.ndarray, list]:
     """Per-prediction uncertainty scores and their episode ids over nominal episodes of ``runner``."""
-    import gymnasium as gym
+    from lerobot_suture.rollout import make_scenario_env, rollout_seeds
 
-    from lerobot_suture.registration import ENV_ID
-    from lerobot_suture.rollout import rollout_seeds
-
-    def make_env():
-        return gym.make(ENV_ID, disable_env_checker=True, scenario="nominal", **env_kwargs)
-
-    logs = rollout_seeds(make_env, runner, seeds, batch_envs, desc=desc)
+    logs = rollout_seeds(
+        lambda: make_scenario_env(env_kwargs, "nominal"), runner, seeds, batch_envs, desc=desc
+    )
     scores, episode_ids = [], []
     for episode, log in enumerate(logs):
         for step in log.steps:

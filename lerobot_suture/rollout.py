@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import gymnasium as gym
 import numpy as np
@@ -25,7 +26,10 @@ import torch
 from tqdm import tqdm
 
 from lerobot_suture.expert import ScriptedExpert
-from lerobot_suture.registration import MAX_EPISODE_STEPS
+from lerobot_suture.registration import ENV_ID, MAX_EPISODE_STEPS
+
+if TYPE_CHECKING:
+    from lerobot_suture.safety.cbf import CBFConfig
 
 SURGEONS = ("none", "expert")
 POLICY, SURGEON, HOLD = "policy", "surgeon", "hold"
@@ -75,6 +79,21 @@ class EpisodeLog:
     @property
     def autonomous_success(self) -> bool:
         return self.success and self.handover_step is None
+
+
+def make_scenario_env(
+    env_kwargs: dict, scenario: str, cbf: CBFConfig | None = None, trace: bool = False
+) -> gym.Env:
+    """One suture env of ``scenario`` for policy rollouts: ``env_kwargs`` (what the policy reads, from
+    :func:`~lerobot_suture.policy_runner.env_kwargs_for_policy`), the CBF filter, the tip trace."""
+    return gym.make(
+        ENV_ID,
+        disable_env_checker=True,
+        scenario=scenario,
+        cbf=cbf,
+        record_tip_trace=trace,
+        **env_kwargs,
+    )
 
 
 def rollout_episode(

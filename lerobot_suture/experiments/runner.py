@@ -28,7 +28,6 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import draccus
-import gymnasium as gym
 import numpy as np
 from tqdm import tqdm
 
@@ -36,8 +35,7 @@ from lerobot_suture.calibrate import PolicyPathConfig
 from lerobot_suture.experiments import metrics
 from lerobot_suture.experiments.adversary import run_cbf_episode
 from lerobot_suture.experiments.plots import plot_uncertainty
-from lerobot_suture.registration import ENV_ID
-from lerobot_suture.rollout import EpisodeLog, rollout_seeds
+from lerobot_suture.rollout import EpisodeLog, make_scenario_env, rollout_seeds
 from lerobot_suture.rollout_expert import run_expert_episode
 from lerobot_suture.safety.cbf import CBFConfig
 from lerobot_suture.sim.suture_env import ENTRY_TOLERANCE, EXIT_TOLERANCE
@@ -108,19 +106,6 @@ class ExperimentsConfig:
 def episode_seeds(base: int, group: int, n: int) -> list[int]:
     """The seeds of ``n`` episodes of one group (a scenario, an arm) under the base seed ``base``."""
     return [base + group * _SEED_STRIDE + k for k in range(n)]
-
-
-def make_scenario_env(
-    env_kwargs: dict, scenario: str, cbf: CBFConfig | None = None, trace: bool = False
-) -> gym.Env:
-    return gym.make(
-        ENV_ID,
-        disable_env_checker=True,
-        scenario=scenario,
-        cbf=cbf,
-        record_tip_trace=trace,
-        **env_kwargs,
-    )
 
 
 def _rollouts(

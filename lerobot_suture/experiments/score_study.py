@@ -34,10 +34,9 @@ from lerobot_suture.experiments.runner import (
     EXPERIMENTS,
     episode_seeds,
     json_default,
-    make_scenario_env,
     ood_metrics,
 )
-from lerobot_suture.rollout import EpisodeLog, rollout_seeds
+from lerobot_suture.rollout import EpisodeLog, make_scenario_env, rollout_seeds
 from lerobot_suture.safety.ood import OODGate, default_model, fit_calibration, min_calibration_episodes
 
 logger = logging.getLogger(__name__)
