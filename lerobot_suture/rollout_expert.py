@@ -29,13 +29,29 @@ class ExpertStep:
         return self.terminated or self.truncated
 
 
-def iter_expert_steps(env: gym.Env, expert: ScriptedExpert, obs: dict) -> Iterator[ExpertStep]:
+def iter_expert_steps(
+    env: gym.Env, expert: ScriptedExpert, obs: dict, steps_after_success: int = 0
+) -> Iterator[ExpertStep]:
     """Yield the expert's steps from ``obs``, the observation ``env.reset`` just returned, to the
-    episode's end."""
+    episode's end.
+
+    Args:
+        steps_after_success: control steps to go on after the step the insertion succeeds (where the env
+            terminates); the last of them is yielded as the terminal step. 0: end at success.
+    """
+    if steps_after_success < 0:
+        raise ValueError(f"`steps_after_success` must be >= 0. Got {steps_after_success}.")
     expert.reset(env)
+    remaining = None  # control steps left once the insertion has succeeded
     while True:
         action = expert.act(env)
         next_obs, reward, terminated, truncated, info = env.step(action)
+        if remaining is not None:
+            remaining -= 1
+        elif terminated and info["is_success"]:
+            remaining = steps_after_success
+        if remaining is not None:
+            terminated = remaining == 0  # the episode, as recorded, ends after the extra steps
         yield ExpertStep(obs, action, float(reward), bool(terminated), bool(truncated), info)
         if terminated or truncated:
             return

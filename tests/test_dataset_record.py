@@ -18,11 +18,16 @@ import pytest
 from lerobot_suture.datasets import metadata
 from lerobot_suture.datasets.record import (
     ACTION_KEY,
+    DONE_KEY,
+    MAX_STEPS_AFTER_SUCCESS,
+    SUCCESS_KEY,
     RecordConfig,
     RecordingInterrupted,
     main,
+    make_env,
     record,
     regenerate_episode,
+    rollout_expert,
 )
 from lerobot_suture.datasets.split import episode_seeds
 from lerobot_suture.datasets.video import resolve_video_backend
@@ -85,6 +90,8 @@ def test_malformed_repo_id_is_an_error_before_any_work(repo_id, match, tmp_path,
         ("--scenario=earthquake", "`scenario` must be one of"),
         ("--image_size=8", r"`image_size` must be in \[16, 640\]"),
         ("--checkpoint_every=0", "`checkpoint_every` must be >= 1"),
+        ("--steps_after_success=11", r"`steps_after_success` must be in \[0, 10\] control steps"),
+        ("--steps_after_success=-1", r"`steps_after_success` must be in \[0, 10\] control steps"),
     ],
 )
 def test_bad_flags_name_the_field(flag, match, tmp_path):
@@ -156,6 +163,35 @@ def test_other_storage_layouts_load(tmp_path, obs_type, video, image_dtype):
     features = _load(root).features
     assert features.get("observation.images.endoscope", {}).get("dtype") == image_dtype
     assert ("observation.environment_state" in features) == (obs_type == "state")
+
+
+def test_steps_after_success_record_the_expert_driving_on(tmp_path):
+    """The episode goes on past success with the expert still turning the needle; it regenerates, and a
+    resume must keep the setting."""
+    extra = MAX_STEPS_AFTER_SUCCESS
+    root = tmp_path / "ds"
+    record(_cfg(root, num_episodes=1, obs_type="state", steps_after_success=extra))
+    _assert_consistent(root, 1)
+    frames = regenerate_episode(root, 0)
+    env = make_env("state", 32, "nominal")
+    try:
+        at_success = rollout_expert(env, ScriptedExpert(), seed=0)
+    finally:
+        env.close()
+    n = at_success.length
+    assert len(frames[ACTION_KEY]) == n + extra
+    # Up to success the same insertion; the raised protrusion only moves where the drive stops.
+    np.testing.assert_array_equal(
+        frames[ACTION_KEY][:n], np.stack([f[ACTION_KEY] for f in at_success.frames])
+    )
+    assert frames[SUCCESS_KEY][n - 1 :].all() and not frames[SUCCESS_KEY][: n - 1].any()
+    assert frames[DONE_KEY][-1] and not frames[DONE_KEY][:-1].any()
+    # Still driving at the last frame: the jaw target moves as much per step as before success.
+    step_mm = np.linalg.norm(np.diff(frames[ACTION_KEY][:, :3], axis=0), axis=1) * 1e3
+    assert step_mm[-1] == pytest.approx(step_mm[n - 2], rel=0.05) and step_mm[-1] > 0.3
+    assert metadata.read_episode_log(root)["expert"]["config"]["protrusion_angle"] > 0.5
+    with pytest.raises(ValueError, match="recorded with --steps_after_success=10"):
+        record(_cfg(root, num_episodes=2, obs_type="state", resume=True))
 
 
 # ------------------------------------------------------------------------------ discards, interrupts

@@ -110,6 +110,7 @@ def render_description(root: str | Path, template_path: str | Path | None = None
         "obs_type": env_kwargs["obs_type"],
         "image_size": env_kwargs["image_size"],
         "scenario": env_kwargs["scenario"],
+        "steps_after_success": log.get("steps_after_success", 0),
         "num_episodes": len(log["episodes"]),
         "num_frames": info["total_frames"],
         "mean_length": sum(lengths) / len(lengths),

@@ -75,6 +75,9 @@ TASK = suture_env.TASK
 ROBOT_TYPE = "psm"
 FPS = round(1.0 / suture_env.CONTROL_DT)
 """Dataset fps: the env's control rate (10 Hz)."""
+MAX_STEPS_AFTER_SUCCESS = 10
+"""Most control steps ``--steps_after_success`` records past success: 6 mm more of the 31 mm needle
+through the tissue (the expert's insertions of seeds 0-39 all stay successful through 10)."""
 
 IMAGE_KEY = "observation.images.endoscope"
 STATE_KEY = "observation.state"
@@ -144,6 +147,11 @@ class RecordConfig:
         scenario: perturbation scenario (``lerobot_suture.sim.scenarios.SCENARIOS``); the expert fails
             under some of them and those episodes are discarded.
         seed: env seed of the first attempt; attempt ``k`` uses ``seed + k``.
+        steps_after_success: control steps recorded after the insertion succeeds, the expert driving on
+            (its planned protrusion raised by the arc it turns in them, :func:`expert_config`). A policy's
+            episode ends at success, so the action chunks it predicts there then reach into demonstrated
+            motion instead of the padded stop at a demonstration's last frame. 0: episodes end at
+            success (the paper's demonstrations).
         video: store images as MP4 video (true) or as PNG frames in the parquet files (false).
         checkpoint_every: episodes between durable checkpoints (finalize + resume): a SIGKILL loses
             at most this many; each checkpoint starts new data/video files. >= 1.
@@ -164,6 +172,7 @@ class RecordConfig:
     image_size: int = 96  # endoscope image side (px)
     scenario: str = "nominal"  # perturbation scenario the expert is recorded in
     seed: int = 0  # env seed of the first attempt; attempt k uses seed + k
+    steps_after_success: int = 0  # control steps recorded past success, the expert driving on
     # Storage.
     video: bool = True  # images as MP4 video (true) or PNG frames (false)
     checkpoint_every: int = 10  # episodes between durable checkpoints (what a SIGKILL can lose)
@@ -188,6 +197,12 @@ class RecordConfig:
             raise ValueError(f"`seed` must be in [0, 2**32 - 1e6). Got {self.seed}.")
         if self.checkpoint_every < 1:
             raise ValueError(f"`checkpoint_every` must be >= 1. Got {self.checkpoint_every}.")
+        if not 0 <= self.steps_after_success <= MAX_STEPS_AFTER_SUCCESS:
+            raise ValueError(
+                f"`steps_after_success` must be in [0, {MAX_STEPS_AFTER_SUCCESS}] control steps (the needle "
+                f"is a semicircle; driving on further pushes the jaw into the tissue). Got "
+                f"{self.steps_after_success}."
+            )
 
     @property
     def has_images(self) -> bool:
@@ -209,9 +224,19 @@ class RecordConfig:
         for name in ("num_episodes", "val_fraction", "obs_type", "image_size", "scenario", "seed", "video"):
             value = getattr(self, name)
             flags.append(f"--{name}={str(value).lower() if isinstance(value, bool) else value}")
+        if self.steps_after_success:
+            flags.append(f"--steps_after_success={self.steps_after_success}")
         if self.checkpoint_every != 10:
             flags.append(f"--checkpoint_every={self.checkpoint_every}")
         return " ".join([COMMAND, *(shlex.quote(f) for f in flags)])
+
+
+def expert_config(steps_after_success: int) -> ExpertConfig:
+    """The recording expert: the default one, driving on through ``steps_after_success`` control steps
+    past its usual protrusion (at ``drive_rate``), so it still turns the needle in them."""
+    default = ExpertConfig()
+    extra = steps_after_success * default.drive_rate * suture_env.CONTROL_DT  # rad of arc
+    return dataclasses.replace(default, protrusion_angle=default.protrusion_angle + extra)
 
 
 def parse_config(argv: list[str] | None = None) -> RecordConfig:
@@ -287,7 +312,13 @@ def make_env(obs_type: str, image_size: int, scenario: str):
     )
 
 
-def rollout_expert(env, expert, seed: int, on_step: Callable[[], None] | None = None) -> ExpertRollout:
+def rollout_expert(
+    env,
+    expert,
+    seed: int,
+    on_step: Callable[[], None] | None = None,
+    steps_after_success: int = 0,
+) -> ExpertRollout:
     """Run the expert for one episode from ``env.reset(seed=seed)``; frames in dataset layout.
 
     Args:
@@ -295,10 +326,12 @@ def rollout_expert(env, expert, seed: int, on_step: Callable[[], None] | None = 
         expert: a :class:`~lerobot_suture.expert.ScriptedExpert`.
         seed: env seed.
         on_step: called after every control step (progress).
+        steps_after_success: control steps recorded after the insertion succeeds; the episode counts as a
+            success only if it still holds at the last of them.
     """
     obs, info = env.reset(seed=seed)
     frames = []
-    for step in iter_expert_steps(env, expert, obs):
+    for step in iter_expert_steps(env, expert, obs, steps_after_success):
         frame = {
             STATE_KEY: step.obs["agent_pos"],
             ACTION_KEY: np.asarray(step.action, dtype=np.float32),
@@ -336,7 +369,12 @@ def regenerate_episode(root: str | Path, episode_index: int) -> dict[str, np.nda
     entry = log["episodes"][episode_index]
     env = make_env(**log["env_kwargs"])
     try:
-        rollout = rollout_expert(env, ScriptedExpert(ExpertConfig(**log["expert"]["config"])), entry["seed"])
+        rollout = rollout_expert(
+            env,
+            ScriptedExpert(ExpertConfig(**log["expert"]["config"])),
+            entry["seed"],
+            steps_after_success=log.get("steps_after_success", 0),
+        )
     finally:
         env.close()
     if not rollout.success or rollout.length != entry["length"]:
@@ -452,8 +490,9 @@ def _new_log(cfg: RecordConfig) -> dict:
         "env_kwargs": {"obs_type": cfg.obs_type, "image_size": cfg.image_size, "scenario": cfg.scenario},
         "expert": {
             "class": "lerobot_suture.expert.ScriptedExpert",
-            "config": dataclasses.asdict(ExpertConfig()),
+            "config": dataclasses.asdict(expert_config(cfg.steps_after_success)),
         },
+        "steps_after_success": cfg.steps_after_success,
         "seed": cfg.seed,
         "next_seed": cfg.seed,
         "video": cfg.video,
@@ -471,8 +510,13 @@ _RESUME_FIELDS = ("obs_type", "image_size", "scenario")
 
 
 def _check_resumable(cfg: RecordConfig, log: dict, root: Path) -> None:
-    recorded = {**log["env_kwargs"], "video": log["video"], "seed": log["seed"]}
-    for name in (*_RESUME_FIELDS, "video", "seed"):
+    recorded = {
+        **log["env_kwargs"],
+        "video": log["video"],
+        "seed": log["seed"],
+        "steps_after_success": log.get("steps_after_success", 0),  # absent in logs before it existed
+    }
+    for name in (*_RESUME_FIELDS, "video", "seed", "steps_after_success"):
         if getattr(cfg, name) != recorded[name]:
             value = str(recorded[name]).lower() if isinstance(recorded[name], bool) else recorded[name]
             raise ValueError(
@@ -633,7 +677,13 @@ def record(cfg: RecordConfig) -> RecordSummary:
             since_checkpoint = 0
             while len(log["episodes"]) < cfg.num_episodes:
                 seed = log["next_seed"]
-                result = rollout_expert(env, expert, seed, on_step=frame_bar.update)
+                result = rollout_expert(
+                    env,
+                    expert,
+                    seed,
+                    on_step=frame_bar.update,
+                    steps_after_success=log.get("steps_after_success", 0),
+                )
                 with stops.deferred():
                     log["next_seed"] = seed + 1
                     if not result.success:
