@@ -103,3 +103,15 @@ def test_uncertainty_figure_is_written_and_not_blank(tmp_path):
     # The O.O.D. background (red) appears where the maximum crosses the threshold.
     red = np.array([int(OOD_COLOUR[i : i + 2], 16) for i in (1, 3, 5)], dtype=float)
     assert (np.abs(image - red).sum(axis=-1) < 6).any()
+
+
+def test_share_of_maxima_at_end_counts_episodes_peaking_in_their_last_steps():
+    late = list(range(20))  # max at the last step
+    early = [5.0] + [0.0] * 19
+    short = [0.0, 1.0]  # shorter than the window: its max is in it
+    unscored = [math.nan] * 5
+    assert metrics.share_of_maxima_at_end([late, early, short, unscored], end_steps=8) == pytest.approx(2 / 3)
+    assert metrics.share_of_maxima_at_end([[math.nan, 3.0, math.nan, 1.0]], end_steps=2) == 0.0
+    assert math.isnan(metrics.share_of_maxima_at_end([], end_steps=8))
+    with pytest.raises(ValueError, match="`end_steps` must be >= 1"):
+        metrics.share_of_maxima_at_end([late], end_steps=0)

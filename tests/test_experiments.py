@@ -1,6 +1,7 @@
 """`lerobot-suture experiments` end to end at toy scale on a tiny (untrained) calibrated ensemble."""
 
 import json
+import math
 import shutil
 
 import numpy as np
@@ -63,6 +64,11 @@ def test_experiments_write_figures_metrics_and_report(tiny_policy_dir, tmp_path)
         "phantom_moved_after_insertion",
     }
     assert result["nominal"]["insertion"]["episodes"] == 2
+    end = result["nominal"]["score_max_in_last_steps"]
+    assert end["end_steps"] == 8
+    assert (
+        math.isnan(end["share_of_successful_episodes"]) or 0.0 <= end["share_of_successful_episodes"] <= 1.0
+    )
     for entry in result["experiments"].values():
         assert 0.0 <= entry["auroc_common_steps"] <= 1.0
     traces = json.loads((out / result["traces"]).read_text())

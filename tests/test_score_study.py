@@ -17,7 +17,6 @@ from lerobot_suture.experiments.score_study import (
     ScoreStudyConfig,
     choice_grid,
     choice_label,
-    end_share,
     with_scores,
 )
 from lerobot_suture.policy_runner import PolicyRunner, env_kwargs_for_policy
@@ -58,13 +57,6 @@ def test_replayed_gate_decides_at_new_predictions_only_and_latches():
     assert [s.ood for s in replayed.steps] == [False, False, True, True, True, True]
     assert replayed.scores.tolist()[1] == 2 * t
     assert [s.ood for s in log.steps] == [False] * 6  # the original log is left alone
-
-
-def test_end_share_counts_successful_episodes_peaking_in_their_last_steps():
-    late = _log(list(range(20)), [True] * 20)  # max at the last step
-    early = _log([5.0] + [0.0] * 19, [True] * 20)
-    failed = _log(list(range(20)), [True] * 20, success=False)
-    assert end_share([late, early, failed], end_steps=8) == 0.5
 
 
 class _StubPolicy:

@@ -11,6 +11,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
+END_OF_TASK_STEPS = 8
+"""The end of the task: the last control steps of a successful nominal episode (as the needle emerges)."""
+
 
 def wilson_interval(successes: int, n: int, z: float = 1.959963984540054) -> tuple[float, float]:
     """95% Wilson score interval of a binomial proportion (default z); (nan, nan) when n = 0."""
@@ -42,6 +45,23 @@ def episode_score(scores: Sequence[float], start: int = 0) -> float:
     tail = np.asarray(scores[start:], dtype=np.float64)
     tail = tail[~np.isnan(tail)]
     return float(tail.max()) if tail.size else math.nan
+
+
+def share_of_maxima_at_end(score_sequences: Sequence[Sequence[float]], end_steps: int) -> float:
+    """Share of episodes whose largest score falls in their last ``end_steps`` control steps.
+
+    Over successful nominal episodes it says how much the end of the task, rather than anything
+    unusual, sets the per-episode threshold. NaN scores are ignored; nan when no episode has a score.
+    """
+    if end_steps < 1:
+        raise ValueError(f"`end_steps` must be >= 1. Got {end_steps}.")
+    ends = []
+    for scores in score_sequences:
+        s = np.asarray(scores, dtype=np.float64)
+        if np.isnan(s).all():
+            continue
+        ends.append(int(np.nanargmax(s)) >= s.size - end_steps)
+    return float(np.mean(ends)) if ends else math.nan
 
 
 def auroc_over_common_steps(

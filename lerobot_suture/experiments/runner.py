@@ -280,6 +280,13 @@ def run_experiments(cfg: ExperimentsConfig) -> dict:
             "expert_success_rate": expert_successes / len(expert) if expert else None,
             "expert_success_rate_wilson95": metrics.wilson_interval(expert_successes, len(expert)),
             "false_alarms": metrics.alarm_rates([_alarms(log) for log in nominal]),
+            # Where the successful episodes peak: the end of the task sets the per-episode threshold.
+            "score_max_in_last_steps": {
+                "end_steps": metrics.END_OF_TASK_STEPS,
+                "share_of_successful_episodes": metrics.share_of_maxima_at_end(
+                    [log.scores for log in nominal if log.success], metrics.END_OF_TASK_STEPS
+                ),
+            },
             "insertion": metrics.insertion_accuracy(
                 [log.entry_error_m for log in nominal],
                 [log.exit_error_m for log in nominal],
@@ -348,6 +355,18 @@ def _settings_note(calibration: dict) -> str:
     )
 
 
+def _end_of_task_lines(end: dict | None) -> list[str]:
+    """Where the nominal maxima fall (absent from results written before it was kept)."""
+    if not end:
+        return []
+    return [
+        "",
+        f"The largest score of {_fmt(end['share_of_successful_episodes'])} of the successful nominal episodes "
+        f"falls in their last {end['end_steps']} control steps (the end of the task, where the per-episode "
+        "threshold is then set).",
+    ]
+
+
 def _insertion_lines(insertion: dict | None) -> list[str]:
     """Where the policy's needle crossed the tissue (absent from results written before it was kept)."""
     if not insertion:
@@ -388,6 +407,7 @@ def render_report(result: dict) -> str:
         "",
         f"False alarms on nominal episodes: {_fmt(nominal['false_alarms']['per_step'])} per step, "
         f"{_fmt(nominal['false_alarms']['per_episode'])} per episode.",
+        *_end_of_task_lines(nominal.get("score_max_in_last_steps")),
         "",
         *_insertion_lines(nominal.get("insertion")),
         "## Out of distribution (gate reporting, as in the paper)",

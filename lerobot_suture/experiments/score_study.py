@@ -30,6 +30,7 @@ import draccus
 import numpy as np
 
 from lerobot_suture.calibrate import PolicyPathConfig
+from lerobot_suture.experiments.metrics import END_OF_TASK_STEPS, share_of_maxima_at_end
 from lerobot_suture.experiments.runner import (
     EXPERIMENTS,
     episode_seeds,
@@ -40,8 +41,6 @@ from lerobot_suture.rollout import EpisodeLog, make_scenario_env, rollout_seeds
 from lerobot_suture.safety.ood import OODGate, default_model, fit_calibration, min_calibration_episodes
 
 logger = logging.getLogger(__name__)
-
-END_STEPS = 8  # "end of the task": the last control steps of a successful nominal episode
 
 
 @dataclass
@@ -164,13 +163,6 @@ def with_scores(log: EpisodeLog, scores: np.ndarray, gate: OODGate) -> EpisodeLo
     return replace(log, steps=steps)
 
 
-def end_share(nominal: list[EpisodeLog], end_steps: int = END_STEPS) -> float:
-    """Share of the successful nominal episodes whose largest score falls in their last ``end_steps``
-    steps: how much the end of the task, rather than anything unusual, sets the threshold."""
-    ends = [int(np.argmax(log.scores)) >= len(log.steps) - end_steps for log in nominal if log.success]
-    return float(np.mean(ends)) if ends else math.nan
-
-
 def evaluate_choice(
     nominal: list[EpisodeLog],
     nominal_scores: list[np.ndarray],
@@ -198,7 +190,9 @@ def evaluate_choice(
         "false_alarm_per_episode_in_sample": float(
             np.mean([any(s.ood for s in log.steps) for log in nominal_v])
         ),
-        "nominal_max_in_last_steps": end_share(nominal_v),
+        "nominal_max_in_last_steps": share_of_maxima_at_end(
+            [log.scores for log in nominal_v if log.success], END_OF_TASK_STEPS
+        ),
         "scenarios": {},
     }
     for scenario, (logs, scores) in scenarios.items():
@@ -288,7 +282,7 @@ def render_table(result: dict) -> str:
     head = (
         ["score / space / source / steps", "rank score", "mean AUROC (common steps)"]
         + [f"AUROC {s} (common steps)" for s in scenarios]
-        + ["needle-drop delay", f"nominal max in last {END_STEPS} steps"]
+        + ["needle-drop delay", f"nominal max in last {END_OF_TASK_STEPS} steps"]
     )
     lines = [
         f"# Score study: {result['policy_path']}",
