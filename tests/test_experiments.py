@@ -64,6 +64,10 @@ def test_experiments_write_figures_metrics_and_report(tiny_policy_dir, tmp_path)
         "phantom_moved_after_insertion",
     }
     assert result["nominal"]["insertion"]["episodes"] == 2
+    by_outcome = result["nominal"]["false_alarms_by_outcome"]
+    assert by_outcome["successful"]["episodes"] + by_outcome["failed"]["episodes"] == 2
+    alarmed = sum(round(r["per_episode"] * r["episodes"]) for r in by_outcome.values() if r["episodes"])
+    assert alarmed == round(result["nominal"]["false_alarms"]["per_episode"] * 2)
     end = result["nominal"]["score_max_in_last_steps"]
     assert end["end_steps"] == 8
     assert (
@@ -85,6 +89,7 @@ def test_experiments_write_figures_metrics_and_report(tiny_policy_dir, tmp_path)
     report = (out / "report.md").read_text()
     assert "| 1 | needle_drop | 1 |" in report
     assert "Where the needle crossed the tissue" in report
+    assert "(alarmed episodes: " in report and "in their last 8 control steps" in report
     assert "AUROC over common steps" in report and "needle in tissue at handover" in report
     for name in result["figures"].values():
         image = np.asarray(Image.open(out / name).convert("L"), dtype=float)

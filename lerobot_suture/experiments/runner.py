@@ -280,6 +280,11 @@ def run_experiments(cfg: ExperimentsConfig) -> dict:
             "expert_success_rate": expert_successes / len(expert) if expert else None,
             "expert_success_rate_wilson95": metrics.wilson_interval(expert_successes, len(expert)),
             "false_alarms": metrics.alarm_rates([_alarms(log) for log in nominal]),
+            # A failed nominal run goes on past every demonstration: say where the alarms fell.
+            "false_alarms_by_outcome": {
+                outcome: metrics.alarm_rates([_alarms(log) for log in nominal if log.success == succeeded])
+                for outcome, succeeded in (("successful", True), ("failed", False))
+            },
             # Where the successful episodes peak: the end of the task sets the per-episode threshold.
             "score_max_in_last_steps": {
                 "end_steps": metrics.END_OF_TASK_STEPS,
@@ -355,6 +360,18 @@ def _settings_note(calibration: dict) -> str:
     )
 
 
+def _by_outcome(by_outcome: dict | None) -> str:
+    """Alarmed episodes among the successful and the failed nominal ones (absent from older results)."""
+    if not by_outcome:
+        return ""
+    parts = [
+        f"{round(rates['per_episode'] * rates['episodes'])} of {rates['episodes']} {outcome}"
+        for outcome, rates in by_outcome.items()
+        if rates["episodes"]
+    ]
+    return f" (alarmed episodes: {', '.join(parts)})" if parts else ""
+
+
 def _end_of_task_lines(end: dict | None) -> list[str]:
     """Where the nominal maxima fall (absent from results written before it was kept)."""
     if not end:
@@ -406,7 +423,7 @@ def render_report(result: dict) -> str:
         f"[{_fmt(e_low)}, {_fmt(e_high)}] |",
         "",
         f"False alarms on nominal episodes: {_fmt(nominal['false_alarms']['per_step'])} per step, "
-        f"{_fmt(nominal['false_alarms']['per_episode'])} per episode.",
+        f"{_fmt(nominal['false_alarms']['per_episode'])} per episode{_by_outcome(nominal.get('false_alarms_by_outcome'))}.",
         *_end_of_task_lines(nominal.get("score_max_in_last_steps")),
         "",
         *_insertion_lines(nominal.get("insertion")),
