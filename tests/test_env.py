@@ -17,7 +17,7 @@ import lerobot_suture
 from lerobot_suture.expert import ExpertConfig, ScriptedExpert
 from lerobot_suture.rollout_expert import iter_expert_steps
 from lerobot_suture.sim import suture_env
-from lerobot_suture.sim.geometry import pose_vector
+from lerobot_suture.sim.geometry import grasp_transform, pose_vector
 from lerobot_suture.sim.scenarios import SCENARIOS, ScenarioConfig
 from lerobot_suture.sim.suture_env import SCENE_XML, SutureEnv
 
@@ -195,6 +195,30 @@ def test_expert_assuming_the_nominal_grasp_misses_by_the_grasp_error():
     # Planning with the wrong grasp puts the tip off the mark by the grasp's error, within tolerance.
     assert true_entry < 1e-4 < info["entry_error_m"] < suture_env.ENTRY_TOLERANCE
     assert info["needle_in_tissue"] and info["is_success"]
+
+
+def test_a_throw_off_the_marks_ends_the_episode_as_a_failure():
+    """The needle sits 3 mm further along the jaw than the expert believes (it plans with the nominal
+    grasp): the tip enters and emerges off the marks, and the episode ends when the throw is over, as
+    a success would, instead of driving on to the time limit."""
+    env = make()
+    env.reset(seed=0)
+    u = env.unwrapped
+    u._grasp_pos, u._grasp_rot = grasp_transform(suture_env.GRASP_ANGLE, -0.003, 0.0)
+    u._snap_needle_to_jaw()
+    expert = ScriptedExpert(ExpertConfig(assume_nominal_grasp=True))
+    expert.reset(env)
+    for _ in range(100):
+        _, reward, terminated, truncated, info = env.step(expert.act(env))
+        if terminated or truncated:
+            break
+    assert terminated and not truncated
+    assert not info["is_success"] and reward == 0.0
+    assert (
+        info["entry_error_m"] > suture_env.ENTRY_TOLERANCE
+        and info["exit_error_m"] > suture_env.EXIT_TOLERANCE
+    )
+    assert info["protrusion_m"] >= suture_env.MIN_PROTRUSION and info["needle_in_tissue"]
 
 
 @pytest.mark.parametrize("scenario", [s for s in SCENARIOS if s != "nominal"])

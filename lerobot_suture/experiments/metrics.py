@@ -72,7 +72,8 @@ def auroc_over_common_steps(
     """Episode-level AUROC with each (negative, positive) pair compared over the control steps both lasted.
 
     Each episode's score is its maximum score over the first ``min(len(negative), len(positive))``
-    steps. An episode that runs on (a failed one goes to the time limit; a nominal one ends at success)
+    steps. An episode that runs on (one whose throw never finishes goes to the time limit; a nominal one
+    ends when its throw is over)
     then cannot win on steps the other never reached: this AUROC measures what the score says while
     both episodes are under way. With ``onsets`` (the positives' perturbation onset steps), a pair that
     ends at or before its positive's onset says nothing about the perturbation and is skipped, as is a

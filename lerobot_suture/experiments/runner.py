@@ -441,9 +441,9 @@ def render_report(result: dict) -> str:
         )
     lines += [
         "",
-        "AUROC vs nominal compares each episode's largest score; a perturbed run that fails goes on to "
-        "the time limit, past where nominal episodes end at success. AUROC over common steps compares "
-        "each pair of episodes over the control steps both lasted.",
+        "AUROC vs nominal compares each episode's largest score; a perturbed run whose throw never "
+        "finishes (a dropped needle) goes on to the time limit, past where nominal episodes end. AUROC "
+        "over common steps compares each pair of episodes over the control steps both lasted.",
     ]
     lines += ["", "## Control barrier function (experiment 4)", ""]
     replay = result["cbf"]["offline_replay"]

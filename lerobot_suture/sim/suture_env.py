@@ -50,9 +50,12 @@ offset along the jaw and its roll slightly; the arm starts near its home pose ab
 randomness comes from ``self.np_random`` (seeded by ``reset(seed=...)``).
 
 ## Episode End
-Terminated on success: the tip entered within ``ENTRY_TOLERANCE`` of the entry point, emerged within
-``EXIT_TOLERANCE`` of the exit point, protrudes at least ``MIN_PROTRUSION`` beyond it and the needle
-still spans the wound. Truncated by the registered ``max_episode_steps`` (100 = 10 s).
+Terminated when the throw is over: the tip has emerged and protrudes at least ``MIN_PROTRUSION``
+beyond where it left the tissue, the needle still spanning the wound. It succeeded
+(``info["is_success"]``) if the tip entered within ``ENTRY_TOLERANCE`` of the entry point and emerged
+within ``EXIT_TOLERANCE`` of the exit point; a throw off the marks is over too, since driving on only
+pulls the needle further through the wrong holes. Truncated by the registered ``max_episode_steps``
+(100 = 10 s).
 
 ## Info
 ``is_success``; ``reward_success`` (the reward's only term); ``entry_error_m`` and ``exit_error_m``
@@ -481,12 +484,13 @@ class SutureEnv(gym.Env):
 
         self._step_index += 1
         self._update_tissue_state()
-        success = self._is_success()
+        throw_over = self._throw_over()
+        success = throw_over and self._on_the_marks()
         reward = 1.0 if success else 0.0
         info = self._info(success=success, v_nominal=v_nominal, v_command=v_command)
         if trace is not None:
             info["needle_tip_trace"] = trace
-        return self._observation(), reward, success, False, info
+        return self._observation(), reward, throw_over, False, info
 
     def render(self):
         if self.render_mode != "rgb_array":
@@ -649,13 +653,13 @@ class SutureEnv(gym.Env):
             return 0.0
         return float(np.linalg.norm(self._prev_tip_local - self._exit_location))
 
-    def _is_success(self) -> bool:
-        return bool(
-            self._entry_error <= ENTRY_TOLERANCE
-            and self._exit_error <= EXIT_TOLERANCE
-            and self._protrusion() >= MIN_PROTRUSION
-            and self._in_tissue
-        )
+    def _throw_over(self) -> bool:
+        """The tip protrudes ``MIN_PROTRUSION`` beyond where it emerged, the needle spanning the wound."""
+        return bool(self._protrusion() >= MIN_PROTRUSION and self._in_tissue)
+
+    def _on_the_marks(self) -> bool:
+        """The tip entered and emerged within tolerance of the marked entry and exit points."""
+        return bool(self._entry_error <= ENTRY_TOLERANCE and self._exit_error <= EXIT_TOLERANCE)
 
     def _observation(self) -> dict:
         jaw_pos, jaw_rot = self.jaw_pose()
