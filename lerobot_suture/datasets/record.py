@@ -149,9 +149,9 @@ class RecordConfig:
         seed: env seed of the first attempt; attempt ``k`` uses ``seed + k``.
         steps_after_success: control steps recorded after the insertion succeeds, the expert driving on
             (its planned protrusion raised by the arc it turns in them, :func:`expert_config`). A policy's
-            episode ends at success, so the action chunks it predicts there then reach into demonstrated
-            motion instead of the padded stop at a demonstration's last frame. 0: episodes end at
-            success (the paper's demonstrations).
+            episode ends when the throw is over, so the action chunks it predicts there then reach into
+            demonstrated motion instead of the padded stop at a demonstration's last frame. 0: episodes
+            end at success (the paper's demonstrations).
         video: store images as MP4 video (true) or as PNG frames in the parquet files (false).
         checkpoint_every: episodes between durable checkpoints (finalize + resume): a SIGKILL loses
             at most this many; each checkpoint starts new data/video files. >= 1.

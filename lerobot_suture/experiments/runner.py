@@ -280,12 +280,12 @@ def run_experiments(cfg: ExperimentsConfig) -> dict:
             "expert_success_rate": expert_successes / len(expert) if expert else None,
             "expert_success_rate_wilson95": metrics.wilson_interval(expert_successes, len(expert)),
             "false_alarms": metrics.alarm_rates([_alarms(log) for log in nominal]),
-            # A failed nominal run goes on past every demonstration: say where the alarms fell.
+            # An alarm on a nominal run the policy is failing is not the same as one on a success.
             "false_alarms_by_outcome": {
                 outcome: metrics.alarm_rates([_alarms(log) for log in nominal if log.success == succeeded])
                 for outcome, succeeded in (("successful", True), ("failed", False))
             },
-            # Where the successful episodes peak: the end of the task sets the per-episode threshold.
+            # Where the successful episodes peak: at the end of the task, or anywhere.
             "score_max_in_last_steps": {
                 "end_steps": metrics.END_OF_TASK_STEPS,
                 "share_of_successful_episodes": metrics.share_of_maxima_at_end(
@@ -379,8 +379,7 @@ def _end_of_task_lines(end: dict | None) -> list[str]:
     return [
         "",
         f"The largest score of {_fmt(end['share_of_successful_episodes'])} of the successful nominal episodes "
-        f"falls in their last {end['end_steps']} control steps (the end of the task, where the per-episode "
-        "threshold is then set).",
+        f"falls in their last {end['end_steps']} control steps (the end of the task).",
     ]
 
 
