@@ -23,6 +23,7 @@ from lerobot_suture.datasets.record import (
     SUCCESS_KEY,
     RecordConfig,
     RecordingInterrupted,
+    expert_config,
     main,
     make_env,
     record,
@@ -192,6 +193,36 @@ def test_steps_after_success_record_the_expert_driving_on(tmp_path):
     assert metadata.read_episode_log(root)["expert"]["config"]["protrusion_angle"] > 0.5
     with pytest.raises(ValueError, match="recorded with --steps_after_success=10"):
         record(_cfg(root, num_episodes=2, obs_type="state", resume=True))
+
+
+def test_episodes_past_success_are_discarded_when_cut_short_or_lost(monkeypatch):
+    import gymnasium as gym
+
+    from lerobot_suture import ENV_ID
+    from lerobot_suture.sim.suture_env import SutureEnv
+
+    env = make_env("state", 32, "nominal")
+    n = rollout_expert(env, ScriptedExpert(), seed=0).length
+    env.close()
+    # The time limit falls 2 steps after success: 5 were asked for.
+    env = gym.make(ENV_ID, obs_type="state", max_episode_steps=n + 2, disable_env_checker=True)
+    cut = rollout_expert(env, ScriptedExpert(expert_config(5)), seed=0, steps_after_success=5)
+    assert not cut.success and cut.reason == "time limit after success" and cut.length == n + 2
+    # The insertion stops counting as on the marks 3 steps after success.
+    on_the_marks = SutureEnv._on_the_marks
+    calls = {"after": 0}
+
+    def lapsing(self):
+        if self._throw_over():
+            calls["after"] += 1
+        return on_the_marks(self) and calls["after"] < 4
+
+    monkeypatch.setattr(SutureEnv, "_on_the_marks", lapsing)
+    env = make_env("state", 32, "nominal")
+    lost = rollout_expert(env, ScriptedExpert(expert_config(5)), seed=0, steps_after_success=5)
+    env.close()
+    assert not lost.success and lost.reason == "success lost while driving on"
+    assert f"lost it at step {n + 3}" in lost.detail and "--steps_after_success" in lost.detail
 
 
 # ------------------------------------------------------------------------------ discards, interrupts

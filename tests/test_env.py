@@ -198,7 +198,7 @@ def test_expert_assuming_the_nominal_grasp_misses_by_the_grasp_error():
 
 
 def test_a_throw_off_the_marks_ends_the_episode_as_a_failure():
-    """The needle sits 3 mm further along the jaw than the expert believes (it plans with the nominal
+    """The needle sits 3 mm off along the jaw from where the expert believes (it plans with the nominal
     grasp): the tip enters and emerges off the marks, and the episode ends when the throw is over, as
     a success would, instead of driving on to the time limit."""
     env = make()

@@ -68,6 +68,7 @@ def test_detection_delay_counts_from_onset_to_the_first_alarm_at_or_after_it():
 def test_alarm_rates_per_step_and_per_episode():
     rates = metrics.alarm_rates([[False, True], [False, False], [False, False]])
     assert rates["per_step"] == pytest.approx(1 / 6) and rates["per_episode"] == pytest.approx(1 / 3)
+    assert rates["episodes"] == 3 and rates["alarmed_episodes"] == 1
 
 
 def test_insertion_accuracy_counts_tolerances_and_missed_crossings():

@@ -37,7 +37,7 @@ _DESCRIPTIONS = {
     "observation.environment_state": "privileged: entry, exit, needle centre (m), needle rotation "
     "columns, needle tip (m)",
     "action": "target jaw-tip pose at the end of the control step",
-    "next.reward": "1 on the step the insertion succeeds",
+    "next.reward": "1 from the step the insertion succeeds on",
     "next.success": "the insertion succeeded after this action",
     "next.done": "the episode ended after this action",
     "timestamp": "time since the episode start (s)",

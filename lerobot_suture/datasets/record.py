@@ -77,7 +77,8 @@ FPS = round(1.0 / suture_env.CONTROL_DT)
 """Dataset fps: the env's control rate (10 Hz)."""
 MAX_STEPS_AFTER_SUCCESS = 10
 """Most control steps ``--steps_after_success`` records past success: 6 mm more of the 31 mm needle
-through the tissue (the expert's insertions of seeds 0-39 all stay successful through 10)."""
+through the tissue (the expert's nominal insertions of seeds 0-39 all stay successful through 10; an
+episode whose success lapses is discarded)."""
 
 IMAGE_KEY = "observation.images.endoscope"
 STATE_KEY = "observation.state"
@@ -327,7 +328,7 @@ def rollout_expert(
         seed: env seed.
         on_step: called after every control step (progress).
         steps_after_success: control steps recorded after the insertion succeeds; the episode counts as a
-            success only if it still holds at the last of them.
+            success only if all of them are recorded and the insertion holds through every one.
     """
     obs, info = env.reset(seed=seed)
     frames = []
@@ -348,10 +349,25 @@ def rollout_expert(
         info = step.info
         if on_step is not None:
             on_step()
-    success = bool(info["is_success"])
-    rollout = ExpertRollout(seed=seed, frames=frames, success=success, info=info)
-    if not success:
+    rollout = ExpertRollout(seed=seed, frames=frames, success=False, info=info)
+    succeeded = [bool(f[SUCCESS_KEY][0]) for f in frames]
+    if True not in succeeded:
         rollout.reason, rollout.detail = _failure_reason(info, len(frames))
+        return rollout
+    first = succeeded.index(True)
+    after = len(frames) - 1 - first
+    if not all(succeeded[first:]):
+        lost = first + succeeded[first:].index(False)
+        rollout.reason = "success lost while driving on"
+        rollout.detail = (
+            f"succeeded at step {first + 1}, lost it at step {lost + 1} of the {steps_after_success} steps "
+            "after success; record with a smaller --steps_after_success"
+        )
+    elif after < steps_after_success:
+        rollout.reason = "time limit after success"
+        rollout.detail = f"{after} of the {steps_after_success} steps after success fit in the time limit"
+    else:
+        rollout.success = True
     return rollout
 
 

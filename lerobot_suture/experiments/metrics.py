@@ -50,8 +50,8 @@ def episode_score(scores: Sequence[float], start: int = 0) -> float:
 def share_of_maxima_at_end(score_sequences: Sequence[Sequence[float]], end_steps: int) -> float:
     """Share of episodes whose largest score falls in their last ``end_steps`` control steps.
 
-    Over successful nominal episodes it says how much the end of the task, rather than anything
-    unusual, sets the per-episode threshold. NaN scores are ignored; nan when no episode has a score.
+    Over successful nominal episodes it says how often the end of the task, rather than anything
+    unusual, raises the score most. NaN scores are ignored; nan when no episode has a score.
     """
     if end_steps < 1:
         raise ValueError(f"`end_steps` must be >= 1. Got {end_steps}.")
@@ -73,9 +73,8 @@ def auroc_over_common_steps(
 
     Each episode's score is its maximum score over the first ``min(len(negative), len(positive))``
     steps. An episode that runs on (one whose throw never finishes goes to the time limit; a nominal one
-    ends when its throw is over)
-    then cannot win on steps the other never reached: this AUROC measures what the score says while
-    both episodes are under way. With ``onsets`` (the positives' perturbation onset steps), a pair that
+    ends when its throw is over) then cannot win on steps the other never reached: this AUROC measures
+    what the score says while both episodes are under way. With ``onsets`` (the positives' perturbation onset steps), a pair that
     ends at or before its positive's onset says nothing about the perturbation and is skipped, as is a
     pair whose scores are NaN over all its common steps. nan when no pair is left.
     """
@@ -143,6 +142,7 @@ def alarm_rates(alarm_sequences: Sequence[Sequence[bool]]) -> dict:
         "per_step": float(sum(sum(a) for a in alarm_sequences) / steps) if steps else math.nan,
         "per_episode": float(np.mean([any(a) for a in alarm_sequences])) if alarm_sequences else math.nan,
         "episodes": len(alarm_sequences),
+        "alarmed_episodes": sum(any(a) for a in alarm_sequences),
     }
 
 

@@ -365,7 +365,7 @@ def _by_outcome(by_outcome: dict | None) -> str:
     if not by_outcome:
         return ""
     parts = [
-        f"{round(rates['per_episode'] * rates['episodes'])} of {rates['episodes']} {outcome}"
+        f"{rates['alarmed_episodes']} of {rates['episodes']} {outcome}"
         for outcome, rates in by_outcome.items()
         if rates["episodes"]
     ]
@@ -376,6 +376,8 @@ def _end_of_task_lines(end: dict | None) -> list[str]:
     """Where the nominal maxima fall (absent from results written before it was kept)."""
     if not end:
         return []
+    if math.isnan(end["share_of_successful_episodes"]):
+        return ["", "No nominal episode succeeded, so none says where its largest score falls."]
     return [
         "",
         f"The largest score of {_fmt(end['share_of_successful_episodes'])} of the successful nominal episodes "
