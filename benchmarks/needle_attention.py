@@ -16,6 +16,11 @@ prints one JSON line of medians over the probed frames:
   ``phantom_score_ratio``: the uncertainty score then, over the score with the phantom in place;
 - ``hidden_score_ratio``: the uncertainty score with the needle hidden over the score with it shown;
   ``noise_score_ratio``: the same for another noise draw;
+- ``keypoint_error_px`` and ``hidden_keypoint_shift_px``, for a policy trained with the auxiliary needle
+  target (``--policy.needle_keypoints_weight``; null otherwise): how far the members' mean estimate of
+  the needle's tip, middle and tail lies from the true ones, and how far it moves when the needle is
+  hidden (mean over the three points, image pixels at the env's image size). An encoder that finds the
+  needle itself moves its estimate when the needle vanishes; one that infers it from the jaw does not;
 - ``inserted``: the same medians over only the probed frames where the needle is already in the tissue
   (``frames`` of them; the fields are null when there is none). Experiment 3.2 moves the phantom in
   this phase, so its ``phantom_shift_mm`` says whether the members still watch the phantom there.
@@ -62,6 +67,14 @@ def _prediction(runner: PolicyRunner, observation: dict, noise: torch.Tensor) ->
     return prediction.unnormalized.mean[0, 0, :3].numpy() * 1e3, float(prediction.score[0])
 
 
+def _keypoint_estimate(runner: PolicyRunner, observation: dict) -> np.ndarray | None:
+    """The members' mean estimate of the needle keypoints, (3, 2) normalized; None without keypoint heads."""
+    if runner.policy.needle_heads is None:
+        return None
+    estimate = runner.policy.predict_needle_keypoints(runner.preprocess([observation]))
+    return estimate[0].float().mean(0).reshape(-1, 2).numpy()
+
+
 def _phantom_moved_observation(sim) -> dict:
     """The current observation rendered with the phantom moved by ``PHANTOM_PROBE_SHIFT``, then put back."""
     import mujoco  # after lerobot_suture, which picks MuJoCo's GL backend
@@ -106,6 +119,16 @@ def needle_attention(checkpoint: Path, episodes: int, probe_steps: list[int], de
                 other_pos, other_score = _prediction(runner, observation, other_noise)
                 moved_pos, moved_score = _prediction(runner, moved, noise)
                 changed = observation["pixels"]["endoscope"] != hidden["pixels"]["endoscope"]
+                px = env.unwrapped.image_size / 2  # pixels per normalized image unit
+                truth = env.unwrapped.needle_keypoints_in_image().reshape(-1, 2)
+                shown_kp, hidden_kp = (
+                    _keypoint_estimate(runner, observation),
+                    _keypoint_estimate(runner, hidden),
+                )
+                keypoint_error = keypoint_shift = np.nan
+                if shown_kp is not None:
+                    keypoint_error = px * np.linalg.norm(shown_kp - truth, axis=1).mean()
+                    keypoint_shift = px * np.linalg.norm(hidden_kp - shown_kp, axis=1).mean()
                 rows.append(
                     (
                         int(changed.any(-1).sum()),
@@ -115,6 +138,8 @@ def needle_attention(checkpoint: Path, episodes: int, probe_steps: list[int], de
                         hidden_score / shown_score,
                         other_score / shown_score,
                         moved_score / shown_score,
+                        keypoint_error,
+                        keypoint_shift,
                         float(env.unwrapped.needle_in_tissue),
                     )
                 )
@@ -150,6 +175,8 @@ def _medians(rows: np.ndarray) -> dict:
         "hidden_score_ratio": field(4, 4),
         "noise_score_ratio": field(5, 4),
         "phantom_score_ratio": field(6, 4),
+        "keypoint_error_px": field(7, 2),
+        "hidden_keypoint_shift_px": field(8, 2),
     }
 
 

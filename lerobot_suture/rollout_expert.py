@@ -18,6 +18,7 @@ class ExpertStep:
     """One control step of the expert: the observation it acted on, its action and what followed."""
 
     obs: dict
+    needle_keypoints: np.ndarray  # (6,) where the needle was in the image of ``obs`` (privileged)
     action: np.ndarray
     reward: float
     terminated: bool
@@ -44,6 +45,7 @@ def iter_expert_steps(
     expert.reset(env)
     remaining = None  # control steps left once the insertion has succeeded
     while True:
+        needle_keypoints = env.unwrapped.needle_keypoints_in_image()
         action = expert.act(env)
         next_obs, reward, terminated, truncated, info = env.step(action)
         if remaining is not None:
@@ -52,7 +54,9 @@ def iter_expert_steps(
             remaining = steps_after_success
         if remaining is not None:
             terminated = remaining == 0  # the episode, as recorded, ends after the extra steps
-        yield ExpertStep(obs, action, float(reward), bool(terminated), bool(truncated), info)
+        yield ExpertStep(
+            obs, needle_keypoints, action, float(reward), bool(terminated), bool(truncated), info
+        )
         if terminated or truncated:
             return
         obs = next_obs

@@ -25,6 +25,7 @@ from lerobot_suture.datasets.record import (
     ACTION_KEY,
     ENV_STATE_KEY,
     IMAGE_KEY,
+    NEEDLE_KEYPOINTS_KEY,
     STATE_KEY,
     TASK,
     RecordConfig,
@@ -96,6 +97,7 @@ def test_loads_offline_with_the_right_features_and_counts(tiny, backend):
     assert tuple(features[STATE_KEY]["shape"]) == (10,)
     assert tuple(features[ACTION_KEY]["shape"]) == (10,)
     assert tuple(features[ENV_STATE_KEY]["shape"]) == (18,)
+    assert tuple(features[NEEDLE_KEYPOINTS_KEY]["shape"]) == (6,)
     item = ds[0]
     assert item[IMAGE_KEY].shape == (3, IMAGE_SIZE, IMAGE_SIZE)
     assert item[IMAGE_KEY].dtype == torch.float32
@@ -115,6 +117,9 @@ def test_frames_are_the_expert_episode_regenerated_from_its_seed(tiny, backend):
     states = torch.stack([ds[i][STATE_KEY] for i in range(n)]).numpy()
     np.testing.assert_array_equal(actions, regenerated[ACTION_KEY])
     np.testing.assert_array_equal(states, regenerated[STATE_KEY])
+    keypoints = torch.stack([ds[i][NEEDLE_KEYPOINTS_KEY] for i in range(n)]).numpy()
+    np.testing.assert_array_equal(keypoints, regenerated[NEEDLE_KEYPOINTS_KEY])
+    assert np.all(np.abs(keypoints) < 1)  # the needle stays in view
     # Video is lossy: decoded frames are close to the rendered ones, not equal.
     decoded = ds[n - 1][IMAGE_KEY].permute(1, 2, 0).numpy() * 255.0
     rendered = regenerated[IMAGE_KEY][n - 1].astype(np.float64)
@@ -150,6 +155,7 @@ def test_episode_log_records_seeds_split_and_survives_finalize(tiny):
         "obs_type": "pixels_agent_pos_state",
         "image_size": IMAGE_SIZE,
         "scenario": "nominal",
+        "grasp": "narrow",
     }
     assert train_episodes(tiny.root) == [0, 1] and validation_episodes(tiny.root) == [2]
     assert validation_seeds(tiny.root) == [2]
@@ -213,6 +219,7 @@ def test_dataset_card_says_what_the_dataset_is(tiny):
         "--dataset.eval_split=0.25",
         "`observation.images.endoscope` | video | (32, 32, 3)",
         "`observation.environment_state` | float32 | (18,)",
+        "`observation.needle_keypoints` | float32 | (6,)",
         log["command"],
         "License: Apache-2.0",
     ):

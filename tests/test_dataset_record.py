@@ -93,6 +93,7 @@ def test_malformed_repo_id_is_an_error_before_any_work(repo_id, match, tmp_path,
         ("--checkpoint_every=0", "`checkpoint_every` must be >= 1"),
         ("--steps_after_success=11", r"`steps_after_success` must be in \[0, 10\] control steps"),
         ("--steps_after_success=-1", r"`steps_after_success` must be in \[0, 10\] control steps"),
+        ("--grasp=loose", r"`grasp` must be one of \['narrow', 'wide'\]"),
     ],
 )
 def test_bad_flags_name_the_field(flag, match, tmp_path):
@@ -164,6 +165,7 @@ def test_other_storage_layouts_load(tmp_path, obs_type, video, image_dtype):
     features = _load(root).features
     assert features.get("observation.images.endoscope", {}).get("dtype") == image_dtype
     assert ("observation.environment_state" in features) == (obs_type == "state")
+    assert ("observation.needle_keypoints" in features) == (obs_type != "state")
 
 
 def test_steps_after_success_record_the_expert_driving_on(tmp_path):
@@ -302,6 +304,8 @@ def test_interrupts_keep_finished_episodes_and_resume_continues(tmp_path, monkey
     # Resuming with different recording settings is refused, naming the recorded value.
     with pytest.raises(ValueError, match="recorded with --image_size=32"):
         record(_cfg(root, num_episodes=4, resume=True, image_size=48))
+    with pytest.raises(ValueError, match="recorded with --grasp=narrow"):
+        record(_cfg(root, num_episodes=4, resume=True, grasp="wide"))
 
 
 def test_sigkill_loses_only_episodes_since_the_last_checkpoint(tmp_path, caplog):

@@ -102,6 +102,7 @@ def test_every_diffusion_field_is_reused():
         ({"logdet_eps": 0.0}, "`logdet_eps` must be > 0"),
         ({"n_action_steps": 8}, r"`n_action_steps` must be <= `horizon - n_obs_steps \+ 1` \(7\). Got 8."),
         ({"num_inference_steps": 20}, r"`num_inference_steps` must be in \[1, 10\]"),
+        ({"needle_keypoints_weight": -1.0}, "`needle_keypoints_weight` must be >= 0"),
         # DiffusionConfig's own check still runs.
         ({"down_dims": (8, 16, 32, 64)}, "horizon should be an integer multiple"),
     ],

@@ -375,3 +375,77 @@ def test_unnormalized_needs_stats():
     assert not policy.has_action_stats
     with pytest.raises(ValueError, match="needs the action statistics"):
         policy.predict_action_distribution(random_observation(policy.config))
+
+
+# ---- the auxiliary needle target --------------------------------------------------------------------
+NEEDLE_KEY = "observation.needle_keypoints"
+
+
+def _needle_inputs():
+    from lerobot.configs import FeatureType, PolicyFeature
+    from lerobot_policy_ensemble_diffusion.testing import SUTURE_INPUT_FEATURES
+
+    return {**SUTURE_INPUT_FEATURES, NEEDLE_KEY: PolicyFeature(type=FeatureType.STATE, shape=(6,))}
+
+
+def _needle_policy(weight: float) -> EnsembleDiffusionPolicy:
+    torch.manual_seed(0)
+    config = tiny_config(input_features=_needle_inputs(), needle_keypoints_weight=weight)
+    return EnsembleDiffusionPolicy(config, dataset_stats=fake_dataset_stats())
+
+
+def test_needle_keypoints_are_a_target_never_an_input():
+    """lerobot-train lists every `observation.*` dataset feature as an input; the keypoints are taken out."""
+    policy = _needle_policy(weight=0.0)
+    assert NEEDLE_KEY not in policy.config.input_features
+    assert policy.config.needle_keypoints_dim == 6 and policy.needle_heads is None
+    with pytest.raises(ValueError, match="needs the dataset feature 'observation.needle_keypoints'"):
+        EnsembleDiffusionPolicy(tiny_config(needle_keypoints_weight=1.0))
+
+
+def test_needle_loss_adds_the_weighted_keypoint_error_and_trains_the_encoders():
+    policy = _needle_policy(weight=2.0).train()
+    batch = _train_batch(policy.config)
+    batch[NEEDLE_KEY] = torch.rand(4, policy.config.n_obs_steps, 6) * 2 - 1
+    torch.manual_seed(5)
+    loss, output = policy.forward(batch)
+    assert set(output) == {"loss_member_0", "loss_member_1", "loss_needle_keypoints"}
+    members_mean = (output["loss_member_0"] + output["loss_member_1"]) / 2
+    torch.testing.assert_close(
+        loss.item(), members_mean + 2.0 * output["loss_needle_keypoints"], rtol=1e-5, atol=0
+    )
+    # The error is each member's head on that member's image features of the current frame.
+    errors = []
+    for n, member in enumerate(policy.members):
+        images = batch["observation.images.endoscope"][:, -1]
+        features = member.diffusion.rgb_encoder[0](images)
+        predicted = policy.needle_heads[n](features)
+        errors.append(torch.nn.functional.mse_loss(predicted, batch[NEEDLE_KEY][:, -1]))
+    torch.testing.assert_close(
+        output["loss_needle_keypoints"], torch.stack(errors).mean().item(), rtol=1e-5, atol=0
+    )
+    loss.backward()
+    params = list(policy.get_optim_params())
+    assert all(p.grad is not None for p in params)
+    assert any(p is policy.needle_heads[0].weight for p in params)  # the optimizer trains the heads
+    # No hooks are left behind: inference and a plain forward are unchanged.
+    assert not policy.members[0].diffusion.rgb_encoder[0]._forward_hooks
+    del batch[NEEDLE_KEY]
+    with pytest.raises(ValueError, match="needs 'observation.needle_keypoints' in the batch"):
+        policy.forward(batch)
+
+
+def test_needle_heads_are_saved_and_loaded(tmp_path):
+    policy = _needle_policy(weight=1.0).eval()
+    obs = random_observation(policy.config, batch_size=3)
+    estimates = policy.predict_needle_keypoints(obs)
+    assert estimates.shape == (3, 2, 6)
+    member = policy.members[1]
+    features = member.diffusion.rgb_encoder[0](obs["observation.images.endoscope"][:, -1])
+    torch.testing.assert_close(estimates[:, 1], policy.needle_heads[1](features))
+    with pytest.raises(ValueError, match="trained without the auxiliary needle target"):
+        _needle_policy(weight=0.0).predict_needle_keypoints(obs)
+    policy.save_pretrained(tmp_path)
+    loaded = EnsembleDiffusionPolicy.from_pretrained(tmp_path)
+    assert loaded.config.needle_keypoints_dim == 6 and NEEDLE_KEY not in loaded.config.input_features
+    _assert_batch_equal(policy.state_dict(), loaded.state_dict())

@@ -83,6 +83,53 @@ def test_observation_layout_and_render():
     env.close()
 
 
+def test_the_wide_grasp_widens_every_range_of_the_grasp(monkeypatch):
+    """The same seed draws the same uniforms; "wide" scales each of them to its own half-range."""
+    from lerobot_suture.sim import suture_env
+
+    drawn = {}
+
+    def spy(angle, offset, roll, *args, **kwargs):
+        deviation = (angle - suture_env.GRASP_ANGLE, offset, roll)
+        if any(deviation):  # not the nominal grasp
+            drawn.setdefault(grasp, []).append(deviation)
+        return grasp_transform(angle, offset, roll, *args, **kwargs)
+
+    monkeypatch.setattr(suture_env, "grasp_transform", spy)
+    for grasp in ("narrow", "wide"):
+        env = SutureEnv(obs_type="state", grasp=grasp)
+        env.reset(seed=4)
+        env.close()
+    assert [len(d) for d in drawn.values()] == [1, 1]
+    narrow, wide = (np.array(drawn[g][0]) / suture_env.GRASP_RANGES[g] for g in ("narrow", "wide"))
+    np.testing.assert_allclose(wide, narrow, atol=1e-12)
+    assert np.all(np.abs(narrow) <= 1) and np.any(np.abs(narrow) > 0.05)
+    assert np.all(np.array(suture_env.GRASP_RANGES["wide"]) > suture_env.GRASP_RANGES["narrow"])
+    with pytest.raises(ValueError, match=r"`grasp` must be one of \['narrow', 'wide'\]"):
+        SutureEnv(grasp="loose")
+
+
+def test_needle_keypoints_fall_on_the_needle_in_the_image():
+    """The projected tip, middle and tail lie on pixels the needle covers (hiding it changes them)."""
+    env = SutureEnv(obs_type="pixels_agent_pos", image_size=96)
+    env.reset(seed=1)
+    keypoints = env.needle_keypoints_in_image().reshape(3, 2)
+    assert keypoints.dtype == np.float32 and np.all(np.abs(keypoints) < 1)
+    shown, hidden = env.observe(), env.observe(needle_visible=False)
+    changed = (shown["pixels"]["endoscope"] != hidden["pixels"]["endoscope"]).any(-1)
+    for x, y in keypoints:
+        col, row = (np.array([x, y]) + 1) / 2 * 96 - 0.5
+        r0, c0 = int(np.floor(row)), int(np.floor(col))
+        assert changed[r0 : r0 + 2, c0 : c0 + 2].any(), f"no needle pixel at ({x:.3f}, {y:.3f})"
+    # They follow the needle: a dropped needle falls away from where the jaw held it.
+    env.release_needle()
+    hold = env.observe()["agent_pos"]  # the measured pose as the target: the jaw stays put
+    for _ in range(5):
+        env.step(hold)
+    assert np.abs(env.needle_keypoints_in_image().reshape(3, 2) - keypoints).max() > 0.05
+    env.close()
+
+
 def test_observe_can_hide_the_needle_from_the_endoscope_only():
     env = SutureEnv(obs_type="pixels_agent_pos_state", image_size=96)
     obs, _ = env.reset(seed=1)

@@ -36,6 +36,8 @@ _DESCRIPTIONS = {
     "observation.state": "measured jaw-tip pose (pose layout below)",
     "observation.environment_state": "privileged: entry, exit, needle centre (m), needle rotation "
     "columns, needle tip (m)",
+    "observation.needle_keypoints": "privileged: the needle's tip, middle and tail in the endoscope image "
+    "(x right, y down, -1 to 1); a training target (`--policy.needle_keypoints_weight`), not an input",
     "action": "target jaw-tip pose at the end of the control step",
     "next.reward": "1 from the step the insertion succeeds on",
     "next.success": "the insertion succeeded after this action",
@@ -98,6 +100,7 @@ def render_description(root: str | Path, template_path: str | Path | None = None
         for key, ft in info["features"].items()
     ]
     env_kwargs = log["env_kwargs"]
+    grasp_angle, grasp_offset, grasp_roll = se.GRASP_RANGES[env_kwargs.get("grasp", "narrow")]
     context = {
         "paper_title": PAPER_TITLE,
         "paper_url": PAPER_URL,
@@ -125,10 +128,10 @@ def render_description(root: str | Path, template_path: str | Path | None = None
         "phantom_range_mm": f"{se.PHANTOM_RANGE_XY * 1e3:g}",
         "phantom_yaw_rad": f"{se.PHANTOM_YAW_RANGE:g}",
         "phantom_yaw_deg": f"{math.degrees(se.PHANTOM_YAW_RANGE):.1f}",
-        "grasp_angle_deg": f"{math.degrees(se.GRASP_ANGLE_RANGE):g}",
+        "grasp_angle_deg": f"{math.degrees(grasp_angle):g}",
         "grasp_nominal_deg": f"{math.degrees(se.GRASP_ANGLE):g}",
-        "grasp_offset_mm": f"{se.GRASP_OFFSET_RANGE * 1e3:g}",
-        "grasp_roll_rad": f"{se.GRASP_ROLL_RANGE:g}",
+        "grasp_offset_mm": f"{grasp_offset * 1e3:g}",
+        "grasp_roll_rad": f"{grasp_roll:g}",
         "arm_start_noise": ", ".join(f"{x:g}" for x in se.ARM_START_NOISE),
         "expert_class": log["expert"]["class"],
         "expert_config": log["expert"]["config"],

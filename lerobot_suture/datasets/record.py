@@ -14,6 +14,10 @@ feature                                 shape        meaning
                                                      needle rotation columns, needle tip (m);
                                                      only with ``--obs_type=pixels_agent_pos_state``
                                                      or ``state``
+``observation.needle_keypoints``        (6,)         privileged: the needle's tip, middle and tail in
+                                                     the endoscope image (x right, y down, in [-1, 1]);
+                                                     a training target, never a policy input (image
+                                                     datasets only)
 ``action``                              (10,)        target jaw-tip pose, same layout as the state
 ``next.reward`` / ``next.success`` /    (1,)         reward, success and episode end after the action
 ``next.done``
@@ -83,6 +87,7 @@ episode whose success lapses is discarded)."""
 IMAGE_KEY = "observation.images.endoscope"
 STATE_KEY = "observation.state"
 ENV_STATE_KEY = "observation.environment_state"
+NEEDLE_KEYPOINTS_KEY = "observation.needle_keypoints"
 ACTION_KEY = "action"
 REWARD_KEY = "next.reward"
 SUCCESS_KEY = "next.success"
@@ -97,6 +102,8 @@ ENV_STATE_NAMES = (
     + ["needle_r11", "needle_r21", "needle_r31", "needle_r12", "needle_r22", "needle_r32"]
     + [f"needle_tip_{a}" for a in "xyz"]
 )
+NEEDLE_KEYPOINT_NAMES = [f"{point}_{axis}" for point in ("tip", "middle", "tail") for axis in "xy"]
+"""The needle in the endoscope image: normalized x (right) and y (down) of its tip, middle and tail."""
 
 _MAX_DISCARD_RATIO = 1.0
 """A run stops when the attempts it discards exceed this fraction of --num_episodes (and 10)."""
@@ -148,6 +155,9 @@ class RecordConfig:
         scenario: perturbation scenario (``lerobot_suture.sim.scenarios.SCENARIOS``); the expert fails
             under some of them and those episodes are discarded.
         seed: env seed of the first attempt; attempt ``k`` uses ``seed + k``.
+        grasp: the grasp's randomization (``suture_env.GRASP_RANGES``): ``narrow``, that of every scene a
+            policy is tested in, or ``wide``, which contains it and makes the needle's pose in the jaw
+            change the expert's action enough that a policy must read it from the image.
         steps_after_success: control steps recorded after the insertion succeeds, the expert driving on
             (its planned protrusion raised by the arc it turns in them, :func:`expert_config`). A policy's
             episode ends when the throw is over, so the action chunks it predicts there then reach into
@@ -172,6 +182,7 @@ class RecordConfig:
     obs_type: str = "pixels_agent_pos"  # pixels_agent_pos | pixels_agent_pos_state | state
     image_size: int = 96  # endoscope image side (px)
     scenario: str = "nominal"  # perturbation scenario the expert is recorded in
+    grasp: str = "narrow"  # grasp randomization: narrow (the test scenes) | wide
     seed: int = 0  # env seed of the first attempt; attempt k uses seed + k
     steps_after_success: int = 0  # control steps recorded past success, the expert driving on
     # Storage.
@@ -194,6 +205,8 @@ class RecordConfig:
             raise ValueError(f"`image_size` must be in [16, 640] px. Got {self.image_size}.")
         if self.scenario not in SCENARIOS:
             raise ValueError(f"`scenario` must be one of {SCENARIOS}. Got {self.scenario!r}.")
+        if self.grasp not in suture_env.GRASP_RANGES:
+            raise ValueError(f"`grasp` must be one of {list(suture_env.GRASP_RANGES)}. Got {self.grasp!r}.")
         if not 0 <= self.seed < 2**32 - 1_000_000:
             raise ValueError(f"`seed` must be in [0, 2**32 - 1e6). Got {self.seed}.")
         if self.checkpoint_every < 1:
@@ -225,6 +238,8 @@ class RecordConfig:
         for name in ("num_episodes", "val_fraction", "obs_type", "image_size", "scenario", "seed", "video"):
             value = getattr(self, name)
             flags.append(f"--{name}={str(value).lower() if isinstance(value, bool) else value}")
+        if self.grasp != "narrow":
+            flags.append(f"--grasp={self.grasp}")
         if self.steps_after_success:
             flags.append(f"--steps_after_success={self.steps_after_success}")
         if self.checkpoint_every != 10:
@@ -255,6 +270,11 @@ def dataset_features(obs_type: str, image_size: int, video: bool) -> dict[str, d
             "dtype": "video" if video else "image",
             "shape": (image_size, image_size, 3),
             "names": ["height", "width", "channels"],
+        }
+        features[NEEDLE_KEYPOINTS_KEY] = {
+            "dtype": "float32",
+            "shape": (len(NEEDLE_KEYPOINT_NAMES),),
+            "names": NEEDLE_KEYPOINT_NAMES,
         }
     features[STATE_KEY] = {"dtype": "float32", "shape": (10,), "names": list(POSE_NAMES)}
     if obs_type in ("state", "pixels_agent_pos_state"):
@@ -306,10 +326,15 @@ def _failure_reason(info: dict, steps: int) -> tuple[str, str]:
     return "time limit", f"not done within {steps} steps (protrusion {info['protrusion_m'] * 1e3:.2f} mm)"
 
 
-def make_env(obs_type: str, image_size: int, scenario: str):
+def make_env(obs_type: str, image_size: int, scenario: str, grasp: str = "narrow"):
     """The env the dataset is recorded in (``gym.make`` of :data:`~lerobot_suture.ENV_ID`)."""
     return gym.make(
-        ENV_ID, obs_type=obs_type, image_size=image_size, scenario=scenario, disable_env_checker=True
+        ENV_ID,
+        obs_type=obs_type,
+        image_size=image_size,
+        scenario=scenario,
+        grasp=grasp,
+        disable_env_checker=True,
     )
 
 
@@ -343,6 +368,7 @@ def rollout_expert(
         }
         if "pixels" in step.obs:
             frame[IMAGE_KEY] = step.obs["pixels"]["endoscope"]
+            frame[NEEDLE_KEYPOINTS_KEY] = step.needle_keypoints
         if "environment_state" in step.obs:
             frame[ENV_STATE_KEY] = step.obs["environment_state"]
         frames.append(frame)
@@ -503,7 +529,12 @@ def _new_log(cfg: RecordConfig) -> dict:
         "fps": FPS,
         "gym_id": ENV_ID,
         "max_episode_steps": MAX_EPISODE_STEPS,
-        "env_kwargs": {"obs_type": cfg.obs_type, "image_size": cfg.image_size, "scenario": cfg.scenario},
+        "env_kwargs": {
+            "obs_type": cfg.obs_type,
+            "image_size": cfg.image_size,
+            "scenario": cfg.scenario,
+            "grasp": cfg.grasp,
+        },
         "expert": {
             "class": "lerobot_suture.expert.ScriptedExpert",
             "config": dataclasses.asdict(expert_config(cfg.steps_after_success)),
@@ -522,11 +553,12 @@ def _new_log(cfg: RecordConfig) -> dict:
     }
 
 
-_RESUME_FIELDS = ("obs_type", "image_size", "scenario")
+_RESUME_FIELDS = ("obs_type", "image_size", "scenario", "grasp")
 
 
 def _check_resumable(cfg: RecordConfig, log: dict, root: Path) -> None:
     recorded = {
+        "grasp": "narrow",  # absent in logs before it existed
         **log["env_kwargs"],
         "video": log["video"],
         "seed": log["seed"],
@@ -651,7 +683,7 @@ def record(cfg: RecordConfig) -> RecordSummary:
     backend = resolve_video_backend() if cfg.video and cfg.has_images else None
     features = dataset_features(cfg.obs_type, cfg.image_size, cfg.video)
     expert = ScriptedExpert(ExpertConfig(**log["expert"]["config"]))
-    env = make_env(cfg.obs_type, cfg.image_size, cfg.scenario)
+    env = make_env(cfg.obs_type, cfg.image_size, cfg.scenario, cfg.grasp)
     bars_were_enabled = hf_datasets.is_progress_bar_enabled()
     hf_datasets.disable_progress_bars()  # a "Map" bar per saved episode otherwise
 

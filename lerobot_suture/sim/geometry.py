@@ -231,3 +231,26 @@ def grasp_transform(grasp_angle: float, offset_along_jaw: float, roll: float, ra
     position = np.array([0.0, radius, offset_along_jaw])
     tilt = rotation_about_x(roll)
     return tilt @ position, tilt @ rotation
+
+
+def project_to_image(
+    points: np.ndarray, camera_position: np.ndarray, camera_rotation: np.ndarray, fovy: float
+) -> np.ndarray:
+    """Where world points fall in a pinhole camera's square image, in normalized coordinates.
+
+    Args:
+        points: (n, 3) world positions (m).
+        camera_position: (3,) the camera's position (m).
+        camera_rotation: (3, 3) world-from-camera, MuJoCo's convention: columns right, up, backward.
+        fovy: the vertical field of view (rad).
+
+    Returns:
+        (n, 2) ``[x, y]`` with x to the right and y down, -1 and 1 at the image's edges (the pixel grid's
+        convention, so a resize keeps them). Points behind the camera raise a ValueError.
+    """
+    in_camera = (np.asarray(points, dtype=np.float64) - camera_position) @ camera_rotation
+    depth = -in_camera[:, 2]
+    if np.any(depth <= 0):
+        raise ValueError("A point lies behind the camera; it has no image position.")
+    focal = 1.0 / math.tan(fovy / 2)
+    return np.stack([focal * in_camera[:, 0] / depth, -focal * in_camera[:, 1] / depth], axis=1)

@@ -46,7 +46,7 @@ low-dimensional experiments; ``obs_type="pixels_agent_pos_state"``: all three.
 ## Starting State
 The phantom's position is uniform within ``PHANTOM_RANGE_XY`` of the nominal one and its yaw within
 ``PHANTOM_YAW_RANGE``; the grasp angle on the needle within ``GRASP_ANGLE_RANGE`` of the nominal, its
-offset along the jaw and its roll slightly; the arm starts near its home pose above the site. All
+offset along the jaw and its roll slightly (``GRASP_RANGES[grasp]``); the arm starts near its home pose above the site. All
 randomness comes from ``self.np_random`` (seeded by ``reset(seed=...)``).
 
 ## Episode End
@@ -80,6 +80,9 @@ argument                 default                 meaning
 ``record_tip_trace``     ``False``               step physics one at a time and return the needle
                                                  tip after every physics step in
                                                  ``info["needle_tip_trace"]`` (slower)
+``grasp``                ``"narrow"``            grasp randomization (``GRASP_RANGES``): ``narrow``
+                                                 (the test scenes) or ``wide`` (demonstrations
+                                                 that make the needle's pose matter)
 =======================  ======================  ===============================================
 """
 
@@ -106,6 +109,7 @@ from lerobot_suture.sim.geometry import (
     needle_arc_points,
     needle_in_world,
     pose_vector,
+    project_to_image,
     quat_from_matrix,
     rot6_from_matrix,
     rotation_about_z,
@@ -135,6 +139,13 @@ GRASP_ANGLE = math.radians(165.0)
 GRASP_ANGLE_RANGE = math.radians(4.0)
 GRASP_OFFSET_RANGE = 0.0005
 GRASP_ROLL_RANGE = 0.05
+GRASP_RANGES = {
+    "narrow": (GRASP_ANGLE_RANGE, GRASP_OFFSET_RANGE, GRASP_ROLL_RANGE),
+    "wide": (math.radians(12.0), 0.001, 0.10),
+}
+"""Half-ranges of the grasp's randomization (angle rad, offset along the jaw m, roll rad) by name. "narrow"
+is every scene the policy is tested in; "wide" (which contains it) records demonstrations in which the
+needle's pose in the jaw changes the action enough that a policy must read it from the image."""
 ARM_START_NOISE = np.array([0.03, 0.03, 0.002, 0.05, 0.03, 0.03])
 """Half-range of the uniform noise on the arm's start joints (rad; m for insertion), in the order
 outer yaw, outer pitch, insertion, instrument roll, wrist pitch, wrist yaw."""
@@ -167,6 +178,8 @@ MIN_PROTRUSION = 0.003
 _ARM_JOINTS = ("outer_yaw", "outer_pitch", "insertion", "instrument_roll", "wrist_pitch", "wrist_yaw")
 _JAW_OPEN_ANGLE = 0.6  # rad, the jaw joint's range
 _N_ARC_POINTS = 13
+NEEDLE_KEYPOINTS = 3
+"""Points of the needle located in the image by ``needle_keypoints_in_image``: tip, middle, tail."""
 _NEEDLE_CONTACT_BIT = 2  # the needle geoms' contype in scene.xml
 
 
@@ -188,11 +201,14 @@ class SutureEnv(gym.Env):
         scenario_onset_step: int | None = None,
         scenario_magnitude: float | None = None,
         record_tip_trace: bool = False,
+        grasp: str = "narrow",
     ):
         if obs_type not in OBS_TYPES:
             raise ValueError(f"`obs_type` must be one of {OBS_TYPES}. Got {obs_type!r}.")
         if not 16 <= int(image_size) <= 640:
             raise ValueError(f"`image_size` must be in [16, 640] px. Got {image_size}.")
+        if grasp not in GRASP_RANGES:
+            raise ValueError(f"`grasp` must be one of {list(GRASP_RANGES)}. Got {grasp!r}.")
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"`render_mode` must be 'rgb_array' or None. Got {render_mode!r}.")
         if not 16 <= int(render_size) <= 640:
@@ -202,6 +218,7 @@ class SutureEnv(gym.Env):
         self.render_mode = render_mode
         self.render_size = int(render_size)
         self.record_tip_trace = bool(record_tip_trace)
+        self.grasp = grasp
         self.scenario = Scenario(
             ScenarioConfig(name=scenario, onset_step=scenario_onset_step, magnitude=scenario_magnitude)
         )
@@ -231,6 +248,7 @@ class SutureEnv(gym.Env):
         self._exit_local = m.site("exit_point").pos.copy()
         self._arc_local = needle_arc_points(_N_ARC_POINTS)
         self._tip_local = self._arc_local[0]
+        self._keypoints_local = needle_arc_points(NEEDLE_KEYPOINTS)
 
         self.action_space = spaces.Box(
             low=np.concatenate([WORKSPACE_LOW, -np.ones(6), [0.0]]).astype(np.float32),
@@ -314,6 +332,25 @@ class SutureEnv(gym.Env):
     def needle_tip_pos(self) -> np.ndarray:
         centre, rotation = self.needle_pose()
         return centre + rotation @ self._tip_local
+
+    def needle_keypoints_in_image(self) -> np.ndarray:
+        """The needle's tip, middle and tail in the endoscope image: (6,) float32 ``[x, y]`` per point,
+        normalized to [-1, 1] (x right, y down; see ``geometry.project_to_image``).
+
+        Privileged (the simulator's needle pose): recorded as a training target that teaches an image encoder
+        where the needle is, never an input a policy acts on.
+        """
+        self._update_render_poses()
+        centre, rotation = self.needle_pose()
+        points = centre + self._keypoints_local @ rotation.T
+        d = self.data
+        camera_rotation = d.cam_xmat[self._camera].reshape(3, 3)
+        fovy = math.radians(float(self.model.cam_fovy[self._camera]))
+        return (
+            project_to_image(points, d.cam_xpos[self._camera], camera_rotation, fovy)
+            .ravel()
+            .astype(np.float32)
+        )
 
     def jaw_pose(self) -> tuple[np.ndarray, np.ndarray]:
         """Measured jaw-tip pose, world: (position (3,) m, rotation (3, 3))."""
@@ -409,10 +446,11 @@ class SutureEnv(gym.Env):
         self.set_phantom_pose(
             np.array([xy[0], xy[1], PHANTOM_NOMINAL[2]]), rng.uniform(-1, 1) * PHANTOM_YAW_RANGE
         )
+        angle_range, offset_range, roll_range = GRASP_RANGES[self.grasp]
         self._grasp_pos, self._grasp_rot = grasp_transform(
-            GRASP_ANGLE + rng.uniform(-1, 1) * GRASP_ANGLE_RANGE,
-            rng.uniform(-1, 1) * GRASP_OFFSET_RANGE,
-            rng.uniform(-1, 1) * GRASP_ROLL_RANGE,
+            GRASP_ANGLE + rng.uniform(-1, 1) * angle_range,
+            rng.uniform(-1, 1) * offset_range,
+            rng.uniform(-1, 1) * roll_range,
         )
         qpos = self._home_qpos + rng.uniform(-1, 1, size=len(_ARM_JOINTS)) * ARM_START_NOISE
         self.data.qpos[self._arm_qpos] = qpos

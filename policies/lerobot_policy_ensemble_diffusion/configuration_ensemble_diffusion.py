@@ -20,6 +20,7 @@ defaults that the paper fixes are overridden here; the ensemble, uncertainty and
 """
 
 import copy
+import math
 from dataclasses import dataclass, field, fields
 
 from lerobot.configs import PreTrainedConfig
@@ -39,6 +40,9 @@ SCORE_CHOICES = {
     "uncertainty_steps": UNCERTAINTY_STEPS,
 }
 OPTIMIZER_NAMES = ("adam", "adamw")
+NEEDLE_KEYPOINTS_KEY = "observation.needle_keypoints"
+"""The dataset feature `lerobot-suture record` writes with the needle's image position (privileged): a training
+target of `needle_keypoints_weight`, never a policy input."""
 
 
 @dataclass
@@ -116,6 +120,13 @@ class EnsembleDiffusionConfig(DiffusionConfig):
         logdet_eps: Ridge added to Sigma_t before the log-determinant (N samples give a rank <= N - 1
             matrix, whose plain log-determinant is -inf).
         ood: Options of the out-of-distribution gate (see `EnsembleOODConfig`).
+        needle_keypoints_weight: Weight of an auxiliary loss that makes every member's image encoder locate the
+            needle: a linear head on the member's image features regresses the needle's tip, middle and tail
+            in the endoscope image (the dataset's privileged `observation.needle_keypoints`), and its mean
+            squared error, times this weight, is added to the diffusion loss. 0 (default): no auxiliary loss,
+            the paper's training. Used in training only; inference is unchanged.
+        needle_keypoints_dim: Size of that target, taken from the dataset's feature when the policy is built
+            (set automatically; saved so that a checkpoint rebuilds its heads).
         optimizer_name: "adamw" (default; decoupled weight decay, as the paper's 0.1 is meant) or "adam"
             (LeRobot's diffusion preset; L2 penalty). Either is built with PyTorch's fused kernel
             (optimizer types `adamw_fused` / `adam_fused`, see `optim.py`).
@@ -152,6 +163,10 @@ class EnsembleDiffusionConfig(DiffusionConfig):
 
     # Out-of-distribution gate.
     ood: EnsembleOODConfig = field(default_factory=EnsembleOODConfig)
+
+    # Auxiliary training target: where the needle is in the image.
+    needle_keypoints_weight: float = 0.0
+    needle_keypoints_dim: int | None = None
 
     # Optimizer.
     optimizer_name: str = "adamw"
@@ -204,8 +219,27 @@ class EnsembleDiffusionConfig(DiffusionConfig):
                 f"`num_inference_steps` must be in [1, {self.num_train_timesteps}] (`num_train_timesteps`). "
                 f"Got {self.num_inference_steps}."
             )
+        if not (math.isfinite(self.needle_keypoints_weight) and self.needle_keypoints_weight >= 0):
+            raise ValueError(f"`needle_keypoints_weight` must be >= 0. Got {self.needle_keypoints_weight}.")
         if isinstance(self.ood, dict):  # built from Python with a plain dict
             self.ood = EnsembleOODConfig(**self.ood)
+
+    def validate_features(self) -> None:
+        """LeRobot's checks, after taking the needle's keypoints out of the inputs.
+
+        A dataset from `lerobot-suture record` holds `observation.needle_keypoints`, which lerobot-train lists
+        as an input like every `observation.*` feature. It is privileged (the env does not provide it at
+        inference), so it is never an input: only its size is kept, for `needle_keypoints_weight`.
+        """
+        if self.input_features and NEEDLE_KEYPOINTS_KEY in self.input_features:
+            self.needle_keypoints_dim = int(self.input_features.pop(NEEDLE_KEYPOINTS_KEY).shape[0])
+        if self.needle_keypoints_weight > 0 and self.needle_keypoints_dim is None:
+            raise ValueError(
+                f"`needle_keypoints_weight` > 0 needs the dataset feature '{NEEDLE_KEYPOINTS_KEY}', which this "
+                "dataset lacks: record it again with `lerobot-suture record` (its image datasets hold it), or "
+                "train with `--policy.needle_keypoints_weight=0`."
+            )
+        super().validate_features()
 
     def member_config(self) -> DiffusionConfig:
         """The plain LeRobot `DiffusionConfig` of one member (every `DiffusionConfig` field copied)."""

@@ -26,6 +26,7 @@ import math
 import re
 from collections import deque
 from collections.abc import Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -46,7 +47,7 @@ from torch import Tensor, nn
 from lerobot_suture.safety.ood import OODCalibration, OODGate, load_calibration
 
 from .batched_members import FusedDiffusionEnsemble
-from .configuration_ensemble_diffusion import SCORE_CHOICES, EnsembleDiffusionConfig
+from .configuration_ensemble_diffusion import NEEDLE_KEYPOINTS_KEY, SCORE_CHOICES, EnsembleDiffusionConfig
 from .ensemble_stats import EnsembleActionStats, compute_ensemble_stats, uncertainty_score
 
 if TYPE_CHECKING:
@@ -217,6 +218,15 @@ class EnsembleDiffusionPolicy(PreTrainedPolicy):
                     torch.manual_seed(config.member_seeds[i])
                     members.append(DiffusionPolicy(member_config))
         self.members = nn.ModuleList(members)
+        # Training-only heads of the auxiliary needle loss, one per member, on its image features.
+        self.needle_heads: nn.ModuleList | None = None
+        if config.needle_keypoints_weight > 0:
+            if not config.image_features:
+                raise ValueError("`needle_keypoints_weight` > 0 needs an image input; the policy has none.")
+            width = _image_encoders(members[0])[0].feature_dim * len(config.image_features)
+            self.needle_heads = nn.ModuleList(
+                nn.Linear(width, config.needle_keypoints_dim) for _ in range(config.n_members)
+            )
 
         action_dim = config.action_feature.shape[0]
         # x = x_norm * scale + offset inverts the action normalization (NaN: unknown until stats are given).
@@ -265,7 +275,7 @@ class EnsembleDiffusionPolicy(PreTrainedPolicy):
         return bool(torch.isfinite(self.action_unnormalize_scale).all())
 
     def get_optim_params(self) -> dict:
-        return self.members.parameters()
+        return self.parameters()
 
     def reset(self):
         """Clear observation and action queues and the last prediction. Call on `env.reset()`."""
@@ -311,20 +321,84 @@ class EnsembleDiffusionPolicy(PreTrainedPolicy):
 
         Returns:
             loss: scalar tensor, the mean of the N member losses.
-            output: {"loss_member_<n>": float} per member, for logging.
+            output: {"loss_member_<n>": float} per member, for logging, and with `needle_keypoints_weight` > 0
+                "loss_needle_keypoints": the auxiliary loss's mean squared error, averaged over the members.
+
+        With `needle_keypoints_weight` > 0 the loss adds that weight times the auxiliary error.
         """
         batch_size = batch[OBS_STATE].shape[0]
-        losses = []
-        for member in self.members:
+        if self.needle_heads is not None and NEEDLE_KEYPOINTS_KEY not in batch:
+            raise ValueError(
+                f"`needle_keypoints_weight` > 0 needs '{NEEDLE_KEYPOINTS_KEY}' in the batch; got keys "
+                f"{sorted(batch)}. Train on a dataset recorded by `lerobot-suture record`."
+            )
+        losses, needle_errors = [], []
+        for n, member in enumerate(self.members):
             member_batch = batch
             if self.config.bootstrap and self.training:
                 index = torch.randint(0, batch_size, (batch_size,), device=batch[OBS_STATE].device)
                 member_batch = _index_batch(batch, index, batch_size)
-            loss, _ = member.forward(member_batch)
+            if self.needle_heads is None:
+                loss, _ = member.forward(member_batch)
+            else:
+                with _captured_outputs(_image_encoders(member)) as encoded:
+                    loss, _ = member.forward(member_batch)
+                needle_errors.append(self._needle_error(n, encoded, member_batch, batch_size))
             losses.append(loss)
         losses = torch.stack(losses)  # (N,)
         output = {f"loss_member_{n}": value for n, value in enumerate(losses.detach().cpu().tolist())}
-        return losses.mean(), output
+        total = losses.mean()
+        if needle_errors:
+            needle_error = torch.stack(needle_errors).mean()
+            output["loss_needle_keypoints"] = needle_error.item()
+            total = total + self.config.needle_keypoints_weight * needle_error
+        return total, output
+
+    def _needle_error(
+        self, n: int, encoded: list[Tensor], batch: dict[str, Tensor], batch_size: int
+    ) -> Tensor:
+        """Member `n`'s mean squared error in locating the needle from its features of the current image.
+
+        `encoded`: the outputs of the member's image encoder(s) in this loss, as
+        `DiffusionModel._prepare_global_conditioning` makes them: one (B * S * n_cameras, F) from a shared
+        encoder, or one (B * S, F) per camera from separate encoders.
+        """
+        n_encoders = len(_image_encoders(self.members[n]))
+        if len(encoded) != n_encoders:
+            raise RuntimeError(
+                f"Expected one pass of each of member {n}'s {n_encoders} image encoder(s), saw {len(encoded)}."
+            )
+        s = self.config.n_obs_steps
+        features = torch.cat([out.reshape(batch_size, s, -1) for out in encoded], dim=-1)[:, -1]
+        target = batch[NEEDLE_KEYPOINTS_KEY]
+        target = target[:, -1] if target.ndim == 3 else target  # (B, S, D) from the dataset: the current step
+        predicted = self.needle_heads[n](features.float())
+        return nn.functional.mse_loss(predicted, target.to(predicted.dtype))
+
+    @torch.no_grad()
+    def predict_needle_keypoints(self, batch: dict[str, Tensor]) -> Tensor:
+        """(B, N, D): each member's estimate of the needle keypoints from the current image(s).
+
+        The auxiliary heads of `needle_keypoints_weight` read from the members' image features; this says
+        what the encoders see of the needle (`benchmarks/needle_attention.py`). `batch` is a normalized
+        observation, (B, C, H, W) or (B, S, C, H, W) per camera (the last step is read).
+        """
+        if self.needle_heads is None:
+            raise ValueError(
+                "This policy was trained without the auxiliary needle target (`needle_keypoints_weight`=0); it "
+                "has no keypoint heads."
+            )
+        images = [batch[key] for key in self.config.image_features]
+        images = [im[:, -1] if im.ndim == 5 else im for im in images]
+        estimates = []
+        for n, member in enumerate(self.members):
+            encoders = _image_encoders(member)
+            if len(encoders) == 1:
+                features = [encoders[0](im) for im in images]
+            else:
+                features = [encoder(im) for encoder, im in zip(encoders, images, strict=True)]
+            estimates.append(self.needle_heads[n](torch.cat(features, dim=-1)))
+        return torch.stack(estimates, dim=1)
 
     # ---- inference ----------------------------------------------------------------------------------
 
@@ -676,6 +750,24 @@ def _saved_normalizer_stats(directory: Path) -> dict | None:
         if stats:
             return stats
     return None
+
+
+def _image_encoders(member: DiffusionPolicy) -> list[nn.Module]:
+    """A member's image encoder(s): one shared by the cameras, or one per camera."""
+    encoder = member.diffusion.rgb_encoder
+    return list(encoder) if isinstance(encoder, nn.ModuleList) else [encoder]
+
+
+@contextmanager
+def _captured_outputs(modules: list[nn.Module]):
+    """Collect the outputs of `modules`, in call order, while the context is open (forward hooks)."""
+    outputs: list[Tensor] = []
+    handles = [m.register_forward_hook(lambda _m, _args, out: outputs.append(out)) for m in modules]
+    try:
+        yield outputs
+    finally:
+        for handle in handles:
+            handle.remove()
 
 
 def _index_batch(batch: dict, index: Tensor, batch_size: int) -> dict:

@@ -1,0 +1,26 @@
+"""Pure geometry: where a world point falls in the endoscope image."""
+
+import math
+
+import numpy as np
+import pytest
+
+from lerobot_suture.sim.geometry import project_to_image
+
+
+def test_projection_of_points_on_the_axis_and_at_the_edge_of_the_view():
+    # A camera 0.1 m above the origin looking straight down (backward axis +z), right = +x, up = +y.
+    position, rotation = np.array([0.0, 0.0, 0.1]), np.eye(3)
+    fovy = math.radians(40.0)
+    half = 0.1 * math.tan(fovy / 2)  # half the view's height on the plane z = 0
+    points = np.array([[0.0, 0.0, 0.0], [0.0, half, 0.0], [half / 2, -half, 0.0], [0.0, half, -0.1]])
+    np.testing.assert_allclose(
+        project_to_image(points, position, rotation, fovy),
+        [[0.0, 0.0], [0.0, -1.0], [0.5, 1.0], [0.0, -0.5]],  # y down; twice as far, half the offset
+        atol=1e-12,
+    )
+
+
+def test_points_behind_the_camera_are_an_error():
+    with pytest.raises(ValueError, match="behind the camera"):
+        project_to_image(np.array([[0.0, 0.0, 0.2]]), np.array([0.0, 0.0, 0.1]), np.eye(3), 1.0)
