@@ -116,6 +116,16 @@ def test_dataset_recipes_parse(recipe, episodes):
     assert cfg.obs_type == "pixels_agent_pos" and cfg.video and not cfg.push_to_hub
 
 
+def test_the_grasp_blind_expert_plans_with_the_nominal_grasp(tmp_path):
+    from lerobot_suture.datasets.record import expert_config
+
+    assert not expert_config(0).assume_nominal_grasp
+    blind = expert_config(3, grasp_blind_expert=True)
+    assert blind.assume_nominal_grasp and blind.protrusion_angle == expert_config(3).protrusion_angle
+    cfg = _cfg(tmp_path / "ds", grasp_blind_expert=True, grasp="wide")
+    assert "--grasp=wide --grasp_blind_expert=true" in cfg.command()
+
+
 def test_existing_root_without_resume_is_an_error(tmp_path, capsys):
     root = tmp_path / "ds"
     root.mkdir()
@@ -306,6 +316,8 @@ def test_interrupts_keep_finished_episodes_and_resume_continues(tmp_path, monkey
         record(_cfg(root, num_episodes=4, resume=True, image_size=48))
     with pytest.raises(ValueError, match="recorded with --grasp=narrow"):
         record(_cfg(root, num_episodes=4, resume=True, grasp="wide"))
+    with pytest.raises(ValueError, match="recorded with --grasp_blind_expert=false"):
+        record(_cfg(root, num_episodes=4, resume=True, grasp_blind_expert=True))
 
 
 def test_sigkill_loses_only_episodes_since_the_last_checkpoint(tmp_path, caplog):

@@ -158,6 +158,10 @@ class RecordConfig:
         grasp: the grasp's randomization (``suture_env.GRASP_RANGES``): ``narrow``, that of every scene a
             policy is tested in, or ``wide``, which contains it and makes the needle's pose in the jaw
             change the expert's action enough that a policy must read it from the image.
+        grasp_blind_expert: the expert plans with the nominal grasp instead of the true one, as a policy
+            that does not read the needle must (``ExpertConfig.assume_nominal_grasp``). Its motion then
+            does not depend on the grasp, so where the needle is in the image cannot be told from the
+            jaw and the phantom: only from the needle (the target of ``needle_keypoints_weight``).
         steps_after_success: control steps recorded after the insertion succeeds, the expert driving on
             (its planned protrusion raised by the arc it turns in them, :func:`expert_config`). A policy's
             episode ends when the throw is over, so the action chunks it predicts there then reach into
@@ -183,6 +187,7 @@ class RecordConfig:
     image_size: int = 96  # endoscope image side (px)
     scenario: str = "nominal"  # perturbation scenario the expert is recorded in
     grasp: str = "narrow"  # grasp randomization: narrow (the test scenes) | wide
+    grasp_blind_expert: bool = False  # the expert plans with the nominal grasp, not the true one
     seed: int = 0  # env seed of the first attempt; attempt k uses seed + k
     steps_after_success: int = 0  # control steps recorded past success, the expert driving on
     # Storage.
@@ -240,6 +245,8 @@ class RecordConfig:
             flags.append(f"--{name}={str(value).lower() if isinstance(value, bool) else value}")
         if self.grasp != "narrow":
             flags.append(f"--grasp={self.grasp}")
+        if self.grasp_blind_expert:
+            flags.append("--grasp_blind_expert=true")
         if self.steps_after_success:
             flags.append(f"--steps_after_success={self.steps_after_success}")
         if self.checkpoint_every != 10:
@@ -247,12 +254,17 @@ class RecordConfig:
         return " ".join([COMMAND, *(shlex.quote(f) for f in flags)])
 
 
-def expert_config(steps_after_success: int) -> ExpertConfig:
+def expert_config(steps_after_success: int, grasp_blind_expert: bool = False) -> ExpertConfig:
     """The recording expert: the default one, driving on through ``steps_after_success`` control steps
-    past its usual protrusion (at ``drive_rate``), so it still turns the needle in them."""
+    past its usual protrusion (at ``drive_rate``), so it still turns the needle in them; with
+    ``grasp_blind_expert`` it plans with the nominal grasp instead of the true one."""
     default = ExpertConfig()
     extra = steps_after_success * default.drive_rate * suture_env.CONTROL_DT  # rad of arc
-    return dataclasses.replace(default, protrusion_angle=default.protrusion_angle + extra)
+    return dataclasses.replace(
+        default,
+        protrusion_angle=default.protrusion_angle + extra,
+        assume_nominal_grasp=grasp_blind_expert,
+    )
 
 
 def parse_config(argv: list[str] | None = None) -> RecordConfig:
@@ -537,7 +549,7 @@ def _new_log(cfg: RecordConfig) -> dict:
         },
         "expert": {
             "class": "lerobot_suture.expert.ScriptedExpert",
-            "config": dataclasses.asdict(expert_config(cfg.steps_after_success)),
+            "config": dataclasses.asdict(expert_config(cfg.steps_after_success, cfg.grasp_blind_expert)),
         },
         "steps_after_success": cfg.steps_after_success,
         "seed": cfg.seed,
@@ -563,8 +575,9 @@ def _check_resumable(cfg: RecordConfig, log: dict, root: Path) -> None:
         "video": log["video"],
         "seed": log["seed"],
         "steps_after_success": log.get("steps_after_success", 0),  # absent in logs before it existed
+        "grasp_blind_expert": log["expert"]["config"].get("assume_nominal_grasp", False),
     }
-    for name in (*_RESUME_FIELDS, "video", "seed", "steps_after_success"):
+    for name in (*_RESUME_FIELDS, "video", "seed", "steps_after_success", "grasp_blind_expert"):
         if getattr(cfg, name) != recorded[name]:
             value = str(recorded[name]).lower() if isinstance(recorded[name], bool) else recorded[name]
             raise ValueError(
