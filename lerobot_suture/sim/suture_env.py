@@ -45,9 +45,10 @@ low-dimensional experiments; ``obs_type="pixels_agent_pos_state"``: all three.
 
 ## Starting State
 The phantom's position is uniform within ``PHANTOM_RANGE_XY`` of the nominal one and its yaw within
-``PHANTOM_YAW_RANGE``; the grasp angle on the needle within ``GRASP_ANGLE_RANGE`` of the nominal, its
-offset along the jaw and its roll slightly (``GRASP_RANGES[grasp]``); the arm starts near its home pose above the site. All
-randomness comes from ``self.np_random`` (seeded by ``reset(seed=...)``).
+``PHANTOM_YAW_RANGE``; the grasp angle on the needle within 4 degrees of the nominal, its offset along
+the jaw and its roll slightly (``GRASP_RANGES["narrow"]``; ``grasp="wide"`` widens all three); the arm
+starts near its home pose above the site. All randomness comes from ``self.np_random`` (seeded by
+``reset(seed=...)``).
 
 ## Episode End
 Terminated when the throw is over: the tip has emerged and protrudes at least ``MIN_PROTRUSION``
