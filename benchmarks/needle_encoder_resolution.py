@@ -17,7 +17,7 @@ held-out episodes it reports, per encoder, one JSON line:
 
     python benchmarks/needle_encoder_resolution.py [--episodes 30] [--steps 400]
 
-Seeds 4,000,000 on (disjoint from every other use). About 5 minutes on 2 cores.
+Seeds 4,000,000 on (disjoint from every other use). On 2 cores, 20 episodes and 1,500 steps took 9 minutes.
 """
 
 from __future__ import annotations
