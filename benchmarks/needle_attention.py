@@ -119,14 +119,14 @@ def needle_attention(checkpoint: Path, episodes: int, probe_steps: list[int], de
                 other_pos, other_score = _prediction(runner, observation, other_noise)
                 moved_pos, moved_score = _prediction(runner, moved, noise)
                 changed = observation["pixels"]["endoscope"] != hidden["pixels"]["endoscope"]
-                px = env.unwrapped.image_size / 2  # pixels per normalized image unit
-                truth = env.unwrapped.needle_keypoints_in_image().reshape(-1, 2)
                 shown_kp, hidden_kp = (
                     _keypoint_estimate(runner, observation),
                     _keypoint_estimate(runner, hidden),
                 )
                 keypoint_error = keypoint_shift = np.nan
                 if shown_kp is not None:
+                    px = env.unwrapped.image_size / 2  # pixels per normalized image unit
+                    truth = env.unwrapped.needle_keypoints_in_image().reshape(-1, 2)
                     keypoint_error = px * np.linalg.norm(shown_kp - truth, axis=1).mean()
                     keypoint_shift = px * np.linalg.norm(hidden_kp - shown_kp, axis=1).mean()
                 rows.append(

@@ -18,7 +18,7 @@ class ExpertStep:
     """One control step of the expert: the observation it acted on, its action and what followed."""
 
     obs: dict
-    needle_keypoints: np.ndarray  # (6,) where the needle was in the image of ``obs`` (privileged)
+    needle_keypoints: np.ndarray | None  # (6,) the needle in the image of ``obs`` (privileged), if asked for
     action: np.ndarray
     reward: float
     terminated: bool
@@ -31,7 +31,11 @@ class ExpertStep:
 
 
 def iter_expert_steps(
-    env: gym.Env, expert: ScriptedExpert, obs: dict, steps_after_success: int = 0
+    env: gym.Env,
+    expert: ScriptedExpert,
+    obs: dict,
+    steps_after_success: int = 0,
+    needle_keypoints: bool = False,
 ) -> Iterator[ExpertStep]:
     """Yield the expert's steps from ``obs``, the observation ``env.reset`` just returned, to the
     episode's end.
@@ -39,13 +43,15 @@ def iter_expert_steps(
     Args:
         steps_after_success: control steps to go on after the step the insertion succeeds (where the env
             terminates); the last of them is yielded as the terminal step. 0: end at success.
+        needle_keypoints: also locate the needle in the image of each step's observation
+            (``SutureEnv.needle_keypoints_in_image``; a dataset's training target). Otherwise None.
     """
     if steps_after_success < 0:
         raise ValueError(f"`steps_after_success` must be >= 0. Got {steps_after_success}.")
     expert.reset(env)
     remaining = None  # control steps left once the insertion has succeeded
     while True:
-        needle_keypoints = env.unwrapped.needle_keypoints_in_image()
+        keypoints = env.unwrapped.needle_keypoints_in_image() if needle_keypoints else None
         action = expert.act(env)
         next_obs, reward, terminated, truncated, info = env.step(action)
         if remaining is not None:
@@ -54,9 +60,7 @@ def iter_expert_steps(
             remaining = steps_after_success
         if remaining is not None:
             terminated = remaining == 0  # the episode, as recorded, ends after the extra steps
-        yield ExpertStep(
-            obs, needle_keypoints, action, float(reward), bool(terminated), bool(truncated), info
-        )
+        yield ExpertStep(obs, keypoints, action, float(reward), bool(terminated), bool(truncated), info)
         if terminated or truncated:
             return
         obs = next_obs

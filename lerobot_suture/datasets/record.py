@@ -369,7 +369,9 @@ def rollout_expert(
     """
     obs, info = env.reset(seed=seed)
     frames = []
-    for step in iter_expert_steps(env, expert, obs, steps_after_success):
+    # The needle's place in the image is recorded with the image (a target for the image encoders).
+    keypoints = "pixels" in obs
+    for step in iter_expert_steps(env, expert, obs, steps_after_success, needle_keypoints=keypoints):
         frame = {
             STATE_KEY: step.obs["agent_pos"],
             ACTION_KEY: np.asarray(step.action, dtype=np.float32),
