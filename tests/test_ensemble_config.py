@@ -103,6 +103,7 @@ def test_every_diffusion_field_is_reused():
         ({"n_action_steps": 8}, r"`n_action_steps` must be <= `horizon - n_obs_steps \+ 1` \(7\). Got 8."),
         ({"num_inference_steps": 20}, r"`num_inference_steps` must be in \[1, 10\]"),
         ({"needle_keypoints_weight": -1.0}, "`needle_keypoints_weight` must be >= 0"),
+        ({"vision_backbone_stages": 5}, "`vision_backbone_stages` must be 1, 2, 3 or 4. Got 5."),
         # DiffusionConfig's own check still runs.
         ({"down_dims": (8, 16, 32, 64)}, "horizon should be an integer multiple"),
     ],

@@ -295,6 +295,30 @@ def test_fused_copy_follows_weight_updates():
     torch.testing.assert_close(after, reference, rtol=1e-4, atol=1e-4)
 
 
+@pytest.mark.parametrize(("stages", "side"), [(4, 1), (3, 2), (2, 4)])
+def test_cut_backbone_gives_a_finer_map_and_runs_batched(tmp_path, stages, side):
+    """Fewer ResNet stages: a finer spatial-softmax map (1/32, 1/16, 1/8 of the 32 px image); the fused
+    inference still equals the members' own, and a checkpoint rebuilds the cut encoder."""
+    policy = _policy(vision_backbone_stages=stages, noise_scheduler_type="DDIM").eval()
+    encoder = policy.members[0].diffusion.rgb_encoder
+    encoder = encoder[0] if isinstance(encoder, torch.nn.ModuleList) else encoder  # one per camera
+    with torch.no_grad():
+        feature_map = encoder.backbone(torch.zeros(1, 3, 32, 32))
+    assert feature_map.shape[-2:] == (side, side)
+    assert (encoder.pool._in_h, encoder.pool._in_w) == (side, side)
+    obs = random_observation(policy.config, batch_size=2)
+    noise = torch.randn(2, 2, 1, policy.config.horizon, 10)
+    fused = policy.predict_action_distribution(obs, samples_per_member=1, noise=noise)
+    policy.config.batched_inference = False
+    loop = policy.predict_action_distribution(obs, samples_per_member=1, noise=noise)
+    policy.config.batched_inference = True
+    torch.testing.assert_close(fused.normalized.samples, loop.normalized.samples, rtol=1e-4, atol=1e-4)
+    policy.save_pretrained(tmp_path)
+    loaded = EnsembleDiffusionPolicy.from_pretrained(tmp_path)
+    assert loaded.config.vision_backbone_stages == stages
+    _assert_batch_equal(policy.state_dict(), loaded.state_dict())
+
+
 def test_save_load_round_trip_identical_outputs(tmp_path):
     policy = _policy().eval()
     policy.save_pretrained(tmp_path)

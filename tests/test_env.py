@@ -77,9 +77,34 @@ def test_observation_layout_and_render():
     np.testing.assert_allclose(obs["environment_state"][:3], env.entry_point, atol=1e-6)
     frame = env.render()
     assert frame.shape == (64, 64, 3) and frame.dtype == np.uint8
-    # agent_pos is the measured jaw pose in the action's layout.
+    # agent_pos is the measured jaw pose in the action's layout; the needle holds the jaw a little open.
     p, r = env.jaw_pose()
-    np.testing.assert_allclose(obs["agent_pos"], pose_vector(p, r, 1.0), atol=1e-5)
+    closure = 1.0 - env.data.qpos[env.model.joint("jaw").qposadr[0]] / 0.6
+    assert 0.8 < closure < 0.95
+    np.testing.assert_allclose(obs["agent_pos"], pose_vector(p, r, closure), atol=1e-5)
+    env.close()
+
+
+def test_the_jaw_reading_shows_whether_the_jaw_holds_the_needle():
+    """The wire keeps a closed jaw apart by an angle that depends on where along the jaw it sits; once
+    the needle is lost, the same closed command closes the jaw fully."""
+    env = SutureEnv(obs_type="state")
+    held = []
+    for seed in range(4):
+        obs, _ = env.reset(seed=seed)
+        held.append(obs["agent_pos"][9])
+        for _ in range(3):
+            obs, *_ = env.step(obs["agent_pos"])  # hold still, jaw commanded to its reading
+            assert obs["agent_pos"][9] == pytest.approx(held[-1], abs=1e-3)
+    assert 0.8 < min(held) and max(held) < 0.95 and np.ptp(held) > 1e-3
+    closed = obs["agent_pos"].copy()
+    closed[9] = 1.0
+    obs, *_ = env.step(closed)
+    assert obs["agent_pos"][9] == pytest.approx(held[-1], abs=1e-3), "the needle stops the closing jaw"
+    env.release_needle()
+    for _ in range(2):
+        obs, *_ = env.step(closed)
+    assert obs["agent_pos"][9] > 0.99
     env.close()
 
 

@@ -1,11 +1,11 @@
-"""Pure geometry: where a world point falls in the endoscope image."""
+"""Pure geometry: where a world point falls in the endoscope image; how far a wire holds a jaw open."""
 
 import math
 
 import numpy as np
 import pytest
 
-from lerobot_suture.sim.geometry import project_to_image
+from lerobot_suture.sim.geometry import jaw_angle_on_wire, project_to_image
 
 
 def test_projection_of_points_on_the_axis_and_at_the_edge_of_the_view():
@@ -24,3 +24,12 @@ def test_projection_of_points_on_the_axis_and_at_the_edge_of_the_view():
 def test_points_behind_the_camera_are_an_error():
     with pytest.raises(ValueError, match="behind the camera"):
         project_to_image(np.array([[0.0, 0.0, 0.2]]), np.array([0.0, 0.0, 0.1]), np.eye(3), 1.0)
+
+
+def test_jaw_angle_on_wire():
+    # A 0.8 mm wire in jaws whose faces close to 0.2 mm, 8 mm from the hinge: atan(0.6 / 8).
+    assert jaw_angle_on_wire(0.0008, 0.0002, 0.008) == pytest.approx(math.atan(0.075))
+    assert jaw_angle_on_wire(0.0008, 0.0002, 0.0075) > jaw_angle_on_wire(0.0008, 0.0002, 0.0085)
+    assert jaw_angle_on_wire(0.0001, 0.0002, 0.008) == 0.0  # thinner than the gap
+    with pytest.raises(ValueError, match="`distance_from_pivot` must be > 0 m"):
+        jaw_angle_on_wire(0.0008, 0.0002, 0.0)

@@ -233,6 +233,15 @@ def grasp_transform(grasp_angle: float, offset_along_jaw: float, roll: float, ra
     return tilt @ position, tilt @ rotation
 
 
+def jaw_angle_on_wire(wire_diameter: float, closed_gap: float, distance_from_pivot: float) -> float:
+    """Opening (rad) of a hinged jaw closed on a wire: the wire holds the jaw faces ``wire_diameter``
+    apart (m) at ``distance_from_pivot`` (m) from the hinge, where closed they would be ``closed_gap`` (m)
+    apart. Zero when the wire is no thicker than the gap."""
+    if distance_from_pivot <= 0:
+        raise ValueError(f"`distance_from_pivot` must be > 0 m. Got {distance_from_pivot}.")
+    return math.atan(max(wire_diameter - closed_gap, 0.0) / distance_from_pivot)
+
+
 def project_to_image(
     points: np.ndarray, camera_position: np.ndarray, camera_rotation: np.ndarray, fovy: float
 ) -> np.ndarray:

@@ -21,8 +21,8 @@ index  meaning                                           range           unit
 0-2    jaw tip position x, y, z                          see ``WORKSPACE``  m
 3-5    first column of the jaw rotation matrix           [-1, 1]         --
 6-8    second column of the jaw rotation matrix          [-1, 1]         --
-9      jaw closure (1 closed on the needle, < 0.5 opens  [0, 1]          --
-       and releases it)
+9      jaw closure (1 closed, < 0.5 opens and releases   [0, 1]          --
+       the needle)
 =====  ================================================  ==============  ====
 
 The env turns the action into a Cartesian velocity command (reach the target in one control step,
@@ -34,7 +34,9 @@ are clipped; a wrong shape, NaN or inf raise ``ValueError``.
 
 ## Observation Space
 ``obs_type="pixels_agent_pos"`` (default, the paper's): ``{"pixels": {"endoscope": (H, W, 3) uint8},
-"agent_pos": (10,) float32}`` where ``agent_pos`` is the measured jaw pose in the action's layout.
+"agent_pos": (10,) float32}`` where ``agent_pos`` is the measured jaw pose in the action's layout. Its
+jaw closure reads about 0.88 while the jaw holds the needle, since the wire keeps the jaws apart (the
+exact value depends on where along the jaw it sits), and 1 once a closed jaw has lost it.
 ``obs_type="state"``: ``{"agent_pos", "environment_state"}`` with no image, for fast
 low-dimensional experiments; ``obs_type="pixels_agent_pos_state"``: all three.
 ``environment_state`` (18,) float32 is privileged: entry point (3), exit point (3), needle centre
@@ -105,6 +107,7 @@ from lerobot_suture.sim.geometry import (
     cross3,
     grasp_transform,
     insertion_frame,
+    jaw_angle_on_wire,
     jaw_holding,
     matrix_from_rot6,
     needle_arc_points,
@@ -237,11 +240,21 @@ class SutureEnv(gym.Env):
         self._arm_ctrl = np.array([m.actuator(n).id for n in _ARM_JOINTS])
         self._jaw_ctrl = m.actuator("jaw").id
         self._jaw_qpos = m.joint("jaw").qposadr[0]
+        self._jaw_dof = m.joint("jaw").dofadr[0]
         self._jaw_body = m.body("jaw").id
         self._jaw_site = m.site("jaw_tip").id
+        self._jaw_pivot_to_tip = float(m.site("jaw_tip").pos[2])
+        # Inner faces of the closed jaws are this far apart (m): the jaw geoms' offsets less their half-thickness.
+        self._jaw_closed_gap = float(
+            m.geom("jaw_upper").pos[1]
+            - m.geom("jaw_lower").pos[1]
+            - m.geom_size[m.geom("jaw_upper").id][1] * 2
+        )
         self._needle_body = m.body("needle").id
         self._needle_qpos = m.joint("needle").qposadr[0]
         self._needle_dof = m.joint("needle").dofadr[0]
+        needle_geom = int(np.flatnonzero(m.geom_bodyid == self._needle_body)[0])
+        self._needle_wire_diameter = 2.0 * float(m.geom_size[needle_geom][0])
         self._phantom_mocap = m.body("phantom").mocapid[0]
         self._camera = m.camera("endoscope").id
         self._pad_geom = m.geom("tissue_pad").id
@@ -448,14 +461,14 @@ class SutureEnv(gym.Env):
             np.array([xy[0], xy[1], PHANTOM_NOMINAL[2]]), rng.uniform(-1, 1) * PHANTOM_YAW_RANGE
         )
         angle_range, offset_range, roll_range = GRASP_RANGES[self.grasp]
+        angle = GRASP_ANGLE + rng.uniform(-1, 1) * angle_range
+        self._grasp_offset = rng.uniform(-1, 1) * offset_range
         self._grasp_pos, self._grasp_rot = grasp_transform(
-            GRASP_ANGLE + rng.uniform(-1, 1) * angle_range,
-            rng.uniform(-1, 1) * offset_range,
-            rng.uniform(-1, 1) * roll_range,
+            angle, self._grasp_offset, rng.uniform(-1, 1) * roll_range
         )
         qpos = self._home_qpos + rng.uniform(-1, 1, size=len(_ARM_JOINTS)) * ARM_START_NOISE
         self.data.qpos[self._arm_qpos] = qpos
-        self.data.qpos[self._jaw_qpos] = 0.0
+        self.data.qpos[self._jaw_qpos] = self._held_jaw_angle()
         mujoco.mj_forward(self.model, self.data)
         self._snap_needle_to_jaw()
         self.scenario.reset(self)
@@ -470,7 +483,8 @@ class SutureEnv(gym.Env):
         jaw_closure = float(target[9])
         if jaw_closure < 0.5 and self._grasped:
             self.release_needle()
-        d.ctrl[self._jaw_ctrl] = (1.0 - jaw_closure) * _JAW_OPEN_ANGLE
+        jaw_target = (1.0 - jaw_closure) * _JAW_OPEN_ANGLE
+        d.ctrl[self._jaw_ctrl] = max(jaw_target, self._held_jaw_angle()) if self._grasped else jaw_target
 
         jaw_pos, jaw_rot = self.jaw_pose()
         linear, angular = controller.pose_velocity_command(
@@ -520,6 +534,7 @@ class SutureEnv(gym.Env):
                 mujoco.mj_step(m, d, nstep=substeps)
         if self._grasped:
             self._snap_needle_to_jaw()
+            self._hold_jaw_on_needle()
 
         self._step_index += 1
         self._update_tissue_state()
@@ -575,6 +590,7 @@ class SutureEnv(gym.Env):
         self._phantom_yaw = 0.0
         self._phantom_rot = np.eye(3)
         self._grasp_pos, self._grasp_rot = self.nominal_grasp_in_jaw
+        self._grasp_offset = 0.0
 
     def _validated_action(self, action) -> np.ndarray:
         a = np.asarray(action, dtype=np.float64)
@@ -634,6 +650,20 @@ class SutureEnv(gym.Env):
         q = self._needle_qpos
         self.data.qpos[q : q + 3] = centre
         self.data.qpos[q + 3 : q + 7] = quat_from_matrix(rotation)
+
+    def _held_jaw_angle(self) -> float:
+        """Jaw opening (rad) while it holds the needle: the wire keeps the jaws apart, so a real
+        needle driver's jaw reading shows whether it holds the needle."""
+        return jaw_angle_on_wire(
+            self._needle_wire_diameter, self._jaw_closed_gap, self._jaw_pivot_to_tip + self._grasp_offset
+        )
+
+    def _hold_jaw_on_needle(self) -> None:
+        """Kinematic grasp: the needle stops the closing jaw at the wire (an opening command still opens it)."""
+        held = self._held_jaw_angle()
+        if self.data.qpos[self._jaw_qpos] < held:
+            self.data.qpos[self._jaw_qpos] = held
+            self.data.qvel[self._jaw_dof] = 0.0
 
     def _snap_needle_to_jaw(self) -> None:
         """Kinematic grasp: the held needle moves rigidly with the jaw."""

@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 from lerobot.configs import FeatureType, NormalizationMode
-from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
+from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy, SpatialSoftmax
 from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.policies.utils import populate_queues
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
@@ -208,15 +208,14 @@ class EnsembleDiffusionPolicy(PreTrainedPolicy):
             check_features_match(config, dataset_meta.features, source=f"dataset {dataset_meta.repo_id}")
         self.config = config
 
-        member_config = config.member_config()
         members = []
         for i in range(config.n_members):
             if config.member_seeds is None:
-                members.append(DiffusionPolicy(member_config))
+                members.append(_make_member(config))
             else:
                 with torch.random.fork_rng(devices=[]):
                     torch.manual_seed(config.member_seeds[i])
-                    members.append(DiffusionPolicy(member_config))
+                    members.append(_make_member(config))
         self.members = nn.ModuleList(members)
         # Training-only heads of the auxiliary needle loss, one per member, on its image features.
         self.needle_heads: nn.ModuleList | None = None
@@ -750,6 +749,33 @@ def _saved_normalizer_stats(directory: Path) -> dict | None:
         if stats:
             return stats
     return None
+
+
+def _make_member(config: EnsembleDiffusionConfig) -> DiffusionPolicy:
+    """One LeRobot `DiffusionPolicy` of the ensemble, its image backbone cut to `vision_backbone_stages`."""
+    member = DiffusionPolicy(config.member_config())
+    if config.image_features and config.vision_backbone_stages < 4:
+        # The encoder sees the image after its resize and crop, as in LeRobot's own dry run.
+        image_shape = next(iter(config.image_features.values())).shape
+        height_width = config.crop_shape or config.resize_shape or image_shape[1:]
+        for encoder in _image_encoders(member):
+            _cut_backbone(
+                encoder,
+                config.vision_backbone_stages,
+                (1, image_shape[0], *height_width),
+                config.spatial_softmax_num_keypoints,
+            )
+    return member
+
+
+def _cut_backbone(encoder: nn.Module, stages: int, input_shape: tuple[int, ...], num_keypoints: int) -> None:
+    """Keep a LeRobot `DiffusionRgbEncoder`'s ResNet backbone up to stage `stages` and rebuild its spatial
+    softmax for the finer feature map (same number of keypoints, so the encoder's output is unchanged)."""
+    # LeRobot's backbone is the ResNet's children up to layer4: conv1, norm, relu, maxpool, layer1..layer4.
+    encoder.backbone = nn.Sequential(*list(encoder.backbone.children())[: 4 + stages])
+    with torch.no_grad():
+        feature_map_shape = tuple(encoder.backbone(torch.zeros(input_shape)).shape[1:])
+    encoder.pool = SpatialSoftmax(feature_map_shape, num_kp=num_keypoints)
 
 
 def _image_encoders(member: DiffusionPolicy) -> list[nn.Module]:
