@@ -5,7 +5,7 @@ matrices (world-from-body) unless a name says otherwise.
 
 The 10-dim pose vector used for both action and ``agent_pos`` (the paper's representation) is
 ``[x, y, z, r11, r21, r31, r12, r22, r32, jaw]``: the position, the first two *columns* of the
-rotation matrix, and the jaw closure in [0, 1] (1 = closed on the needle).
+rotation matrix, and the jaw closure in [0, 1] (1 = fully closed).
 """
 
 from __future__ import annotations
