@@ -74,7 +74,8 @@ def make_encoder(blocks: int) -> tuple[torch.nn.Module, int]:
     cut after ResNet block ``blocks`` (4: LeRobot's own); a linear head to the 6 keypoint coordinates."""
     from lerobot.configs import FeatureType, PolicyFeature
     from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
-    from lerobot.policies.diffusion.modeling_diffusion import DiffusionRgbEncoder, SpatialSoftmax
+    from lerobot.policies.diffusion.modeling_diffusion import DiffusionRgbEncoder
+    from lerobot_policy_ensemble_diffusion.modeling_ensemble_diffusion import cut_image_backbone
 
     config = DiffusionConfig(
         input_features={
@@ -92,11 +93,7 @@ def make_encoder(blocks: int) -> tuple[torch.nn.Module, int]:
     )
     encoder = DiffusionRgbEncoder(config)
     if blocks < 4:
-        # children: conv1, bn1, relu, maxpool, layer1..layer4; keep up to layer<blocks>.
-        encoder.backbone = torch.nn.Sequential(*list(encoder.backbone.children())[: 4 + blocks])
-        with torch.no_grad():
-            shape = encoder.backbone(torch.zeros(1, 3, RESIZE, RESIZE)).shape[1:]
-        encoder.pool = SpatialSoftmax(shape, num_kp=32)
+        cut_image_backbone(encoder, blocks, (1, 3, RESIZE, RESIZE), num_keypoints=32)
     with torch.no_grad():
         side = encoder.backbone(torch.zeros(1, 3, RESIZE, RESIZE)).shape[-1]
     model = torch.nn.Sequential(encoder, torch.nn.Linear(encoder.feature_dim, 6))

@@ -759,7 +759,7 @@ def _make_member(config: EnsembleDiffusionConfig) -> DiffusionPolicy:
         image_shape = next(iter(config.image_features.values())).shape
         height_width = config.crop_shape or config.resize_shape or image_shape[1:]
         for encoder in _image_encoders(member):
-            _cut_backbone(
+            cut_image_backbone(
                 encoder,
                 config.vision_backbone_stages,
                 (1, image_shape[0], *height_width),
@@ -768,7 +768,9 @@ def _make_member(config: EnsembleDiffusionConfig) -> DiffusionPolicy:
     return member
 
 
-def _cut_backbone(encoder: nn.Module, stages: int, input_shape: tuple[int, ...], num_keypoints: int) -> None:
+def cut_image_backbone(
+    encoder: nn.Module, stages: int, input_shape: tuple[int, ...], num_keypoints: int
+) -> None:
     """Keep a LeRobot `DiffusionRgbEncoder`'s ResNet backbone up to stage `stages` and rebuild its spatial
     softmax for the finer feature map (same number of keypoints, so the encoder's output is unchanged)."""
     # LeRobot's backbone is the ResNet's children up to layer4: conv1, norm, relu, maxpool, layer1..layer4.
