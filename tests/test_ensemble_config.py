@@ -104,6 +104,8 @@ def test_every_diffusion_field_is_reused():
         ({"num_inference_steps": 20}, r"`num_inference_steps` must be in \[1, 10\]"),
         ({"needle_keypoints_weight": -1.0}, "`needle_keypoints_weight` must be >= 0"),
         ({"vision_backbone_stages": 5}, "`vision_backbone_stages` must be 1, 2, 3 or 4. Got 5."),
+        ({"prior_scale": -0.5}, r"`prior_scale` must be finite and >= 0 \(0: no prior\). Got -0.5."),
+        ({"prior_scale": float("nan")}, "`prior_scale` must be finite and >= 0"),
         # DiffusionConfig's own check still runs.
         ({"down_dims": (8, 16, 32, 64)}, "horizon should be an integer multiple"),
     ],

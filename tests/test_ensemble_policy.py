@@ -473,3 +473,49 @@ def test_needle_heads_are_saved_and_loaded(tmp_path):
     loaded = EnsembleDiffusionPolicy.from_pretrained(tmp_path)
     assert loaded.config.needle_keypoints_dim == 6 and NEEDLE_KEY not in loaded.config.input_features
     _assert_batch_equal(policy.state_dict(), loaded.state_dict())
+
+
+def test_random_priors_are_frozen_distinct_and_added_to_the_unet_output():
+    """`prior_scale` > 0: each member's U-Net output is its own U-Net's plus its own fixed random prior of the
+    conditioning; the priors take no gradient, so training leaves them as drawn."""
+    policy = _policy(prior_scale=0.5)
+    unets = [m.diffusion.unet for m in policy.members]
+    priors = [u.prior for u in unets]
+    assert not torch.equal(priors[0].layers[0].weight, priors[1].layers[0].weight)
+    cond_dim = priors[0].layers[0].in_features
+    cond = torch.randn(3, cond_dim)
+    x = torch.randn(3, policy.config.horizon, 10)
+    t = torch.tensor([5, 50, 90])
+    with torch.no_grad():
+        torch.testing.assert_close(
+            unets[0](x, t, global_cond=cond), unets[0].unet(x, t, cond) + priors[0](cond)
+        )
+        assert priors[0](cond).shape == (3, policy.config.horizon, 10)
+        # About unit scale before `prior_scale`, so the scale is in the output's normalized units.
+        assert 0.1 < priors[0](torch.randn(256, cond_dim)).std().item() / 0.5 < 3.0
+    before = [p.layers[0].weight.clone() for p in priors]
+    optimizer = torch.optim.AdamW(policy.get_optim_params(), lr=1e-2)
+    loss, _ = policy.forward(_train_batch(policy.config))
+    loss.backward()
+    assert all(param.grad is None for p in priors for param in p.parameters())
+    optimizer.step()
+    assert all(torch.equal(b, p.layers[0].weight) for b, p in zip(before, priors, strict=True))
+
+
+def test_random_priors_run_batched_and_are_saved(tmp_path):
+    """The fused inference adds the same priors as the members' own U-Nets, and a checkpoint restores them."""
+    policy = _policy(prior_scale=1.0, noise_scheduler_type="DDIM").eval()
+    obs = random_observation(policy.config, batch_size=2)
+    noise = torch.randn(2, 2, 2, policy.config.horizon, 10)
+    fused = policy.predict_action_distribution(obs, samples_per_member=2, noise=noise)
+    policy.config.batched_inference = False
+    loop = policy.predict_action_distribution(obs, samples_per_member=2, noise=noise)
+    policy.config.batched_inference = True
+    torch.testing.assert_close(fused.normalized.samples, loop.normalized.samples, rtol=1e-4, atol=1e-4)
+    without = _policy(noise_scheduler_type="DDIM").eval()
+    plain = without.predict_action_distribution(obs, samples_per_member=2, noise=noise)
+    assert not torch.allclose(fused.normalized.samples, plain.normalized.samples)
+    policy.save_pretrained(tmp_path)
+    loaded = EnsembleDiffusionPolicy.from_pretrained(tmp_path)
+    assert loaded.config.prior_scale == 1.0
+    _assert_batch_equal(policy.state_dict(), loaded.state_dict())

@@ -54,6 +54,8 @@ from lerobot.policies.diffusion.modeling_diffusion import (
 from lerobot.utils.constants import OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 from torch import Tensor, nn
 
+from .prior import RandomPrior, UnetWithPrior
+
 CONV_MODES = ("gemm", "grouped")
 
 
@@ -88,6 +90,28 @@ class GroupedLinear(nn.Module):
         else:
             y = torch.baddbmm(self.bias.unsqueeze(1), x, w)  # (N, M, out)
         return y.transpose(0, 1).reshape(*lead, n, -1)
+
+
+class FusedRandomPrior(nn.Module):
+    """N members' `RandomPrior`s as one: (M, N, G) conditioning -> (M, N, T, A)."""
+
+    def __init__(self, priors: list[RandomPrior]):
+        super().__init__()
+        p0 = priors[0]
+        self.horizon, self.action_dim, self.scale = p0.horizon, p0.action_dim, p0.scale
+        if any(p.scale != self.scale for p in priors):
+            raise ValueError(f"Members' priors must share one scale. Got {[p.scale for p in priors]}.")
+        self.layers = nn.ModuleList(
+            GroupedLinear([p.layers[i] for p in priors]) for i in range(len(p0.layers))
+        )
+
+    def forward(self, global_cond: Tensor) -> Tensor:
+        x = F.layer_norm(global_cond, global_cond.shape[-1:])
+        for i, layer in enumerate(self.layers):
+            x = layer(x)
+            if i < len(self.layers) - 1:
+                x = F.mish(x)
+        return self.scale * x.view(*global_cond.shape[:-1], self.horizon, self.action_dim)
 
 
 class FusedConv1d(nn.Module):
@@ -463,7 +487,12 @@ class FusedDiffusionEnsemble(nn.Module):
                 ]
             else:
                 self.encoders = [SharedPreprocessEncoders([m.rgb_encoder for m in models], conv_mode)]
-        self.unet = FusedUnet1d([_unwrap(m.unet) for m in models], conv_mode)
+        unets = [_unwrap(m.unet) for m in models]
+        self.prior: FusedRandomPrior | None = None
+        if isinstance(unets[0], UnetWithPrior):
+            self.prior = FusedRandomPrior([u.prior for u in unets])
+            unets = [_unwrap(u.unet) for u in unets]
+        self.unet = FusedUnet1d(unets, conv_mode)
         self._step_film_cache: dict[tuple[int, torch.device], list[Tensor]] = {}
         self.eval()
 
@@ -522,11 +551,14 @@ class FusedDiffusionEnsemble(nn.Module):
         sample = noise.permute(0, 2, 1, 3, 4).reshape(b * k, n, t_len, a)  # (B*K, N, T, A), row b*K + k
         cond = global_cond.repeat_interleave(k, dim=0)  # (B*K, N, G)
         observation_films = self.unet.observation_films(cond)  # per block (B*K, N, C or 2C), once per chunk
+        prior = None if self.prior is None else self.prior(cond).to(sample.dtype)  # (B*K, N, T, A)
         self.noise_scheduler.set_timesteps(self.num_inference_steps)
         for t in self.noise_scheduler.timesteps:
             step_films = self._step_films(int(t), sample.device)  # per block (1, N, C or 2C), cached
             films = [obs + step for obs, step in zip(observation_films, step_films, strict=True)]
             model_output = self.unet.denoise(sample, films)  # (B*K, N, T, A)
+            if prior is not None:
+                model_output = model_output + prior
             sample = self.noise_scheduler.step(model_output, t, sample, generator=generator).prev_sample
         return sample.view(b, k, n, t_len, a).transpose(1, 2)  # (B, N, K, T, A)
 

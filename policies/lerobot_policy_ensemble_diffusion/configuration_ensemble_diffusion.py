@@ -99,6 +99,11 @@ class EnsembleDiffusionConfig(DiffusionConfig):
         member_seeds: Seed of each member's initialisation, one per member. None (default): members are
             initialised one after another from the global torch RNG (seeded by `lerobot-train --seed`),
             which already makes them independent and reproducible.
+        prior_scale: Size of each member's randomized prior function (Osband et al. 2018; see `prior.py`), in
+            the U-Net output's normalized units: a fixed random MLP of the member's conditioning, times this
+            scale, is added to the member's U-Net output. Training fits the rest to the data, so members still
+            agree in distribution, while away from the data their priors make them disagree. 0 (default): no
+            prior, the paper's ensemble.
         bootstrap: If True, every member trains on its own bootstrap resample (drawn with replacement) of
             each training batch; if False all members see the same batch and differ by initialisation and
             diffusion noise only (the paper's setting).
@@ -154,6 +159,7 @@ class EnsembleDiffusionConfig(DiffusionConfig):
     # Ensemble.
     n_members: int = 5
     member_seeds: list[int] | None = None
+    prior_scale: float = 0.0
     bootstrap: bool = False
     batched_inference: bool = True
 
@@ -226,6 +232,8 @@ class EnsembleDiffusionConfig(DiffusionConfig):
             )
         if not (math.isfinite(self.needle_keypoints_weight) and self.needle_keypoints_weight >= 0):
             raise ValueError(f"`needle_keypoints_weight` must be >= 0. Got {self.needle_keypoints_weight}.")
+        if not (math.isfinite(self.prior_scale) and self.prior_scale >= 0):
+            raise ValueError(f"`prior_scale` must be finite and >= 0 (0: no prior). Got {self.prior_scale}.")
         if self.vision_backbone_stages not in (1, 2, 3, 4):
             raise ValueError(
                 f"`vision_backbone_stages` must be 1, 2, 3 or 4. Got {self.vision_backbone_stages}."

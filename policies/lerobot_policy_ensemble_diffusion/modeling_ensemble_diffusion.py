@@ -49,6 +49,7 @@ from lerobot_suture.safety.ood import OODCalibration, OODGate, load_calibration
 from .batched_members import FusedDiffusionEnsemble
 from .configuration_ensemble_diffusion import NEEDLE_KEYPOINTS_KEY, SCORE_CHOICES, EnsembleDiffusionConfig
 from .ensemble_stats import EnsembleActionStats, compute_ensemble_stats, uncertainty_score
+from .prior import RandomPrior, UnetWithPrior, unet_global_cond_dim
 
 if TYPE_CHECKING:
     from lerobot.datasets import LeRobotDatasetMetadata
@@ -752,8 +753,18 @@ def _saved_normalizer_stats(directory: Path) -> dict | None:
 
 
 def _make_member(config: EnsembleDiffusionConfig) -> DiffusionPolicy:
-    """One LeRobot `DiffusionPolicy` of the ensemble, its image backbone cut to `vision_backbone_stages`."""
+    """One LeRobot `DiffusionPolicy` of the ensemble, its image backbone cut to `vision_backbone_stages`, with
+    its random prior when `prior_scale` > 0."""
     member = DiffusionPolicy(config.member_config())
+    if config.prior_scale > 0:
+        unet = member.diffusion.unet
+        prior = RandomPrior(
+            unet_global_cond_dim(getattr(unet, "_orig_mod", unet)),
+            config.horizon,
+            config.action_feature.shape[0],
+            config.prior_scale,
+        )
+        member.diffusion.unet = UnetWithPrior(unet, prior)
     if config.image_features and config.vision_backbone_stages < 4:
         # The encoder sees the image after its resize and crop, as in LeRobot's own dry run.
         image_shape = next(iter(config.image_features.values())).shape
