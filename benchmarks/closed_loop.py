@@ -9,6 +9,9 @@ loaded as lerobot-train's output is. Prints JSON. Bar (issue 7): >= 10 control s
 (the paper's simulator loop ran at 1 Hz).
 
     python benchmarks/closed_loop.py [--steps 200] [--threads 2] [--samples-per-member K]
+        [--vision-backbone-stages S] [--prior-scale B]
+
+The last two build the members as the reference run's flags do (defaults: the CPU preset's).
 """
 
 from __future__ import annotations
@@ -34,13 +37,16 @@ from lerobot_suture.safety.cbf import CBFConfig  # noqa: E402
 from lerobot_suture.safety.ood import fit_calibration, save_calibration  # noqa: E402
 
 
-def saved_ensemble(directory: Path, n_members: int, samples_per_member: int | None = None) -> Path:
+def saved_ensemble(
+    directory: Path, n_members: int, samples_per_member: int | None = None, **overrides
+) -> Path:
     import sys
 
     sys.path.insert(0, str(Path(__file__).parent))
     from ensemble_latency import load_preset_config
 
-    overrides = {} if samples_per_member is None else {"uncertainty_samples_per_member": samples_per_member}
+    if samples_per_member is not None:
+        overrides["uncertainty_samples_per_member"] = samples_per_member
     config = load_preset_config("cpu", n_members=n_members, device="cpu", **overrides)
     save_untrained_policy(config, fake_dataset_stats(), directory)
     rng = np.random.default_rng(0)
@@ -56,11 +62,19 @@ def main() -> None:
     parser.add_argument(
         "--samples-per-member", type=int, default=None, help="K chunks per member (default: the preset's)"
     )
+    parser.add_argument("--vision-backbone-stages", type=int, default=4)
+    parser.add_argument("--prior-scale", type=float, default=0.0)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
 
     with tempfile.TemporaryDirectory() as tmp:
-        policy_dir = saved_ensemble(Path(tmp) / "pretrained_model", args.members, args.samples_per_member)
+        policy_dir = saved_ensemble(
+            Path(tmp) / "pretrained_model",
+            args.members,
+            args.samples_per_member,
+            vision_backbone_stages=args.vision_backbone_stages,
+            prior_scale=args.prior_scale,
+        )
         runner = PolicyRunner.from_pretrained(policy_dir)
         env = gym.make(
             lerobot_suture.ENV_ID,
@@ -89,6 +103,8 @@ def main() -> None:
         "benchmark": "closed_loop",
         "members": args.members,
         "samples_per_member": runner.policy.config.uncertainty_samples_per_member,
+        "vision_backbone_stages": runner.policy.config.vision_backbone_stages,
+        "prior_scale": runner.policy.config.prior_scale,
         "torch_threads": args.threads,
         "image_px": env_kwargs_for_policy(runner.policy.config).get("image_size"),
         "inference": f"{runner.policy.config.noise_scheduler_type}-{runner.policy.config.num_inference_steps}",

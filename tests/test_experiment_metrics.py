@@ -116,3 +116,11 @@ def test_share_of_maxima_at_end_counts_episodes_peaking_in_their_last_steps():
     assert math.isnan(metrics.share_of_maxima_at_end([], end_steps=8))
     with pytest.raises(ValueError, match="`end_steps` must be >= 1"):
         metrics.share_of_maxima_at_end([late], end_steps=0)
+
+
+def test_every_uncertainty_score_has_an_axis_label():
+    from lerobot_policy_ensemble_diffusion.configuration_ensemble_diffusion import SCORE_CHOICES
+
+    from lerobot_suture.experiments.plots import SCORE_LABELS
+
+    assert set(SCORE_LABELS) == set(SCORE_CHOICES["uncertainty_score"])

@@ -12,6 +12,12 @@ from matplotlib.figure import Figure
 
 ID_COLOUR = "#c8ecc8"
 OOD_COLOUR = "#f6c4c4"
+SCORE_LABELS = {
+    "max_abs_cov": r"uncertainty $\hat\sigma$ = max $|\Sigma_t|$",
+    "trace": r"uncertainty max$_t$ tr $\Sigma_t$",
+    "logdet": r"uncertainty max$_t$ log det $\Sigma_t$",
+}
+"""The y-axis label of each uncertainty score (the policy's ``uncertainty_score``)."""
 
 
 def _padded(runs: Sequence[Sequence[float]]) -> np.ndarray:
@@ -30,10 +36,12 @@ def plot_uncertainty(
     title: str,
     onset_steps: Sequence[int | None] = (),
     nominal_runs: Sequence[Sequence[float]] = (),
+    score_name: str = "max_abs_cov",
 ) -> Path:
     """The paper's uncertainty figure: the score per timestep, the maximum over runs in bold and each run
     faint, the background green where the gate says I.D. (max below the threshold) and red where O.O.D.,
-    the perturbation onset marked; nominal runs (grey) beside them for reference.
+    the perturbation onset marked; nominal runs (grey) beside them for reference. ``score_name`` (a key of
+    :data:`SCORE_LABELS`) labels the y axis.
     """
     scores = _padded(scenario_runs)
     fig = Figure(figsize=(9, 3.6), dpi=110)
@@ -61,7 +69,7 @@ def plot_uncertainty(
         onset = int(np.median(onsets))
         ax.axvline(onset, color="black", ls=":", lw=1.4, label=f"perturbation onset (step {onset})")
     ax.set_xlabel("control step (10 Hz)")
-    ax.set_ylabel(r"uncertainty $\hat\sigma$ = max $|\Sigma_t|$")
+    ax.set_ylabel(SCORE_LABELS[score_name])
     ax.set_title(title)
     ax.set_xlim(-0.5, max(scores.shape[1] - 0.5, 1))
     ax.legend(loc="upper left", fontsize=8, framealpha=0.9)

@@ -319,6 +319,7 @@ def run_experiments(cfg: ExperimentsConfig) -> dict:
             f"{title} ({len(runs)} runs)",
             onset_steps=[log.onset_step for log in runs],
             nominal_runs=nominal_scores[: max(1, min(len(nominal_scores), 20))],
+            score_name=policy.config.uncertainty_score,
         )
         result["figures"][exp_id] = figure.name
 
