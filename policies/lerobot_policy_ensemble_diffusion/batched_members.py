@@ -54,7 +54,7 @@ from lerobot.policies.diffusion.modeling_diffusion import (
 from lerobot.utils.constants import OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 from torch import Tensor, nn
 
-from .prior import RandomPrior, UnetWithPrior
+from .prior import RandomPrior, UnetWithPrior, prior_mlp
 
 CONV_MODES = ("gemm", "grouped")
 
@@ -106,12 +106,7 @@ class FusedRandomPrior(nn.Module):
         )
 
     def forward(self, global_cond: Tensor) -> Tensor:
-        x = F.layer_norm(global_cond, global_cond.shape[-1:])
-        for i, layer in enumerate(self.layers):
-            x = layer(x)
-            if i < len(self.layers) - 1:
-                x = F.mish(x)
-        return self.scale * x.view(*global_cond.shape[:-1], self.horizon, self.action_dim)
+        return prior_mlp(global_cond, self.layers, self.scale, (self.horizon, self.action_dim))
 
 
 class FusedConv1d(nn.Module):

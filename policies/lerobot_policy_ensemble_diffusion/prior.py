@@ -16,6 +16,7 @@ diffusion step. Its weights are frozen at their random initialisation and saved 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import torch
 from torch import Tensor, nn
@@ -44,12 +45,19 @@ class RandomPrior(nn.Module):
         self.requires_grad_(False)
 
     def forward(self, global_cond: Tensor) -> Tensor:
-        x = nn.functional.layer_norm(global_cond.detach(), global_cond.shape[-1:])
-        for i, layer in enumerate(self.layers):
-            x = layer(x)
-            if i < len(self.layers) - 1:
-                x = nn.functional.mish(x)
-        return self.scale * x.view(*global_cond.shape[:-1], self.horizon, self.action_dim)
+        return prior_mlp(global_cond.detach(), self.layers, self.scale, (self.horizon, self.action_dim))
+
+
+def prior_mlp(
+    global_cond: Tensor, layers: Sequence[nn.Module], scale: float, out_shape: tuple[int, int]
+) -> Tensor:
+    """The prior's function, shared by `RandomPrior` and its fused form: (..., G) -> (..., T, A)."""
+    x = nn.functional.layer_norm(global_cond, global_cond.shape[-1:])
+    for i, layer in enumerate(layers):
+        x = layer(x)
+        if i < len(layers) - 1:
+            x = nn.functional.mish(x)
+    return scale * x.view(*global_cond.shape[:-1], *out_shape)
 
 
 class UnetWithPrior(nn.Module):
