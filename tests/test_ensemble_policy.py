@@ -494,7 +494,8 @@ def test_random_priors_are_frozen_distinct_and_added_to_the_unet_output():
         # About unit scale before `prior_scale`, so the scale is in the output's normalized units.
         assert 0.1 < priors[0](torch.randn(256, cond_dim)).std().item() / 0.5 < 3.0
     before = [p.layers[0].weight.clone() for p in priors]
-    optimizer = torch.optim.AdamW(policy.get_optim_params(), lr=1e-2)
+    # The training optimizer (fused AdamW with weight decay) must leave them as drawn too.
+    optimizer = torch.optim.AdamW(policy.get_optim_params(), lr=1e-2, weight_decay=0.1, fused=True)
     loss, _ = policy.forward(_train_batch(policy.config))
     loss.backward()
     assert all(param.grad is None for p in priors for param in p.parameters())
