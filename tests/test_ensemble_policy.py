@@ -46,6 +46,17 @@ def _train_batch(config, batch_size=4, seed=0):
     return batch
 
 
+def _assert_fused_equals_loop(policy, obs, noise, samples_per_member):
+    """The fused inference's samples equal the members' own loop's; returns the fused prediction."""
+    policy.config.batched_inference = True
+    fused = policy.predict_action_distribution(obs, samples_per_member=samples_per_member, noise=noise)
+    policy.config.batched_inference = False
+    loop = policy.predict_action_distribution(obs, samples_per_member=samples_per_member, noise=noise)
+    policy.config.batched_inference = True
+    torch.testing.assert_close(fused.normalized.samples, loop.normalized.samples, rtol=1e-4, atol=1e-4)
+    return fused
+
+
 def _clone(batch):
     return {k: v.clone() for k, v in batch.items()}
 
@@ -117,12 +128,7 @@ def test_bootstrap_resamples_each_member_batch():
 def test_batched_members_equal_member_loop(policy):
     obs = random_observation(policy.config, batch_size=2)
     noise = torch.randn(2, 3, 2, policy.config.horizon, 10)  # (B, N, K, T, A)
-    policy.config.batched_inference = True
-    fused = policy.predict_action_distribution(obs, samples_per_member=2, noise=noise)
-    policy.config.batched_inference = False
-    loop = policy.predict_action_distribution(obs, samples_per_member=2, noise=noise)
-    policy.config.batched_inference = True
-    torch.testing.assert_close(fused.normalized.samples, loop.normalized.samples, rtol=1e-4, atol=1e-4)
+    _assert_fused_equals_loop(policy, obs, noise, samples_per_member=2)
     # Both conv modes of the fused U-Net agree with the members' own U-Nets.
     batch = dict(obs)
     batch[OBS_IMAGES] = torch.stack([obs[k] for k in policy.config.image_features], dim=-4)
@@ -308,11 +314,7 @@ def test_cut_backbone_gives_a_finer_map_and_runs_batched(tmp_path, stages, side)
     assert (encoder.pool._in_h, encoder.pool._in_w) == (side, side)
     obs = random_observation(policy.config, batch_size=2)
     noise = torch.randn(2, 2, 1, policy.config.horizon, 10)
-    fused = policy.predict_action_distribution(obs, samples_per_member=1, noise=noise)
-    policy.config.batched_inference = False
-    loop = policy.predict_action_distribution(obs, samples_per_member=1, noise=noise)
-    policy.config.batched_inference = True
-    torch.testing.assert_close(fused.normalized.samples, loop.normalized.samples, rtol=1e-4, atol=1e-4)
+    _assert_fused_equals_loop(policy, obs, noise, samples_per_member=1)
     policy.save_pretrained(tmp_path)
     loaded = EnsembleDiffusionPolicy.from_pretrained(tmp_path)
     assert loaded.config.vision_backbone_stages == stages
@@ -508,11 +510,7 @@ def test_random_priors_run_batched_and_are_saved(tmp_path):
     policy = _policy(prior_scale=1.0, noise_scheduler_type="DDIM").eval()
     obs = random_observation(policy.config, batch_size=2)
     noise = torch.randn(2, 2, 2, policy.config.horizon, 10)
-    fused = policy.predict_action_distribution(obs, samples_per_member=2, noise=noise)
-    policy.config.batched_inference = False
-    loop = policy.predict_action_distribution(obs, samples_per_member=2, noise=noise)
-    policy.config.batched_inference = True
-    torch.testing.assert_close(fused.normalized.samples, loop.normalized.samples, rtol=1e-4, atol=1e-4)
+    fused = _assert_fused_equals_loop(policy, obs, noise, samples_per_member=2)
     without = _policy(noise_scheduler_type="DDIM").eval()
     plain = without.predict_action_distribution(obs, samples_per_member=2, noise=noise)
     assert not torch.allclose(fused.normalized.samples, plain.normalized.samples)
