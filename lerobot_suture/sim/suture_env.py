@@ -288,6 +288,17 @@ class SutureEnv(gym.Env):
         self._home_qpos = self._solve_home_pose()
         self._reset_state()
 
+    # ------------------------------------------------------------------ what LeRobot reads
+    @property
+    def task_description(self) -> str:
+        """The task in words: ``lerobot-eval`` asks every (async) worker for it through ``env.call``."""
+        return TASK
+
+    @property
+    def task(self) -> str:
+        """The task string; LeRobot's fallback when ``task_description`` is missing."""
+        return TASK
+
     # ------------------------------------------------------------------ privileged state
     @property
     def step_index(self) -> int:
