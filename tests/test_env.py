@@ -220,9 +220,22 @@ def test_degenerate_rotation_raises_and_out_of_range_is_clipped():
     parallel[6:9] = parallel[3:6]
     with pytest.raises(ValueError, match="parallel"):
         env.step(parallel)
-    far = pose_vector(p + np.array([0.0, 0.0, 10.0]), r, 1.0)
-    _, _, _, _, info = env.step(far)  # clipped to the workspace, no error
-    assert np.all(np.isfinite(info["needle_tip_pos"]))
+    # Targets 10 m away in opposite corners are clipped to the workspace: the jaw drives to its corner
+    # and stops there (within the controller's sub-millimetre overshoot), never past it.
+    for direction in (1.0, -1.0):
+        env.reset(seed=0)
+        p, r = env.jaw_pose()
+        far = pose_vector(p + direction * np.array([10.0, 10.0, 10.0]), r, 1.0)
+        positions = []
+        for _ in range(40):
+            env.step(far)
+            positions.append(env.jaw_pose()[0])
+        positions = np.asarray(positions)
+        margin = 5e-4
+        assert np.all(positions >= suture_env.WORKSPACE_LOW - margin), positions.min(axis=0)
+        assert np.all(positions <= suture_env.WORKSPACE_HIGH + margin), positions.max(axis=0)
+        corner = suture_env.WORKSPACE_HIGH if direction > 0 else suture_env.WORKSPACE_LOW
+        np.testing.assert_allclose(positions[-1], corner, atol=1e-3)
 
 
 def test_bad_constructor_arguments_raise():
