@@ -259,74 +259,61 @@ def test_lerobot_train_runs_on_the_train_split(tiny, backend, tmp_path):
     assert "dataset.num_episodes=2" in out and "End of training" in out, out[-4000:]
 
 
-def _fake_rerun(saved: dict) -> tuple[types.ModuleType, types.ModuleType]:
-    """A stand-in for rerun-sdk (not installed here) that records what lerobot-dataset-viz logs."""
-    rr = types.ModuleType("rerun")
-    rrb = types.ModuleType("rerun.blueprint")
+def _rrd_images(rrd: Path, entity: str) -> dict[int, np.ndarray]:
+    """The raw RGB images logged to `entity` in an .rrd file, by `frame_index`, as rerun reads them back."""
+    # rerun >= 0.32 reads files through `experimental.RrdReader` (its dataframe API was removed).
+    from rerun.experimental import RrdReader
 
-    class Entity:
-        def __init__(self, *args, **kwargs):
-            self.args, self.kwargs = args, kwargs
-
-        def compress(self):
-            return self
-
-    for name in ("Image", "Scalars", "DepthImage", "SeriesLines"):
-        setattr(rr, name, type(name, (Entity,), {}))
-    for name in ("Spatial2DView", "TimeSeriesView", "Blueprint", "Grid"):
-        setattr(rrb, name, type(name, (Entity,), {}))
-    rr.components = types.SimpleNamespace(Colormap=types.SimpleNamespace(Viridis="viridis"))
-    rr.blueprint = rrb
-    logged: list[tuple[str, object]] = []
-    rr.init = lambda *a, **k: None
-    rr.set_time = lambda *a, **k: None
-    rr.log = lambda key, entity=None, *a, **k: logged.append((key, entity if entity is not None else a[0]))
-
-    def save(path):
-        images = [e for k, e in logged if k == IMAGE_KEY]
-        saved.update(images=images, keys=sorted({k for k, _ in logged}))
-        Path(path).write_text(json.dumps({"frames": len(images)}))
-
-    rr.save = save
-    return rr, rrb
+    images = {}
+    for chunk in RrdReader(rrd).stream():
+        if chunk.entity_path != entity:
+            continue
+        batch = chunk.to_record_batch().to_pydict()
+        for index, (fmt,), (buffer,) in zip(
+            batch["frame_index"], batch["Image:format"], batch["Image:buffer"], strict=True
+        ):
+            images[index] = np.asarray(buffer, dtype=np.uint8).reshape(fmt["height"], fmt["width"], -1)
+    return images
 
 
-def test_lerobot_dataset_viz_opens_an_episode(tiny, tmp_path, monkeypatch):
-    """`lerobot-dataset-viz --save 1` (its main(), as the console script runs it) writes the episode."""
-    import lerobot.utils.import_utils as import_utils
-    from lerobot.scripts import lerobot_dataset_viz as viz
+def test_lerobot_dataset_viz_saves_an_episode_rerun_reads_back(tiny, backend, tmp_path):
+    """The real `lerobot-dataset-viz --save 1` writes an .rrd that rerun loads: every frame of the episode."""
+    from rerun.experimental import RrdReader
 
-    saved: dict = {}
-    try:
-        import rerun  # noqa: F401
-
-        real = True
-    except ImportError:  # rerun-sdk is LeRobot's optional `viz` extra
-        real = False
-        rr, rrb = _fake_rerun(saved)
-        monkeypatch.setitem(sys.modules, "rerun", rr)
-        monkeypatch.setitem(sys.modules, "rerun.blueprint", rrb)
-        monkeypatch.setitem(import_utils._require_package_cache, "rerun", True)
     episode = 1
-    argv = [
-        "lerobot-dataset-viz",
+    cmd = [
+        str(Path(sys.executable).parent / "lerobot-dataset-viz"),
         "--repo-id",
         REPO_ID,
         "--root",
         str(tiny.root),
         "--episode-index",
         str(episode),
+        "--save",
+        "1",
+        "--output-dir",
+        str(tmp_path),
+        "--num-workers",
+        "0",
     ]
-    argv += ["--save", "1", "--output-dir", str(tmp_path), "--num-workers", "0", "--batch-size", "16"]
-    monkeypatch.setattr(sys, "argv", argv)
-    viz.main()
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": "2"}
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 0, (proc.stdout + proc.stderr)[-4000:]
     rrd = tmp_path / f"{REPO_ID.replace('/', '_')}_episode_{episode}.rrd"
-    assert rrd.is_file() and rrd.stat().st_size > 0
-    if not real:
-        length = metadata.read_episode_log(tiny.root)["episodes"][episode]["length"]
-        assert len(saved["images"]) == length
-        assert saved["images"][0].args[0].shape == (IMAGE_SIZE, IMAGE_SIZE, 3)
-        assert {"action", "state", "next.done", "next.reward", "next.success"} <= set(saved["keys"])
+    # The episode's raw 32x32 RGB frames alone are 3 kB each.
+    assert rrd.is_file() and rrd.stat().st_size > 10 * IMAGE_SIZE * IMAGE_SIZE * 3
+
+    entities = set(RrdReader(rrd).store().schema().entity_paths())
+    assert {f"/{IMAGE_KEY}", "/action", "/state", "/next.success"} <= entities, entities
+    images = _rrd_images(rrd, f"/{IMAGE_KEY}")
+    length = metadata.read_episode_log(tiny.root)["episodes"][episode]["length"]
+    assert sorted(images) == list(range(length))
+    # The logged frames are the dataset's decoded frames, not blank ones.
+    ds = _load(tiny.root, backend, episodes=[episode])
+    for i in (0, length - 1):
+        decoded = (ds[i][IMAGE_KEY].permute(1, 2, 0).numpy() * 255).astype(np.uint8)
+        assert images[i].shape == (IMAGE_SIZE, IMAGE_SIZE, 3) and images[i].std() > 1.0
+        assert np.abs(images[i].astype(np.int16) - decoded).max() <= 1
 
 
 # --------------------------------------------------------------------------------------------- hub
