@@ -662,8 +662,21 @@ class EnsembleDiffusionPolicy(PreTrainedPolicy):
             self._ood_gates = [
                 OODGate(calibration=self.ood_calibration, enforce=self.config.ood.enforce) for _ in values
             ]
-        for gate, value in zip(self._ood_gates, values, strict=True):
+        for index, (gate, value) in enumerate(zip(self._ood_gates, values, strict=True)):
+            was_released = gate.released
             gate.update(value)
+            if gate.released and not was_released:
+                # The one report a user of `lerobot-eval` sees: the rollout loop there knows nothing of gates.
+                logger.info(
+                    "O.O.D. gate: env %d flagged at prediction %d (score %.4g > threshold %.4g); %s",
+                    index,
+                    gate.released_at,
+                    gate.last_score,
+                    gate.threshold,
+                    "control released to the surgeon, the arm holds its pose"
+                    if self.config.ood.enforce
+                    else "reported only (ood.enforce=false)",
+                )
 
     def _hold_action(self, batch: dict[str, Tensor]) -> Tensor:
         """The measured pose as a normalized action, (B, A): the arm stops where it is."""
