@@ -7,6 +7,8 @@
   scripted expert's actions: an episode that succeeds in a worker counts as a success, one that fails as a
   failure, each in its own place.
 - The gate in async workers holds exactly the batch elements it released.
+- On a dataset recorded by `lerobot-suture record`: `lerobot-train` evaluating the ensemble in async envs
+  every N steps, and `lerobot-eval` of LeRobot's own `diffusion` policy trained on it.
 """
 
 from __future__ import annotations
@@ -30,7 +32,10 @@ from lerobot.scripts.lerobot_eval import eval_policy
 from lerobot.utils.constants import ACTION, OBS_STATE
 from lerobot.utils.import_utils import register_third_party_plugins
 from lerobot_policy_ensemble_diffusion import EnsembleDiffusionPolicy
+from lerobot_policy_ensemble_diffusion.testing import tiny_policy_cli_args
 
+from lerobot_suture.datasets.record import RecordConfig, record
+from lerobot_suture.datasets.video import resolve_video_backend
 from lerobot_suture.expert import ScriptedExpert
 from lerobot_suture.rollout_expert import iter_expert_steps
 from lerobot_suture.safety.ood import fit_calibration, save_calibration
@@ -286,3 +291,103 @@ def test_the_enforced_gate_holds_exactly_the_released_envs_in_async_workers(
         # Held: every command is the pose measured when it was sent, so the arm stays where it is.
         held = np.allclose(action, pose, atol=1e-4)
         assert held is released
+
+
+# ------------------------------------------------------------------- trained on a recorded dataset
+
+RECORDED_REPO_ID = "suture-tests/eval_expert"
+RECORDED_IMAGE_SIZE = 32
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory) -> Path:
+    """Two expert episodes recorded by `lerobot-suture record`'s code, in the env's default layout."""
+    root = tmp_path_factory.mktemp("datasets") / "eval_expert"
+    record(
+        RecordConfig(
+            repo_id=RECORDED_REPO_ID,
+            root=str(root),
+            num_episodes=2,
+            image_size=RECORDED_IMAGE_SIZE,
+            obs_type="pixels_agent_pos",
+        )
+    )
+    return root
+
+
+def _lerobot_train(recorded: Path, out: Path, policy_args: list[str], *extra: str) -> str:
+    result = subprocess.run(
+        [
+            str(BIN / "lerobot-train"),
+            f"--dataset.repo_id={RECORDED_REPO_ID}",
+            f"--dataset.root={recorded}",
+            f"--dataset.video_backend={resolve_video_backend()}",
+            *policy_args,
+            "--batch_size=2",
+            "--steps=2",
+            "--num_workers=0",
+            f"--output_dir={out}",
+            *extra,
+        ],
+        env={**_environ(), "WANDB_MODE": "disabled"},
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+    log = result.stdout + result.stderr
+    assert result.returncode == 0, log[-6000:]
+    return log
+
+
+def test_lerobot_train_evaluates_the_ensemble_in_async_envs_during_training(recorded, tmp_path):
+    out = tmp_path / "train"
+    log = _lerobot_train(
+        recorded,
+        out,
+        tiny_policy_cli_args(),
+        "--save_checkpoint=false",
+        "--env.type=suture",
+        f"--env.image_size={RECORDED_IMAGE_SIZE}",
+        "--env.episode_length=3",
+        "--env_eval_freq=2",
+        "--eval.n_episodes=2",
+        "--eval.batch_size=2",
+        "--eval.use_async_envs=true",
+    )
+    assert "Eval policy at step 2" in log and "'pc_success': 0.0" in log, log[-4000:]
+    videos = sorted((out / "eval").rglob("*.mp4"))
+    assert len(videos) == 2 and all(v.stat().st_size > 1000 for v in videos), videos
+
+
+def test_lerobot_eval_runs_lerobot_s_own_diffusion_trained_on_the_recording(recorded, tmp_path):
+    train = tmp_path / "train"
+    _lerobot_train(
+        recorded,
+        train,
+        [
+            "--policy.type=diffusion",
+            "--policy.device=cpu",
+            "--policy.pretrained_backbone_weights=null",
+            "--policy.use_group_norm=true",
+            "--policy.push_to_hub=false",
+            "--policy.down_dims=[16,32]",
+            "--policy.horizon=8",
+            "--policy.n_action_steps=4",
+            "--policy.n_obs_steps=2",
+            "--policy.num_inference_steps=3",
+            "--policy.noise_scheduler_type=DDIM",
+        ],
+    )
+    info, log = run_lerobot_eval(
+        [
+            f"--policy.path={train / 'checkpoints' / 'last' / 'pretrained_model'}",
+            f"--env.image_size={RECORDED_IMAGE_SIZE}",
+            "--env.episode_length=3",
+            "--eval.n_episodes=2",
+            "--eval.batch_size=2",
+            "--eval.use_async_envs=true",
+        ],
+        tmp_path / "eval",
+    )
+    assert "batch_size=2, async=True" in log
+    check_eval_info(info, n_episodes=2, batch_size=2)
