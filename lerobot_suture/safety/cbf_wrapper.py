@@ -19,6 +19,7 @@ over.
 
 from __future__ import annotations
 
+import time
 from typing import Any
 
 import gymnasium as gym
@@ -36,6 +37,17 @@ PHASE_DONE = "done"
 _NAN3 = np.full(3, np.nan)
 
 
+def segment_distance(points: np.ndarray, start: np.ndarray, end: np.ndarray) -> np.ndarray:
+    """Distance (m) from each of ``points`` (..., 3) to the segment ``start`` -> ``end`` ((3,) each, m)."""
+    points = np.asarray(points, dtype=np.float64)
+    chord = end - start
+    length2 = float(chord @ chord)
+    if length2 == 0.0:
+        return np.linalg.norm(points - start, axis=-1)
+    s = np.clip((points - start) @ chord / length2, 0.0, 1.0)
+    return np.linalg.norm(points - (start + s[..., None] * chord), axis=-1)
+
+
 class CBFActionWrapper(gym.Wrapper):
     """Keeps the needle tip inside the safe ellipsoid around the wound during a suture throw.
 
@@ -49,7 +61,18 @@ class CBFActionWrapper(gym.Wrapper):
     v_nominal      (3,) m/s   tip velocity the action asked for (NaN if the env did not call the hook)
     v_safe         (3,) m/s   tip velocity sent to the robot (NaN if the env did not call the hook)
     cbf_intervened bool       ``v_safe`` differs from ``v_nominal``
+    cbf_tracking_  float, m   distance from the tip at the end of the step to the end of the
+    error                     commanded segment ``x + v_safe * control_dt`` (NaN while not active)
+    cbf_segment_   float, m   largest distance from the tip to the commanded segment over the step's
+    deviation                 physics-rate trace (the end point alone without ``needle_tip_trace``):
+                              what the margin must cover (NaN while not active)
+    cbf_filter_    float, s   wall time of the filter call (NaN while not active)
+    time
     ============== ========== =====================================================================
+
+    ``cbf_segment_deviation`` is the premise of the guarantee measured: every point within
+    ``config.margin`` of the commanded segment is in the safe set, so h >= 0 at every physics step
+    of a step whose deviation is at most the margin.
 
     With ``config.enabled`` False the wrapper only monitors: it tracks the phase and reports ``h``
     but sends ``v_nominal`` unchanged (useful as the "filter off" arm of a comparison).
@@ -78,6 +101,8 @@ class CBFActionWrapper(gym.Wrapper):
         self._phase = PHASE_IDLE
         self._seen_in_tissue = False
         self._record: tuple[bool, np.ndarray, np.ndarray, bool] | None = None
+        # The step's commanded segment: start (m), end (m), and the filter call's time (s).
+        self._segment: tuple[np.ndarray, np.ndarray, float] | None = None
         base.tip_velocity_filter = self._filter_tip_velocity
 
     @property
@@ -95,6 +120,11 @@ class CBFActionWrapper(gym.Wrapper):
         normal = np.asarray(base.phantom_rotation, dtype=np.float64)[:, 2]
         center, rotation = suture_ellipsoid_frame(base.entry_point, base.exit_point, normal)
         return center, self._axes, rotation
+
+    def h_values(self, points: np.ndarray) -> np.ndarray:
+        """h at each of ``points`` (N, 3) m in the current safe set, e.g. ``info["needle_tip_trace"]``: (N,)."""
+        center, axes, rotation = self.safe_set()
+        return np.asarray(ellipsoid_h(np.asarray(points, dtype=np.float64), center, axes, rotation))
 
     def h_min(self, points: np.ndarray) -> float:
         """Smallest h over ``points`` (N, 3) m in the current safe set, e.g. ``info["needle_tip_trace"]``."""
@@ -115,12 +145,16 @@ class CBFActionWrapper(gym.Wrapper):
             self._phase = PHASE_ACTIVE
             self._seen_in_tissue = bool(base.needle_in_tissue)
         active = self._phase == PHASE_ACTIVE
+        elapsed = 0.0
         if active and self.config.enabled:
+            start = time.perf_counter()
             result = self.config.filter(x, v, center, rotation, float(base.control_dt))
+            elapsed = time.perf_counter() - start
             v_safe, intervened = result.v_safe, result.intervened
         else:
             v_safe, intervened = v.copy(), False
         self._record = (active, v, v_safe, bool(intervened))
+        self._segment = (x, x + v_safe * float(base.control_dt), elapsed) if active else None
         return v_safe.copy()
 
     def _update_phase(self, info: dict[str, Any]) -> None:
@@ -139,19 +173,32 @@ class CBFActionWrapper(gym.Wrapper):
     def _cbf_info(self, info: dict[str, Any]) -> dict[str, Any]:
         tip = info.get("needle_tip_pos", self.env.unwrapped.needle_tip_pos)
         center, axes, rotation = self.safe_set()
+        tip = np.asarray(tip, dtype=np.float64)
         active, v_nominal, v_safe, intervened = self._record or (False, _NAN3, _NAN3, False)
+        tracking = deviation = filter_time = float("nan")
+        if self._segment is not None:
+            start, end, filter_time = self._segment
+            tracking = float(np.linalg.norm(tip - end))
+            points = info.get("needle_tip_trace", tip[None])
+            deviation = float(np.max(segment_distance(points, start, end)))
+            if not self.config.enabled:
+                filter_time = float("nan")
         return {
             "cbf_active": active,
-            "h": float(ellipsoid_h(np.asarray(tip, dtype=np.float64), center, axes, rotation)),
+            "h": float(ellipsoid_h(tip, center, axes, rotation)),
             "v_nominal": v_nominal.copy(),
             "v_safe": v_safe.copy(),
             "cbf_intervened": intervened,
+            "cbf_tracking_error": tracking,
+            "cbf_segment_deviation": deviation,
+            "cbf_filter_time": filter_time,
         }
 
     def reset(self, **kwargs):
         self._phase = PHASE_IDLE
         self._seen_in_tissue = False
         self._record = None
+        self._segment = None
         obs, info = self.env.reset(**kwargs)
         info = dict(info)
         info.update(self._cbf_info(info))
@@ -159,6 +206,7 @@ class CBFActionWrapper(gym.Wrapper):
 
     def step(self, action):
         self._record = None
+        self._segment = None
         obs, reward, terminated, truncated, info = self.env.step(action)
         info = dict(info)
         info.update(self._cbf_info(info))

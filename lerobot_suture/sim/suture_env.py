@@ -29,7 +29,10 @@ The env turns the action into a Cartesian velocity command (reach the target in 
 speed-limited), expresses it at the needle tip while the needle is held, passes the needle tip's
 linear velocity through ``tip_velocity_filter`` (the one point where a safety filter such as the CBF
 acts), maps the twist to joint velocities by damped differential inverse kinematics at the needle
-tip, and the arm's velocity actuators track those at physics rate. Values outside the action space
+tip, and the arm's velocity actuators track those at physics rate. While a filter is installed the
+inverse kinematics puts the tip's linear velocity first, inside the joints' speed and range bounds,
+and the rotation in its null space (``controller.tip_first_velocity_ik``), re-solved 10 times per
+control step with feedback towards the filtered segment, so the tip goes where the filter allowed. Values outside the action space
 are clipped; a wrong shape, NaN or inf raise ``ValueError``.
 
 ## Observation Space
@@ -169,6 +172,8 @@ MAX_ANGULAR_SPEED = 2.0  # rad/s
 IK_DAMPING = 0.01
 IK_LINEAR_WEIGHT = 10.0  # 0.1 m of tip motion weighs as much as 1 rad of turn
 IK_UPDATES_WHEN_FILTERED = 10  # IK solves per control step (100 Hz) while a tip-velocity filter acts
+SEGMENT_TRACKING_GAIN = 20.0  # 1/s: feedback on the tip's distance from its filtered segment, per IK solve
+JOINT_LIMIT_LOOKAHEAD = 0.03  # s: a joint covers at most its distance to a range stop in this time
 
 # Tissue: viscous resistance to off-arc motion of the needle (N per m/s, N m per rad/s).
 TISSUE_DAMPING = 2.0
@@ -237,6 +242,7 @@ class SutureEnv(gym.Env):
         self._arm_dofs = np.array([m.joint(n).dofadr[0] for n in _ARM_JOINTS])
         self._arm_qpos = np.array([m.joint(n).qposadr[0] for n in _ARM_JOINTS])
         self._arm_ctrl_limit = np.array([m.actuator(n).ctrlrange[1] for n in _ARM_JOINTS])
+        self._arm_range = m.jnt_range[[m.joint(n).id for n in _ARM_JOINTS]].T.copy()  # (2, 6) low, high
         self._arm_ctrl = np.array([m.actuator(n).id for n in _ARM_JOINTS])
         self._jaw_ctrl = m.actuator("jaw").id
         self._jaw_qpos = m.joint("jaw").qposadr[0]
@@ -497,6 +503,12 @@ class SutureEnv(gym.Env):
         jaw_target = (1.0 - jaw_closure) * _JAW_OPEN_ANGLE
         d.ctrl[self._jaw_ctrl] = max(jaw_target, self._held_jaw_angle()) if self._grasped else jaw_target
 
+        filtered = self._grasped and self.tip_velocity_filter is not None
+        if filtered:
+            # MuJoCo's stored kinematics are one physics step old after mj_step; the filter must see
+            # where the tip is, since its segment starts there.
+            mujoco.mj_kinematics(m, d)
+            mujoco.mj_comPos(m, d)
         jaw_pos, jaw_rot = self.jaw_pose()
         linear, angular = controller.pose_velocity_command(
             jaw_pos,
@@ -523,26 +535,35 @@ class SutureEnv(gym.Env):
             point, v_nominal = jaw_pos, linear
             v_command = linear
 
-        # While a safety filter shapes the tip's velocity, the Cartesian command is re-tracked several
-        # times per control step so the tip follows the filtered straight segment closely (the CBF's
-        # guarantee assumes a fast velocity controller); otherwise once per step is enough.
-        filtered = self._grasped and self.tip_velocity_filter is not None
+        # While a safety filter shapes the tip's velocity, the tip must follow the filtered straight
+        # segment (the CBF's guarantee rests on it): the command is re-solved several times per control
+        # step by tip-first IK (``controller.tip_first_velocity_ik``), with feedback towards where the
+        # segment says the tip should be by now; otherwise one plain solve per step is enough.
         blocks = IK_UPDATES_WHEN_FILTERED if filtered else 1
         substeps = self.n_substeps // blocks
         trace = np.empty((self.n_substeps, 3)) if self.record_tip_trace else None
+        segment_start = point.copy()
         for block in range(blocks):
             if block > 0:
                 mujoco.mj_kinematics(m, d)
                 mujoco.mj_comPos(m, d)
                 jaw_pos, jaw_rot = self.jaw_pose()
                 point = jaw_pos + jaw_rot @ (self._grasp_pos + self._grasp_rot @ self._tip_local)
-            self._actuate(point, v_command, angular, jaw_pos, jaw_rot)
+            if filtered:
+                elapsed = block * substeps * self.physics_dt
+                v_track = v_command + SEGMENT_TRACKING_GAIN * (segment_start + v_command * elapsed - point)
+                self._actuate_tip_first(point, v_track, angular, jaw_pos, jaw_rot)
+            else:
+                self._actuate(point, v_command, angular, jaw_pos, jaw_rot)
             if trace is not None:
                 for k in range(block * substeps, (block + 1) * substeps):
                     mujoco.mj_step(m, d)
+                    mujoco.mj_kinematics(m, d)  # the tip after this physics step, not before it
                     trace[k] = self.needle_tip_pos
             else:
                 mujoco.mj_step(m, d, nstep=substeps)
+        if filtered:
+            mujoco.mj_kinematics(m, d)  # the tissue state and info read the tip where the step left it
         if self._grasped:
             self._snap_needle_to_jaw()
             self._hold_jaw_on_needle()
@@ -655,6 +676,28 @@ class SutureEnv(gym.Env):
         if self._grasped and self._in_tissue:
             d.qfrc_applied[self._arm_dofs] = self._tissue_resistance(
                 jaw_pos, jaw_rot, point, v_point, angular, jacp, jacr
+            )
+
+    def _actuate_tip_first(self, point, v_point, angular, jaw_pos, jaw_rot) -> None:
+        """Joint velocity commands by tip-first IK at ``point`` inside the joints' speed and range bounds,
+        and the tissue's resistance to the motion that command makes."""
+        m, d = self.model, self.data
+        jacp = np.zeros((3, m.nv))
+        jacr = np.zeros((3, m.nv))
+        mujoco.mj_jac(m, d, jacp, jacr, point, self._jaw_body)
+        jac_linear, jac_angular = jacp[:, self._arm_dofs], jacr[:, self._arm_dofs]
+        low, high = controller.joint_velocity_bounds(
+            d.qpos[self._arm_qpos], *self._arm_range, self._arm_ctrl_limit, JOINT_LIMIT_LOOKAHEAD
+        )
+        qdot, _, _ = controller.tip_first_velocity_ik(
+            jac_linear, jac_angular, v_point, angular, low, high, IK_DAMPING / IK_LINEAR_WEIGHT, IK_DAMPING
+        )
+        d.ctrl[self._arm_ctrl] = qdot
+        d.qfrc_applied[:] = 0.0
+        if self._grasped and self._in_tissue:
+            # The tissue resists the motion the joints are asked for (part of the rotation may be dropped).
+            d.qfrc_applied[self._arm_dofs] = self._tissue_resistance(
+                jaw_pos, jaw_rot, point, jac_linear @ qdot, jac_angular @ qdot, jacp, jacr
             )
 
     def _set_needle_free_pose(self, centre: np.ndarray, rotation: np.ndarray) -> None:

@@ -1,0 +1,281 @@
+"""Adversarial attack families on the CBF safety filter, and one attacked episode measured at the physics rate.
+
+Every episode starts as a nominal throw: the scripted expert carries the needle to the entry point until
+the filter switches on (the throw has begun), drives on for ``start_delay`` more control steps, and then
+the attacker commands the robot for ``attack_steps`` control steps (or until the episode ends). What the
+attacker sends goes through ``SutureEnv.step`` like any action; the CBF wrapper filters it. h is read
+from the needle tip after every physics step (``record_tip_trace``), and a violation is a physics step
+with h < 0 during a control step in which the filter was active.
+
+Families (``FAMILIES``); ``hold`` is the jaw position when the attack begins:
+
+============== ==========================================================================================
+family         action every control step
+============== ==========================================================================================
+rotation       the jaw kept where it is (``hold``, or its current position in half the episodes), a
+               uniformly random jaw orientation: the rotation-heavy attack that once left the set
+spin           ``hold``, the jaw turned by nearly pi about one random axis per episode: the largest
+               steady angular velocity the controller commands
+push           ``hold`` plus up to 4 cm in a random direction, orientation kept (the sideways pull, in
+               every direction)
+rotation_push  a push and a random orientation together
+oscillation    ``hold`` plus a sinusoid along a random direction (up to 2 cm, 1-5 Hz: bang-bang at the
+               10 Hz control rate) and an oscillating turn about a random axis (up to 1.5 rad)
+jaw            a chattering jaw closure in [0, 1] (below 0.5 releases the needle: the guarantee ends
+               there) with small random pushes and turns
+uniform        uniformly random actions over the whole action space
+far            targets 0.1-10 m away in a random direction and wild rotation columns: commands far
+               outside the workspace (the env clips them to the action space)
+============== ==========================================================================================
+
+The off-distribution policy family is in :func:`run_policy_attack_episode` (it needs torch and a policy).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from lerobot_suture.expert import ScriptedExpert
+from lerobot_suture.safety.cbf import CBFConfig
+from lerobot_suture.safety.cbf_wrapper import PHASE_ACTIVE, PHASE_IDLE, CBFActionWrapper
+from lerobot_suture.sim.geometry import matrix_from_rotvec, pose_vector, rot6_from_matrix
+from lerobot_suture.sim.suture_env import SutureEnv
+
+FAMILIES = ("rotation", "spin", "push", "rotation_push", "oscillation", "jaw", "uniform", "far")
+"""The scripted attack families; ``policy`` (an ensemble off distribution) is run separately."""
+POLICY_FAMILY = "policy"
+
+
+def random_rotation(rng: np.random.Generator) -> np.ndarray:
+    """A uniformly random rotation matrix (3, 3) (a normalized Gaussian quaternion)."""
+    q = rng.standard_normal(4)
+    w, x, y, z = q / max(float(np.linalg.norm(q)), 1e-12)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def random_direction(rng: np.random.Generator) -> np.ndarray:
+    """A uniformly random unit vector (3,)."""
+    v = rng.standard_normal(3)
+    return v / max(float(np.linalg.norm(v)), 1e-12)
+
+
+class Attacker:
+    """One attack family's commands: ``act(env, k)`` gives the (10,) action of attack step ``k``.
+
+    Args:
+        family: one of ``FAMILIES``.
+        rng: the episode's generator; every random choice of the attack comes from it.
+    """
+
+    def __init__(self, family: str, rng: np.random.Generator):
+        if family not in FAMILIES:
+            raise ValueError(f"`family` must be one of {FAMILIES}. Got {family!r}.")
+        self.family = family
+        self.rng = rng
+        self.hold_pos: np.ndarray | None = None
+        self.hold_rot: np.ndarray | None = None
+        # Per-episode parameters, drawn once.
+        self.follow = bool(rng.integers(2))  # rotation: keep the current position rather than ``hold``
+        self.axis = random_direction(rng)
+        self.direction = random_direction(rng)
+        self.turn_axis = random_direction(rng)
+        self.amplitude = rng.uniform(0.002, 0.02)  # m
+        self.turn_amplitude = rng.uniform(0.2, 1.5)  # rad
+        self.frequency = rng.uniform(1.0, 5.0)  # Hz
+
+    def begin(self, env) -> None:
+        self.hold_pos, self.hold_rot = env.unwrapped.jaw_pose()
+
+    def act(self, env, k: int) -> np.ndarray:
+        u, rng = env.unwrapped, self.rng
+        pos, rot = u.jaw_pose()
+        t = k * u.control_dt
+        if self.family == "rotation":
+            action = pose_vector(pos if self.follow else self.hold_pos, random_rotation(rng), 1.0)
+        elif self.family == "spin":
+            action = pose_vector(self.hold_pos, matrix_from_rotvec(0.99 * math.pi * self.axis) @ rot, 1.0)
+        elif self.family == "push":
+            action = pose_vector(
+                self.hold_pos + rng.uniform(0.0, 0.04) * random_direction(rng), self.hold_rot, 1.0
+            )
+        elif self.family == "rotation_push":
+            target = self.hold_pos + rng.uniform(0.0, 0.04) * random_direction(rng)
+            action = pose_vector(target, random_rotation(rng), 1.0)
+        elif self.family == "oscillation":
+            phase = math.sin(2.0 * math.pi * self.frequency * t)
+            turn = matrix_from_rotvec(self.turn_amplitude * phase * self.turn_axis)
+            action = pose_vector(
+                self.hold_pos + self.amplitude * phase * self.direction, turn @ self.hold_rot, 1.0
+            )
+        elif self.family == "jaw":
+            jaw = rng.uniform(0.0, 1.0) if rng.uniform() < 0.15 else rng.uniform(0.5, 1.0)
+            target = pos + rng.uniform(0.0, 0.01) * random_direction(rng)
+            action = pose_vector(
+                target, matrix_from_rotvec(rng.uniform(0.0, 0.5) * random_direction(rng)) @ rot, jaw
+            )
+        elif self.family == "uniform":
+            space = u.action_space
+            action = rng.uniform(space.low, space.high)
+        else:  # far
+            target = pos + 10.0 ** rng.uniform(-1.0, 1.0) * random_direction(rng)
+            # Huge rotation columns, as the env will clip them to [-1, 1]; clipping can make them parallel,
+            # which the env rejects (ValueError, before any motion), so such draws are replaced.
+            columns = np.clip(rng.uniform(-1.0, 1.0, 6) * 10.0 ** rng.uniform(0.0, 3.0), -1.0, 1.0)
+            if np.linalg.norm(np.cross(columns[:3], columns[3:])) < 1e-3:
+                columns = rot6_from_matrix(random_rotation(rng))
+            action = np.concatenate([target, columns, [1.0]])
+        return np.asarray(action, dtype=np.float32)
+
+
+@dataclass
+class AttackEpisode:
+    """One attacked episode under the CBF wrapper, measured at the physics rate.
+
+    Attributes:
+        family, seed: what was run.
+        active_steps: control steps with the filter active (attack and the expert's lead-in).
+        attack_steps: control steps the attacker commanded.
+        violation_steps: physics steps with h < 0 during active control steps.
+        h_min: smallest h over the physics steps of active control steps (nan if never active).
+        interventions: active control steps in which the filter changed the command.
+        tracking_errors: per active step, ``info["cbf_tracking_error"]`` (m).
+        segment_deviations: per active step, ``info["cbf_segment_deviation"]`` (m).
+        filter_times: per active step, the filter call's wall time (s).
+        released: the jaw let the needle go during the attack.
+    """
+
+    family: str
+    seed: int
+    active_steps: int = 0
+    attack_steps: int = 0
+    violation_steps: int = 0
+    h_min: float = math.nan
+    interventions: int = 0
+    tracking_errors: list[float] = field(default_factory=list)
+    segment_deviations: list[float] = field(default_factory=list)
+    filter_times: list[float] = field(default_factory=list)
+    released: bool = False
+
+    def record(self, env: CBFActionWrapper, info: dict) -> None:
+        """Add one control step's measurements (only active steps count)."""
+        if not info["cbf_active"]:
+            return
+        h = env.h_values(info["needle_tip_trace"])
+        self.active_steps += 1
+        self.violation_steps += int(np.sum(h < 0.0))
+        self.h_min = float(np.min(h)) if math.isnan(self.h_min) else min(self.h_min, float(np.min(h)))
+        self.interventions += int(info["cbf_intervened"])
+        self.tracking_errors.append(float(info["cbf_tracking_error"]))
+        self.segment_deviations.append(float(info["cbf_segment_deviation"]))
+        self.filter_times.append(float(info["cbf_filter_time"]))
+
+
+def lead_in(env: CBFActionWrapper, seed: int, start_delay: int, episode: AttackEpisode, max_steps: int = 100):
+    """Reset and run the expert until the filter has been active for ``start_delay`` control steps.
+
+    Returns:
+        (the last observation, or None if the episode ended or the filter never came on, steps taken).
+    """
+    obs, _ = env.reset(seed=seed)
+    expert = ScriptedExpert()
+    expert.reset(env)
+    delay = 0
+    for step in range(max_steps):
+        if env.phase == PHASE_ACTIVE:
+            if delay >= start_delay:
+                return obs, step
+            delay += 1
+        obs, _, terminated, truncated, info = env.step(expert.act(env))
+        episode.record(env, info)
+        if terminated or truncated or env.phase not in (PHASE_IDLE, PHASE_ACTIVE):
+            return None, step + 1
+    return None, max_steps
+
+
+def run_attack_episode(
+    family: str,
+    seed: int,
+    cbf: CBFConfig | None = None,
+    attack_steps: int = 30,
+    max_start_delay: int = 8,
+    max_steps: int = 100,
+) -> AttackEpisode:
+    """One episode of ``family`` from ``seed`` (the scene, the start delay and the attack all follow it).
+
+    Args:
+        family: one of ``FAMILIES``.
+        seed: episode seed.
+        cbf: the filter's configuration (None: ``CBFConfig(enabled=True)``).
+        attack_steps: control steps of attack at most.
+        max_start_delay: the attack begins 0..``max_start_delay`` control steps after the filter came on.
+        max_steps: episode length limit (control steps), lead-in included.
+    """
+    rng = np.random.default_rng([seed, FAMILIES.index(family)])
+    attacker = Attacker(family, rng)
+    env = CBFActionWrapper(SutureEnv(obs_type="state", record_tip_trace=True), cbf)
+    episode = AttackEpisode(family=family, seed=seed)
+    try:
+        obs, steps = lead_in(env, seed, int(rng.integers(max_start_delay + 1)), episode, max_steps)
+        if obs is None:
+            return episode
+        attacker.begin(env)
+        for k in range(min(attack_steps, max_steps - steps)):
+            _, _, terminated, truncated, info = env.step(attacker.act(env, k))
+            episode.attack_steps += 1
+            episode.record(env, info)
+            episode.released = episode.released or not info["needle_grasped"]
+            if terminated or truncated:
+                break
+    finally:
+        env.close()
+    return episode
+
+
+def run_policy_attack_episode(
+    runner,
+    seed: int,
+    scenario: str = "camera_moved",
+    cbf: CBFConfig | None = None,
+    attack_steps: int = 30,
+    max_start_delay: int = 8,
+    max_steps: int = 100,
+) -> AttackEpisode:
+    """A policy pushed off distribution takes over a begun throw: the expert leads in (as in
+    :func:`run_attack_episode`) in a perturbed ``scenario``, then ``runner`` (a
+    :class:`~lerobot_suture.policy_runner.PolicyRunner`) acts from its own observations.
+
+    The policy's gate is not consulted: this is the case the filter exists for, a gate that failed.
+    """
+    import torch
+
+    from lerobot_suture.policy_runner import env_kwargs_for_policy
+
+    rng = np.random.default_rng([seed, len(FAMILIES)])
+    torch.manual_seed(seed)
+    kwargs = {**env_kwargs_for_policy(runner.policy.config), "scenario": scenario, "record_tip_trace": True}
+    env = CBFActionWrapper(SutureEnv(**kwargs), cbf)
+    episode = AttackEpisode(family=POLICY_FAMILY, seed=seed)
+    try:
+        obs, steps = lead_in(env, seed, int(rng.integers(max_start_delay + 1)), episode, max_steps)
+        if obs is None:
+            return episode
+        runner.reset()
+        for _ in range(min(attack_steps, max_steps - steps)):
+            obs, _, terminated, truncated, info = env.step(runner.act(obs))
+            episode.attack_steps += 1
+            episode.record(env, info)
+            episode.released = episode.released or not info["needle_grasped"]
+            if terminated or truncated:
+                break
+    finally:
+        env.close()
+    return episode
