@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import draccus
@@ -9,8 +10,10 @@ import numpy as np
 import pytest
 from lerobot.envs.configs import EnvConfig
 from lerobot.envs.factory import make_env
-from lerobot.envs.utils import env_to_policy_features, preprocess_observation
+from lerobot.envs.utils import check_env_attributes_and_types, env_to_policy_features, preprocess_observation
 from lerobot.utils.import_utils import register_third_party_plugins
+
+from lerobot_suture.sim.suture_env import TASK
 
 
 @pytest.fixture(scope="module")
@@ -64,6 +67,11 @@ def test_async_vector_env_through_lerobot_factory(suture_config_cls):
     vec = envs["suture"][0]
     try:
         assert vec.call("_max_episode_steps") == (3, 3)
+        # lerobot-eval asks every worker for the task; a worker without it dies and takes the run with it.
+        assert vec.call("task_description") == (TASK, TASK) and vec.get_attr("task") == (TASK, TASK)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            check_env_attributes_and_types(vec)
         obs, _ = vec.reset(seed=[0, 1])
         batch = preprocess_observation(obs)
         assert batch["observation.images.endoscope"].shape == (2, 3, 32, 32)
