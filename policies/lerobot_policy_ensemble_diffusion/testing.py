@@ -27,7 +27,7 @@ import torch
 from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_STATE
 
-from .configuration_ensemble_diffusion import EnsembleDiffusionConfig
+from .configuration_ensemble_diffusion import NEEDLE_KEYPOINTS_KEY, EnsembleDiffusionConfig
 
 IMAGE_KEY = "observation.images.endoscope"
 STATE_DIM = 10
@@ -112,6 +112,31 @@ def save_untrained_policy(
     return directory
 
 
+def expert_dataset_stats(n_seeds: int = 2) -> dict[str, dict[str, np.ndarray]]:
+    """Statistics of the scripted expert's poses (state and action) over `n_seeds` throws, with images in
+    [0, 1]: an untrained policy normalized with them acts in metres, inside the workspace."""
+    from lerobot_suture.expert import ScriptedExpert
+    from lerobot_suture.rollout_expert import iter_expert_steps
+    from lerobot_suture.sim.suture_env import SutureEnv
+
+    env, expert, poses = SutureEnv(obs_type="state"), ScriptedExpert(), []
+    for seed in range(n_seeds):
+        obs, _ = env.reset(seed=seed)
+        poses += [step.obs["agent_pos"] for step in iter_expert_steps(env, expert, obs)]
+    env.close()
+    poses = np.asarray(poses, dtype=np.float64)
+    pose_stats = {
+        "min": poses.min(0) - 1e-3,
+        "max": poses.max(0) + 1e-3,
+        "mean": poses.mean(0),
+        "std": poses.std(0) + 1e-3,
+    }
+    image_stats = {
+        k: np.full((3, 1, 1), v) for k, v in {"min": 0.0, "max": 1.0, "mean": 0.5, "std": 0.25}.items()
+    }
+    return {OBS_STATE: pose_stats, ACTION: dict(pose_stats), IMAGE_KEY: image_stats}
+
+
 def fake_dataset_stats(seed: int = 0) -> dict[str, dict[str, np.ndarray]]:
     """Dataset-like statistics for the suture features (enough for MIN_MAX / MEAN_STD normalization)."""
     rng = np.random.default_rng(seed)
@@ -149,18 +174,22 @@ def make_synthetic_dataset(
     n_episodes: int = 3,
     episode_length: int = 30,
     seed: int = 0,
+    needle_keypoints: bool = False,
 ):
     """Write a tiny suture-shaped LeRobotDataset (images stored as PNG, no video) and return it.
 
     State and action follow smooth random sinusoids; the image is a smooth gradient plus a moving square, so
-    that the data is learnable but meaningless.
+    that the data is learnable but meaningless. With `needle_keypoints`, the dataset also holds
+    `observation.needle_keypoints` (6,): the square's top-left corner, centre and bottom-right corner in the
+    image, (x right, y down) in [-1, 1], as `lerobot-suture record` writes the needle's tip, middle and tail.
     """
     from lerobot.datasets import LeRobotDataset
 
     rng = np.random.default_rng(seed)
-    dataset = LeRobotDataset.create(
-        repo_id=repo_id, root=root, fps=FPS, features=SUTURE_DATASET_FEATURES, use_videos=False
-    )
+    features = dict(SUTURE_DATASET_FEATURES)
+    if needle_keypoints:
+        features[NEEDLE_KEYPOINTS_KEY] = {"dtype": "float32", "shape": (6,), "names": None}
+    dataset = LeRobotDataset.create(repo_id=repo_id, root=root, fps=FPS, features=features, use_videos=False)
     yy, xx = np.mgrid[0:IMAGE_SIZE, 0:IMAGE_SIZE] / IMAGE_SIZE
     for _ in range(n_episodes):
         phase = rng.uniform(0, 2 * np.pi, STATE_DIM)
@@ -171,14 +200,16 @@ def make_synthetic_dataset(
             image = np.stack([xx, yy, 0.5 * (xx + yy)], axis=-1)
             cx = int((0.5 + 0.4 * np.sin(phase[0] + freq[0] * t)) * (IMAGE_SIZE - 12))
             image[cx : cx + 12, cx : cx + 12] = 1.0
-            dataset.add_frame(
-                {
-                    IMAGE_KEY: (image * 255).astype(np.uint8),
-                    OBS_STATE: state,
-                    ACTION: action,
-                    "task": "insert the needle",
-                }
-            )
+            frame = {
+                IMAGE_KEY: (image * 255).astype(np.uint8),
+                OBS_STATE: state,
+                ACTION: action,
+                "task": "insert the needle",
+            }
+            if needle_keypoints:
+                corners = np.array([cx, cx + 6, cx + 12], dtype=np.float32)  # the square lies on the diagonal
+                frame[NEEDLE_KEYPOINTS_KEY] = np.repeat(corners / IMAGE_SIZE * 2 - 1, 2)  # (x, y) per point
+            dataset.add_frame(frame)
         dataset.save_episode()
     dataset.finalize()
     return dataset
