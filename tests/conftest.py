@@ -6,6 +6,9 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
 os.environ["HF_HUB_OFFLINE"] = "1"
 os.environ.setdefault("WANDB_MODE", "disabled")
+# The tests' models are tiny: one thread per process is fastest, since syncing threads over each small op
+# costs more than it saves (many times more on a machine whose cores are busy). Subprocesses inherit it.
+os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 from pathlib import Path  # noqa: E402
 
@@ -20,34 +23,14 @@ def tiny_policy_dir(tmp_path_factory) -> Path:
 
     Its statistics come from the scripted expert, so its actions and hold poses are in the right units.
     """
-    import numpy as np
     import torch
-    from lerobot_policy_ensemble_diffusion.testing import save_untrained_policy, tiny_config
+    from lerobot_policy_ensemble_diffusion.testing import (
+        expert_dataset_stats,
+        save_untrained_policy,
+        tiny_config,
+    )
 
-    from lerobot_suture.expert import ScriptedExpert
-    from lerobot_suture.rollout_expert import iter_expert_steps
-    from lerobot_suture.sim.suture_env import SutureEnv
-
-    env, expert, poses = SutureEnv(obs_type="state"), ScriptedExpert(), []
-    for seed in range(2):
-        obs, _ = env.reset(seed=seed)
-        poses += [step.obs["agent_pos"] for step in iter_expert_steps(env, expert, obs)]
-    poses = np.asarray(poses, dtype=np.float64)
-    pose_stats = {
-        "min": poses.min(0) - 1e-3,
-        "max": poses.max(0) + 1e-3,
-        "mean": poses.mean(0),
-        "std": poses.std(0) + 1e-3,
-    }
-    image_stats = {
-        k: np.full((3, 1, 1), v) for k, v in {"min": 0.0, "max": 1.0, "mean": 0.5, "std": 0.25}.items()
-    }
-    stats = {
-        "observation.state": pose_stats,
-        "action": dict(pose_stats),
-        "observation.images.endoscope": image_stats,
-    }
-
+    stats = expert_dataset_stats(n_seeds=2)
     torch.manual_seed(0)
     config = tiny_config(n_members=2, num_inference_steps=3, noise_scheduler_type="DDIM")
     return save_untrained_policy(config, stats, tmp_path_factory.mktemp("tiny_policy") / "pretrained_model")
