@@ -12,6 +12,11 @@ Steps, each writing under ``output_dir`` (default ``outputs/demo/``), all at toy
 
 A toy ensemble trained for a few steps does not insert the needle; the demo shows the machinery. The
 README gives the commands and the reference results of a properly trained ensemble.
+
+Interrupted (Ctrl-C, a kill), the same command picks up where it stopped: the dataset's recording
+resumes, training resumes from its last checkpoint (``lerobot-train --resume=true``), a calibration
+already written for the trained policy is kept, and experiments already run on that calibration are
+not run again.
 """
 
 from __future__ import annotations
@@ -46,6 +51,8 @@ class DemoConfig:
     frame_size: side of each frame (px).
     dataset_episodes: expert episodes in the demo dataset (0 skips recording and everything after).
     train_steps: ``lerobot-train`` steps of the toy ensemble.
+    checkpoint_every: ``lerobot-train`` steps between checkpoints; an interrupted demo resumes training
+        from the last one.
     train: train, calibrate and run the experiments (false stops after the dataset).
     """
 
@@ -57,16 +64,32 @@ class DemoConfig:
     frame_size: int = 160
     dataset_episodes: int = 12
     train_steps: int = 30
+    checkpoint_every: int = 10
     train: bool = True
 
     def __post_init__(self):
         unknown = [s for s in self.scenarios if s not in SCENARIOS]
         if unknown:
             raise ValueError(f"`scenarios` must be drawn from {SCENARIOS}. Got unknown {unknown}.")
+        if not self.scenarios:
+            raise ValueError(f"`scenarios` must name at least one of {SCENARIOS}. Got [].")
         if self.episodes_per_scenario < 1 or self.frames_per_strip < 2:
             raise ValueError(
                 "`episodes_per_scenario` must be >= 1 and `frames_per_strip` >= 2. "
                 f"Got {self.episodes_per_scenario}, {self.frames_per_strip}."
+            )
+        if not 16 <= self.frame_size <= 640:
+            raise ValueError(f"`frame_size` must be in [16, 640] px. Got {self.frame_size}.")
+        if self.train_steps < 1 or self.checkpoint_every < 1:
+            raise ValueError(
+                "`train_steps` and `checkpoint_every` must be >= 1. "
+                f"Got {self.train_steps}, {self.checkpoint_every}."
+            )
+        # The dataset holds out its last quarter for the calibration, and training needs the rest.
+        if self.dataset_episodes < 0 or (self.train and self.dataset_episodes == 1):
+            raise ValueError(
+                "`dataset_episodes` must be 0 (no dataset) or >= 2 (episodes to train on and a validation "
+                f"episode to calibrate on); 1 is enough only with --train=false. Got {self.dataset_episodes}."
             )
 
 
@@ -102,10 +125,12 @@ def record_demo_dataset(cfg: DemoConfig) -> dict:
     }
 
 
-# A toy ensemble for the demo: 2 members, 32 px images, a two-level U-Net, DDIM with 5 steps.
+# A toy ensemble for the demo: 2 members, 32 px images read by ResNet18's first stage only (a few MB per
+# checkpoint instead of 260), a two-level U-Net, DDIM with 5 steps.
 TOY_POLICY_FLAGS = [
     "--policy.type=ensemble_diffusion",
     "--policy.n_members=2",
+    "--policy.vision_backbone_stages=1",
     "--policy.n_obs_steps=2",
     "--policy.horizon=8",
     "--policy.n_action_steps=4",
@@ -124,31 +149,58 @@ TOY_POLICY_FLAGS = [
 ]
 
 
+def _checkpoint_step(checkpoint: Path) -> int:
+    """The training step a ``lerobot-train`` checkpoint directory was saved at."""
+    return int(json.loads((checkpoint / "training_state" / "training_step.json").read_text())["step"])
+
+
 def train_toy_ensemble(cfg: DemoConfig, dataset_root: Path) -> Path:
-    """Train the toy ensemble with the real ``lerobot-train`` command; returns its pretrained directory."""
+    """Train the toy ensemble with the real ``lerobot-train`` command; returns its pretrained directory.
+
+    A run interrupted earlier resumes from its last checkpoint; a finished one is kept as it is.
+    """
     from lerobot_suture.datasets.split import train_episodes
+    from lerobot_suture.datasets.video import resolve_video_backend
 
     out = cfg.output_dir / "train"
-    policy_dir = out / "checkpoints" / "last" / "pretrained_model"
-    if policy_dir.is_dir():
+    # lerobot-train points `last` at a checkpoint only once it is completely written.
+    last = out / "checkpoints" / "last"
+    policy_dir = last / "pretrained_model"
+    resume = last.is_dir()
+    if resume and _checkpoint_step(last) >= cfg.train_steps:
         logger.info("toy ensemble already trained: %s", policy_dir)
         return policy_dir
-    if out.exists():
-        shutil.rmtree(out)  # an interrupted earlier run: lerobot-train refuses an existing output_dir
-    command = [
-        str(Path(sys.executable).parent / "lerobot-train"),
-        *TOY_POLICY_FLAGS,
-        "--dataset.repo_id=local/suture_demo",
+    if out.exists() and not resume:
+        # Interrupted before its first checkpoint: only logs are there, and lerobot-train refuses an
+        # existing output_dir unless it resumes.
+        shutil.rmtree(out)
+    common = [
         f"--dataset.root={dataset_root}",
-        f"--dataset.episodes=[{','.join(str(i) for i in train_episodes(dataset_root))}]",
+        f"--dataset.video_backend={resolve_video_backend()}",  # quietly, where torchcodec does not load
         f"--steps={cfg.train_steps}",
-        "--batch_size=4",
-        "--num_workers=0",
-        f"--save_freq={cfg.train_steps}",
-        "--log_freq=10",
+        f"--save_freq={cfg.checkpoint_every}",
         f"--output_dir={out}",
-        "--job_name=suture_demo",
     ]
+    if resume:
+        logger.info("resuming the toy ensemble's training from step %d", _checkpoint_step(last))
+        command = [
+            str(Path(sys.executable).parent / "lerobot-train"),
+            f"--config_path={policy_dir / 'train_config.json'}",
+            "--resume=true",
+            *common,
+        ]
+    else:
+        command = [
+            str(Path(sys.executable).parent / "lerobot-train"),
+            *TOY_POLICY_FLAGS,
+            "--dataset.repo_id=local/suture_demo",
+            f"--dataset.episodes=[{','.join(str(i) for i in train_episodes(dataset_root))}]",
+            "--batch_size=4",
+            "--num_workers=0",
+            "--log_freq=10",
+            "--job_name=suture_demo",
+            *common,
+        ]
     logger.info("training the toy ensemble: %s", " ".join(command))
     env = {**os.environ, "HF_HUB_OFFLINE": "1"}
     subprocess.run(command, check=True, env=env)
@@ -156,35 +208,50 @@ def train_toy_ensemble(cfg: DemoConfig, dataset_root: Path) -> Path:
 
 
 def calibrate_and_run_experiments(cfg: DemoConfig, policy_dir: Path) -> dict:
-    """``lerobot-suture calibrate`` then ``lerobot-suture experiments`` at toy scale."""
+    """``lerobot-suture calibrate`` then ``lerobot-suture experiments`` at toy scale, each skipped when a
+    run interrupted later left its result for this policy and calibration."""
     from lerobot_suture.calibrate import CalibrateConfig, PolicyPathConfig, run_calibration
     from lerobot_suture.experiments.runner import ExperimentsConfig, run_experiments
+    from lerobot_suture.safety.ood import CALIBRATION_FILENAME
 
-    run_calibration(
-        CalibrateConfig(
-            policy=PolicyPathConfig(path=policy_dir),
-            dataset_root=cfg.output_dir / "dataset",
-            calibration_episodes=3,
-            holdout_episodes=1,
-            mode="per_prediction",
+    calibration_file = policy_dir / CALIBRATION_FILENAME
+    if calibration_file.is_file():  # written atomically once fitted; a retrained policy has none
+        logger.info("toy ensemble already calibrated: %s", calibration_file)
+    else:
+        run_calibration(
+            CalibrateConfig(
+                policy=PolicyPathConfig(path=policy_dir),
+                dataset_root=cfg.output_dir / "dataset",
+                calibration_episodes=3,
+                holdout_episodes=1,
+                mode="per_prediction",
+            )
         )
-    )
     out = cfg.output_dir / "experiments"
-    result = run_experiments(
-        ExperimentsConfig(
-            policy=PolicyPathConfig(path=policy_dir),
-            output_dir=out,
-            nominal_episodes=2,
-            expert_episodes=5,
-            needle_drop_runs=1,
-            camera_moved_runs=1,
-            phantom_servo_runs=1,
-            phantom_moved_after_insertion_runs=1,
-            cbf_runs=1,
-            enforced_runs=1,
+    # metrics.json then report.md are the experiments' last writes; metrics.json names the calibration.
+    metrics_file = out / "metrics.json"
+    calibration = json.loads(calibration_file.read_text())
+    done = metrics_file.is_file() and (out / "report.md").is_file()
+    if done and json.loads(metrics_file.read_text())["calibration"] == calibration:
+        logger.info("experiments already run with this calibration: %s", out)
+        figures = json.loads(metrics_file.read_text())["figures"]
+    else:
+        result = run_experiments(
+            ExperimentsConfig(
+                policy=PolicyPathConfig(path=policy_dir),
+                output_dir=out,
+                nominal_episodes=2,
+                expert_episodes=5,
+                needle_drop_runs=1,
+                camera_moved_runs=1,
+                phantom_servo_runs=1,
+                phantom_moved_after_insertion_runs=1,
+                cbf_runs=1,
+                enforced_runs=1,
+            )
         )
-    )
-    return {"dir": str(out), "figures": [str(out / name) for name in result["figures"].values()]}
+        figures = result["figures"]
+    return {"dir": str(out), "figures": [str(out / name) for name in figures.values()]}
 
 
 def run_demo(cfg: DemoConfig) -> dict:
