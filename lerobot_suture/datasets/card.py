@@ -26,7 +26,7 @@ CITATION_BIBTEX = """@article{empleo2025safe,
 HOMEPAGE: str | None = None
 """The project's home page for the card's "Homepage" line (None: LeRobot's placeholder)."""
 LICENSE = "apache-2.0"
-"""Hub license identifier of the datasets we record (Apache-2.0, as the code)."""
+"""Hub license identifier of the recorded datasets (Apache-2.0, as the code)."""
 TAGS = ["lerobot-suture", "surgical-robotics", "suturing", "needle-insertion", "simulation", "mujoco"]
 """Hub tags added to LeRobot's own ``LeRobot`` tag."""
 TEMPLATE_NAME = "card_template.md"
@@ -72,9 +72,11 @@ def render_description(root: str | Path, template_path: str | Path | None = None
         FileNotFoundError: the template is missing (an installed wheel without the source tree).
     """
     import jinja2
+    import mujoco
 
     from lerobot_suture.sim import geometry
     from lerobot_suture.sim import suture_env as se
+    from lerobot_suture.sim.scenarios import ScenarioConfig
 
     path = Path(template_path) if template_path is not None else default_template_path()
     if not path.is_file():
@@ -100,7 +102,11 @@ def render_description(root: str | Path, template_path: str | Path | None = None
         for key, ft in info["features"].items()
     ]
     env_kwargs = log["env_kwargs"]
-    grasp_angle, grasp_offset, grasp_roll = se.GRASP_RANGES[env_kwargs.get("grasp", "narrow")]
+    grasp = env_kwargs.get("grasp", "narrow")  # absent in logs before it existed
+    grasp_angle, grasp_offset, grasp_roll = se.GRASP_RANGES[grasp]
+    scenario = ScenarioConfig(name=env_kwargs["scenario"])
+    model = mujoco.MjModel.from_xml_path(str(se.SCENE_XML))
+    endoscope = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, "endoscope")
     context = {
         "paper_title": PAPER_TITLE,
         "paper_url": PAPER_URL,
@@ -113,6 +119,17 @@ def render_description(root: str | Path, template_path: str | Path | None = None
         "obs_type": env_kwargs["obs_type"],
         "image_size": env_kwargs["image_size"],
         "scenario": env_kwargs["scenario"],
+        "scenario_onset_step": scenario.onset_step,
+        "scenario_magnitude_mm": f"{scenario.magnitude * 1e3:g}",
+        "scenario_period_steps": scenario.period_steps,
+        "physics_dt_ms": f"{model.opt.timestep * 1e3:g}",
+        "endoscope_fovy_deg": f"{model.cam_fovy[endoscope]:g}",
+        "has_environment_state": "observation.environment_state" in info["features"],
+        "has_needle_keypoints": "observation.needle_keypoints" in info["features"],
+        "video": info["features"].get("observation.images.endoscope", {}).get("dtype") == "video",
+        "grasp": grasp,
+        "grasp_blind_expert": bool(log["expert"]["config"].get("assume_nominal_grasp", False)),
+        "tissue_damping": f"{se.TISSUE_DAMPING:g}",
         "steps_after_success": log.get("steps_after_success", 0),
         "num_episodes": len(log["episodes"]),
         "num_frames": info["total_frames"],
