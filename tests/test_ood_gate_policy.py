@@ -41,7 +41,16 @@ def test_reporting_gate_logs_score_and_threshold_and_keeps_control():
     assert math.isfinite(status["score"]) and status["threshold"] == pytest.approx(1e-12, rel=1e-2)
     second = policy.select_action(obs)
     assert not policy.ood_status(0)["new_prediction"]
-    assert not torch.equal(first, second) or policy.config.n_action_steps == 1
+    # The policy acts: its first two actions are the first two steps of its predicted chunk, not a hold
+    # of the measured pose (which an enforced gate would return).
+    prediction = policy.last_prediction
+    chunk = prediction.normalized.mean[:, prediction.action_steps]  # (1, n_action_steps, A)
+    assert chunk.shape[1] >= 2
+    torch.testing.assert_close(torch.stack([first, second], dim=1), chunk[:, :2], rtol=0, atol=0)
+    pose_raw = obs[OBS_STATE] * policy.state_unnormalize_scale + policy.state_unnormalize_offset
+    for action in (first, second):
+        action_raw = action * policy.action_unnormalize_scale + policy.action_unnormalize_offset
+        assert not torch.allclose(action_raw, pose_raw, rtol=1e-5, atol=1e-5)
 
 
 def test_enforced_gate_releases_holds_the_measured_pose_and_latches():
