@@ -57,6 +57,10 @@ segment is in S: h >= 0 at every physics step as long as the tip tracks the comm
 (Shrinking each semi-axis by ``m`` instead would not be enough on an elongated ellipsoid.) A step that
 starts in the margin band because of tracking error is handled by the recovery rule below.
 
+That premise is the velocity controller's (the paper's lambda > alpha, in discrete form): the env's
+tip-first inverse kinematics (``lerobot_suture.sim.controller.tip_first_velocity_ik``) keeps it for any
+command, rotation included, and ``CBFActionWrapper`` measures it every step (``cbf_segment_deviation``).
+
 Here ``alpha`` is a true rate in 1/s: h~ may decay by at most a factor ``1 - alpha dt`` per step, so
 the tip slows down geometrically as it approaches the tightened boundary.
 

@@ -1,6 +1,35 @@
 """The PSM's Cartesian controller: pose error -> velocity command -> joint velocities.
 
 Pure functions that compute and return; the env writes the result into MuJoCo. Units: m, rad, s.
+
+Tip-first inverse kinematics, the premise of the CBF's guarantee
+----------------------------------------------------------------
+The CBF filters only the needle tip's linear velocity and keeps h >= 0 at every physics step as long as
+the tip stays within its margin of the straight segment it commanded (``safety/cbf.py``). The plain
+solve (:func:`damped_least_squares` on the stacked linear and angular rows) breaks that under a large
+commanded rotation: it shares its error between the rows, the env then scales the whole joint command to
+the actuator limits, and a rotation that drives a wrist joint into its range stop leaves the solve
+counting on a joint that no longer moves; the tip went the other way from the filtered velocity, and
+random jaw orientations took it out of the safe set. While a filter is installed the env therefore uses
+:func:`tip_first_velocity_ik`:
+
+1. The tip's linear velocity is the primary task, solved on the joints that can move inside a box of
+   speed limits and range stops (:func:`joint_velocity_bounds`); a joint that would leave its box is
+   fixed at its bound and the others compensate (saturation in the null space).
+2. The rotation is the secondary task, solved in the primary task's null space, and only it is scaled to
+   fit the box: no rotation can bend the tip's path.
+3. If the primary task itself cannot be met inside the box (too few free joints, or near a singularity),
+   the tip's velocity is scaled down along its own direction. Zero velocity is always inside the box, so
+   such a scale always exists, and the tip then stays on a sub-segment of the filtered one, which is in
+   the (convex) tightened set too.
+
+The env re-solves this 10 times per control step with feedback on the tip's distance from where the
+segment says it should be, which absorbs the tissue's resistance and the actuators' lag. Why this route
+rather than filtering the whole twist or the robust (input-to-state) CBF: it makes the tracking premise
+true for any command at its source, leaves nominal commands as they were (a nominal throw's rotation
+fits in the null space), and keeps the filter the paper's closed form; the residual tracking error is
+measured every step (``CBFActionWrapper``'s ``cbf_segment_deviation``) and by
+``benchmarks/cbf_adversary.py`` against the margin.
 """
 
 from __future__ import annotations
@@ -53,19 +82,6 @@ def damped_least_squares(jacobian: np.ndarray, twist: np.ndarray, damping: float
     jjt[np.diag_indices_from(jjt)] += damping**2
     return jacobian.T @ np.linalg.solve(jjt, twist)
 
-
-# Tip-first differential IK: what the env uses while a safety filter shapes the needle tip's velocity.
-#
-# The plain solve above shares its error between the linear and the angular rows, and the env then scales
-# the whole joint command to the actuator limits, so a large commanded rotation bends the tip's path away
-# from the filtered velocity, and a joint driven into its range stop stops contributing while the solve
-# still counts on it. The CBF's guarantee needs the tip to follow its filtered segment. So the tip's
-# linear velocity is the primary task, solved on the joints that can still move within their speed and
-# range bounds (saturation in the null space: a joint that would leave its box is fixed at its bound and
-# the others compensate); the rotation is the secondary task, in the null space of the primary one, and
-# only it is scaled to fit the bounds. If the primary task itself cannot be met inside the bounds, the
-# tip's velocity is scaled down along its own direction, which keeps the tip on the filtered segment
-# (zero velocity is always inside the bounds, so there is always such a scale).
 
 _RANK_TOLERANCE = 1e-9
 """Singular values (m/rad) below this count as zero in the primary task's null-space projector."""
