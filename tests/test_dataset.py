@@ -185,14 +185,19 @@ def test_lerobot_eval_split_holds_out_exactly_the_validation_episodes(tiny, back
 
 @pytest.mark.parametrize(
     "n, fraction, expected_val",
-    [(133, 0.25, 34), (100, 0.25, 25), (3, 0.25, 1), (10, 0.0, 0), (1, 0.5, 1)],
+    [(133, 0.25, 34), (100, 0.25, 25), (3, 0.25, 1), (10, 0.0, 0), (2, 0.5, 1), (1, 0.0, 0), (0, 0.25, 0)],
 )
 def test_split_matches_lerobot_eval_split(n, fraction, expected_val):
-    import math
-
     train, val = split_episodes(n, fraction)
     assert len(val) == expected_val == math.ceil(n * fraction)
     assert train + val == list(range(n))
+    assert train or not n  # LeRobot's eval_split refuses a split without a training episode
+
+
+@pytest.mark.parametrize("n, fraction", [(1, 0.5), (1, 0.25), (2, 0.75), (3, 0.9)])
+def test_split_without_a_training_episode_is_refused_as_lerobot_refuses_it(n, fraction):
+    with pytest.raises(ValueError, match=f"`val_fraction`={fraction} holds out all {n} episode.*none to train"):
+        split_episodes(n, fraction)
 
 
 def test_split_rejects_bad_fraction():

@@ -36,6 +36,7 @@ from lerobot_suture.expert import ScriptedExpert
 
 REPO_ID = "suture-tests/record"
 SMALL = {"image_size": 32, "obs_type": "pixels_agent_pos"}
+ONE = {"num_episodes": 1, "val_fraction": 0.0}  # a single episode is for training: none held out
 
 
 def _cfg(root: Path, **kwargs) -> RecordConfig:
@@ -87,6 +88,8 @@ def test_malformed_repo_id_is_an_error_before_any_work(repo_id, match, tmp_path,
     [
         ("--num_episodes=0", "`num_episodes` must be >= 1"),
         ("--val_fraction=1.0", r"`val_fraction` must be in \[0, 1\)"),
+        ("--num_episodes=1", r"`val_fraction`=0.25 holds out all 1 episode\(s\) and leaves none to train"),
+        ("--num_episodes=3 --val_fraction=0.7", r"`val_fraction`=0.7 holds out all 3 episode\(s\)"),
         ("--obs_type=rgb", "`obs_type` must be one of"),
         ("--scenario=earthquake", "`scenario` must be one of"),
         ("--image_size=8", r"`image_size` must be in \[16, 640\]"),
@@ -100,7 +103,7 @@ def test_bad_flags_name_the_field(flag, match, tmp_path):
     import draccus
 
     with pytest.raises(draccus.utils.ParsingError) as err:
-        draccus.parse(RecordConfig, args=[f"--repo_id={REPO_ID}", f"--root={tmp_path / 'ds'}", flag])
+        draccus.parse(RecordConfig, args=[f"--repo_id={REPO_ID}", f"--root={tmp_path / 'ds'}", *flag.split()])
     assert isinstance(err.value.__cause__, ValueError)
     with pytest.raises(ValueError, match=match):
         raise err.value.__cause__
@@ -131,21 +134,21 @@ def test_existing_root_without_resume_is_an_error(tmp_path, capsys):
     root.mkdir()
     (root / "something.txt").write_text("not mine")
     with pytest.raises(FileExistsError, match="already exists. Pass --resume=true"):
-        record(_cfg(root, num_episodes=1))
+        record(_cfg(root, **ONE))
     with pytest.raises(SystemExit) as exit_:
-        main([f"--repo_id={REPO_ID}", f"--root={root}", "--num_episodes=1"])
+        main([f"--repo_id={REPO_ID}", f"--root={root}", "--num_episodes=1", "--val_fraction=0"])
     assert exit_.value.code == 2 and "--resume=true" in capsys.readouterr().err
     assert sorted(p.name for p in root.iterdir()) == ["something.txt"]
 
 
 def test_resume_without_a_dataset_is_an_error(tmp_path):
     with pytest.raises(FileNotFoundError, match="no dataset at .* to resume"):
-        record(_cfg(tmp_path / "missing", num_episodes=1, resume=True))
+        record(_cfg(tmp_path / "missing", **ONE, resume=True))
     foreign = tmp_path / "foreign"
     (foreign / "meta").mkdir(parents=True)
     (foreign / "meta" / "info.json").write_text("{}")
     with pytest.raises(FileNotFoundError, match="not recorded by `lerobot-suture record`"):
-        record(_cfg(foreign, num_episodes=1, resume=True))
+        record(_cfg(foreign, **ONE, resume=True))
 
 
 def test_push_without_token_fails_before_recording(tmp_path, monkeypatch):
@@ -159,7 +162,7 @@ def test_push_without_token_fails_before_recording(tmp_path, monkeypatch):
     monkeypatch.delenv("HUGGING_FACE_HUB_TOKEN", raising=False)
     root = tmp_path / "ds"
     with pytest.raises(HubPushError, match="No Hugging Face token"):
-        record(_cfg(root, num_episodes=1, push_to_hub=True))
+        record(_cfg(root, **ONE, push_to_hub=True))
     assert not root.exists()
 
 
@@ -170,7 +173,7 @@ def test_push_without_token_fails_before_recording(tmp_path, monkeypatch):
 def test_other_storage_layouts_load(tmp_path, obs_type, video, image_dtype):
     """PNG frames instead of video, and the image-free state layout, are datasets LeRobot loads."""
     root = tmp_path / "ds"
-    record(_cfg(root, num_episodes=1, obs_type=obs_type, video=video))
+    record(_cfg(root, **ONE, obs_type=obs_type, video=video))
     _assert_consistent(root, 1)
     features = _load(root).features
     assert features.get("observation.images.endoscope", {}).get("dtype") == image_dtype
@@ -183,7 +186,7 @@ def test_steps_after_success_record_the_expert_driving_on(tmp_path):
     resume must keep the setting."""
     extra = MAX_STEPS_AFTER_SUCCESS
     root = tmp_path / "ds"
-    record(_cfg(root, num_episodes=1, obs_type="state", steps_after_success=extra))
+    record(_cfg(root, **ONE, obs_type="state", steps_after_success=extra))
     _assert_consistent(root, 1)
     frames = regenerate_episode(root, 0)
     env = make_env("state", 32, "nominal")
@@ -251,7 +254,7 @@ def test_failed_attempts_are_discarded_with_their_reason(tmp_path, monkeypatch):
 
     monkeypatch.setattr(ScriptedExpert, "act", dropping_act)
     root = tmp_path / "ds"
-    summary = record(_cfg(root, num_episodes=1))
+    summary = record(_cfg(root, **ONE))
     assert summary.discarded == 1 and summary.discard_reasons == {"needle dropped": 1}
     log = metadata.read_episode_log(root)
     assert log["discarded"][0]["seed"] == 0 and log["discarded"][0]["reason"] == "needle dropped"
@@ -320,6 +323,28 @@ def test_interrupts_keep_finished_episodes_and_resume_continues(tmp_path, monkey
         record(_cfg(root, num_episodes=4, resume=True, grasp_blind_expert=True))
 
 
+def test_a_recording_stopped_before_its_split_holds_a_training_episode_trains_on_all(tmp_path, monkeypatch):
+    """One of 3 episodes saved: the last quarter would hold out all of it, so until the recording resumes
+    the one episode is for training; the finished dataset gets the split it was recorded for."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    root = tmp_path / "ds"
+    save_episode = LeRobotDataset.save_episode
+
+    def save_and_ctrl_c(self, *args, **kwargs):
+        os.kill(os.getpid(), signal.SIGINT)  # held back until the episode is on disk
+        return save_episode(self, *args, **kwargs)
+
+    monkeypatch.setattr(LeRobotDataset, "save_episode", save_and_ctrl_c)
+    with pytest.raises(RecordingInterrupted):
+        record(_cfg(root, num_episodes=3, obs_type="state"))
+    monkeypatch.setattr(LeRobotDataset, "save_episode", save_episode)
+    log = metadata.read_episode_log(root)
+    assert log["splits"] == {"train": [0], "val": []} and "--val_fraction=0.0" in log["command"]
+    summary = record(_cfg(root, num_episodes=3, obs_type="state", resume=True))
+    assert (summary.train_episodes, summary.val_episodes) == ([0, 1], [2])
+
+
 def test_sigkill_loses_only_episodes_since_the_last_checkpoint(tmp_path, caplog):
     """A recording killed with SIGKILL (no cleanup) is rolled back to its last checkpoint on resume."""
     root = tmp_path / "ds"
@@ -343,17 +368,21 @@ def test_sigkill_loses_only_episodes_since_the_last_checkpoint(tmp_path, caplog)
         except (OSError, json.JSONDecodeError, KeyError):
             return None
 
+    def past_a_checkpoint() -> bool:
+        """A checkpoint holds 2 or more episodes and another one is on disk past it."""
+        episodes = read(checkpoint, "episode_log", "episodes") or []
+        return len(episodes) >= 2 and (read(root / "meta" / "info.json", "total_episodes") or 0) > len(episodes)
+
     deadline = time.monotonic() + 240
     try:
-        # Kill it when a checkpoint holds 2 episodes and a third one is on disk past it.
-        while time.monotonic() < deadline and proc.poll() is None:
-            episodes = read(checkpoint, "episode_log", "episodes") or []
-            if len(episodes) >= 2 and (read(root / "meta" / "info.json", "total_episodes") or 0) > len(
-                episodes
-            ):
-                break
-            time.sleep(0.02)
+        # Kill it when an episode is on disk past the checkpoint.
+        reached = False
+        while not reached and time.monotonic() < deadline and proc.poll() is None:
+            reached = past_a_checkpoint()
+            if not reached:
+                time.sleep(0.02)
         assert proc.poll() is None, proc.stderr.read().decode()[-3000:]
+        assert reached, "no episode on disk past a checkpoint within 240 s: the state to kill in never came"
         proc.send_signal(signal.SIGKILL)
     finally:
         proc.kill()

@@ -148,7 +148,8 @@ class RecordConfig:
             ``~/.cache/huggingface/lerobot``). It must not exist unless ``resume`` is true.
         num_episodes: successful episodes the dataset holds when done (the paper: 100 train + 33 val).
         val_fraction: fraction of episodes held out for validation, in [0, 1): the last
-            ``ceil(num_episodes * val_fraction)`` episodes, LeRobot's ``--dataset.eval_split`` rule.
+            ``ceil(num_episodes * val_fraction)`` episodes, LeRobot's ``--dataset.eval_split`` rule. It must
+            leave a training episode (0 for a single episode).
         obs_type: ``pixels_agent_pos`` (endoscope + state, the paper's), ``pixels_agent_pos_state`` (adds
             the privileged 18-dim ``observation.environment_state``) or ``state`` (no image).
         image_size: endoscope image side (px), in [16, 640].
@@ -204,6 +205,7 @@ class RecordConfig:
             raise ValueError(f"`num_episodes` must be >= 1. Got {self.num_episodes}.")
         if not (0.0 <= self.val_fraction < 1.0):
             raise ValueError(f"`val_fraction` must be in [0, 1). Got {self.val_fraction}.")
+        split_episodes(self.num_episodes, self.val_fraction)  # the finished dataset has a training episode
         if self.obs_type not in suture_env.OBS_TYPES:
             raise ValueError(f"`obs_type` must be one of {suture_env.OBS_TYPES}. Got {self.obs_type!r}.")
         if not 16 <= self.image_size <= 640:
@@ -658,11 +660,17 @@ def _finish(dataset, root: Path, log: dict, cfg: RecordConfig) -> None:
     if images.is_dir() and not any(p.is_file() for p in images.rglob("*")):
         shutil.rmtree(images)
     metadata.write_checkpoint(root, log)
-    train, val = split_episodes(len(log["episodes"]), cfg.val_fraction)
-    log["val_fraction"] = cfg.val_fraction
+    n = len(log["episodes"])
+    val_fraction = cfg.val_fraction
+    if n and math.ceil(n * val_fraction) == n:
+        # Stopped before it holds enough episodes for its split (the config checked the finished one):
+        # all train until a resumed recording finishes.
+        val_fraction = 0.0
+    train, val = split_episodes(n, val_fraction)
+    log["val_fraction"] = val_fraction  # the card advertises --dataset.eval_split with it
     log["splits"] = {"train": train, "val": val}
-    if log["episodes"]:  # the command that records exactly these episodes from scratch
-        log["command"] = dataclasses.replace(cfg, num_episodes=len(log["episodes"])).command()
+    if log["episodes"]:  # the command that records exactly these episodes, so split, from scratch
+        log["command"] = dataclasses.replace(cfg, num_episodes=n, val_fraction=val_fraction).command()
     dataset.meta.info.splits = info_splits(train, val)
     write_info(dataset.meta.info, root)
     metadata.write_episode_log(root, log)

@@ -36,6 +36,10 @@ def split_episodes(num_episodes: int, val_fraction: float) -> tuple[list[int], l
     Returns:
         ``(train, val)``: the first ``num_episodes - ceil(num_episodes * val_fraction)`` indices and
         the rest.
+
+    Raises:
+        ValueError: ``val_fraction`` outside [0, 1), or a split that holds out every episode (LeRobot's
+            ``make_train_eval_datasets`` refuses one that leaves no training episode).
     """
     if num_episodes < 0:
         raise ValueError(f"`num_episodes` must be >= 0. Got {num_episodes}.")
@@ -43,6 +47,12 @@ def split_episodes(num_episodes: int, val_fraction: float) -> tuple[list[int], l
         raise ValueError(f"`val_fraction` must be in [0, 1). Got {val_fraction}.")
     n_val = math.ceil(num_episodes * val_fraction)
     n_train = num_episodes - n_val
+    if num_episodes and not n_train:
+        raise ValueError(
+            f"`val_fraction`={val_fraction} holds out all {num_episodes} episode(s) and leaves none to train "
+            "on (LeRobot's --dataset.eval_split refuses that too): record more episodes, or lower "
+            "`val_fraction` (0 keeps every episode for training)."
+        )
     return list(range(n_train)), list(range(n_train, num_episodes))
 
 
