@@ -1,6 +1,6 @@
 """Speed of the CBF: microseconds per single (3,) call and states per second vectorized.
 
-Prints one JSON object. Bar (issue 6): <= 20 us per single call, >= 1,000,000 states/s vectorized,
+Prints one JSON object. Target: <= 20 us per single call, >= 1,000,000 states/s vectorized,
 judged on the best of ``--repeats`` runs (the median is reported too).
 
     .venv/bin/python benchmarks/cbf_speed.py [--repeats 7]

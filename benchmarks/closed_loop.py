@@ -5,7 +5,7 @@ The loop is the one the experiments run: the env rendering the 96 px endoscope i
 5 members (CPU preset: DDIM with 10 steps at inference, a chunk every 4 steps) behind LeRobot's pre-
 and post-processors, the O.O.D. gate, and the CBF filtering the tip velocity (with its 100 Hz
 re-tracking). The weights are untrained (latency does not depend on them); the policy is saved and
-loaded as lerobot-train's output is. Prints JSON. Bar (issue 7): >= 10 control steps per second
+loaded as lerobot-train's output is. Prints JSON. Target: >= 10 control steps per second
 (the paper's simulator loop ran at 1 Hz).
 
     python benchmarks/closed_loop.py [--steps 200] [--threads 2] [--samples-per-member K]

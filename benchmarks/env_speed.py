@@ -1,6 +1,6 @@
 """Env speed on one core: control steps/s without and with the endoscope image, ms per frame.
 
-Prints JSON. Bars (issue 2): >= 1,000 steps/s without images, >= 500 steps/s with the 96 px image.
+Prints JSON. Targets: >= 1,000 steps/s without images, >= 500 steps/s with the 96 px image.
 Actions are an expert episode's, recorded once and replayed, so only the env is timed.
 """
 

@@ -1,6 +1,6 @@
 """Scripted-expert quality: success rate over seeded nominal episodes, entry/exit error distribution.
 
-Prints JSON. Bar (issue 2): >= 98% success over 200 seeded nominal episodes.
+Prints JSON. Target: >= 98% success over 200 seeded nominal episodes.
 
 ``--assume-nominal-grasp`` runs the expert as if the needle sat in the jaw at its nominal grasp (it does
 not: the grasp is randomized per episode). That is all a policy which cannot see the needle in the jaw

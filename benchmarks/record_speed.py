@@ -1,7 +1,7 @@
 """Recording speed of ``lerobot-suture record``: frames/s, s per episode, bytes per episode, with and
 without video encoding, and the projected time of the default 133-episode dataset.
 
-Prints JSON. Bar (issue 3): the default 133 episodes (96 px, video) recorded in <= 10 minutes on the
+Prints JSON. Target: the default 133 episodes (96 px, video) recorded in <= 10 minutes on the
 2-core machine. Each configuration records ``--episodes`` episodes into a fresh temporary root through
 ``record()`` itself (rollout, PNG staging, AV1 encoding, parquet, checkpoints, card), after one warm-up
 run so imports and encoder start-up are not counted; the one-off start-up (imports, first dataset)

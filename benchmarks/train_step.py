@@ -8,7 +8,7 @@ optimizer is the ensemble's preset (PyTorch's fused AdamW); one more bf16 run wi
 `AdamWConfig` (PyTorch's per-tensor loop on the CPU) gives `fused_optimizer_speedup_bf16`. The data
 is random and already normalized, so dataset decoding (a worker process in `lerobot-train`, about 8 ms
 per sample) is not counted. On 2 cores `lerobot-train` took about 1.5 s per step in fp32 with LeRobot's
-AdamW (sessions 2-4) and 1.0 s under bf16 with the fused AdamW (session 5).
+AdamW and 1.0 s under bf16 with the fused AdamW.
 
     python benchmarks/train_step.py                               # CPU preset, 4 members, 2 threads
     python benchmarks/train_step.py --n-members 5 --batch-size 8

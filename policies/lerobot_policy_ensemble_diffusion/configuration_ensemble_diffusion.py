@@ -49,7 +49,7 @@ target of `needle_keypoints_weight`, never a policy input."""
 class EnsembleOODConfig:
     """Options of the out-of-distribution gate that reads the ensemble's uncertainty score.
 
-    The gate itself (calibration, likelihood-ratio test, release of control) is built by the OOD issue in
+    The gate itself (calibration, likelihood-ratio test, release of control) lives in
     `lerobot_suture/safety/ood.py`; this dataclass is where its options live so that they are saved in the
     policy's `config.json` and settable as `--policy.ood.<name>`.
 
