@@ -128,15 +128,13 @@ def test_frames_are_the_expert_episode_regenerated_from_its_seed(tiny, backend):
     assert not bool(ds[0]["next.done"])
 
 
-def test_video_backend_is_one_that_loads_here(tiny):
-    chosen = resolve_video_backend()
-    try:
-        import torchcodec  # noqa: F401
+def test_video_backend_is_the_one_lerobot_would_pick_and_decodes(tiny):
+    from lerobot.utils.import_utils import get_safe_default_video_backend
 
-        loads = True
-    except (ImportError, OSError, RuntimeError):
-        loads = False
-    assert chosen == ("torchcodec" if loads else "pyav")
+    chosen = resolve_video_backend()
+    # LeRobot's own choice (torchcodec when it loads, else pyav), made without its noisy fallback log.
+    assert chosen == get_safe_default_video_backend()
+    assert resolve_video_backend("pyav") == "pyav"
     with pytest.raises(ValueError, match="video_backend"):
         resolve_video_backend("ffmpeg")
     # Every frame of an episode decodes with it.
@@ -144,6 +142,24 @@ def test_video_backend_is_one_that_loads_here(tiny):
     frames = torch.stack([ds[i][IMAGE_KEY] for i in range(len(ds))])
     assert frames.shape[1:] == (3, IMAGE_SIZE, IMAGE_SIZE)
     assert 0.0 <= float(frames.min()) and float(frames.max()) <= 1.0 and float(frames.std()) > 0.01
+
+
+def test_video_backend_falls_back_past_a_decoder_that_fails_to_load_and_says_when_none_loads(
+    tmp_path, monkeypatch
+):
+    """Real modules on the path: one fails at import as torchcodec does without FFmpeg, one loads."""
+    from lerobot_suture.datasets.video import first_loading_backend
+
+    (tmp_path / "suture_test_codec_without_ffmpeg.py").write_text(
+        "raise OSError('libavutil.so.60: cannot open shared object file')\n"
+    )
+    (tmp_path / "suture_test_codec_that_loads.py").write_text("")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    broken, loads = "suture_test_codec_without_ffmpeg", "suture_test_codec_that_loads"
+    assert first_loading_backend({"first": broken, "second": loads}) == "second"
+    assert first_loading_backend({"first": loads, "second": broken}) == "first"
+    with pytest.raises(RuntimeError, match=r"No video decoder loads here .*apt-get install ffmpeg.*--video=false"):
+        first_loading_backend({"first": broken, "second": "suture_test_codec_not_installed"})
 
 
 # --------------------------------------------------------------------------------- seeds and split
@@ -167,20 +183,67 @@ def test_episode_log_records_seeds_split_and_survives_finalize(tiny):
 
 
 def test_lerobot_eval_split_holds_out_exactly_the_validation_episodes(tiny, backend):
-    """`lerobot-train --dataset.eval_split=<val_fraction>` trains on our train split, evaluates on val."""
-    from types import SimpleNamespace
-
+    """LeRobot's own split of `--dataset.eval_split=<val_fraction>`, from a real TrainPipelineConfig: it trains
+    on our train split and evaluates on val."""
     from lerobot.configs.default import DatasetConfig
+    from lerobot.configs.train import TrainPipelineConfig
     from lerobot.datasets.factory import make_train_eval_datasets
+    from lerobot_policy_ensemble_diffusion.testing import tiny_config
 
-    no_deltas = SimpleNamespace(
-        reward_delta_indices=None, action_delta_indices=None, observation_delta_indices=None
-    )
     dataset_cfg = DatasetConfig(repo_id=REPO_ID, root=str(tiny.root), eval_split=0.25, video_backend=backend)
-    cfg = SimpleNamespace(dataset=dataset_cfg, trainable_config=no_deltas, tolerance_s=1e-4)
+    cfg = TrainPipelineConfig(dataset=dataset_cfg, policy=tiny_config())
     train_ds, eval_ds = make_train_eval_datasets(cfg)
     assert train_ds.episodes == train_episodes(tiny.root)
     assert eval_ds.episodes == validation_episodes(tiny.root)
+    # Frames come with the policy's history and horizon (its delta timestamps), from the right episodes.
+    item = eval_ds[0]
+    assert item[ACTION_KEY].shape == (cfg.policy.horizon, 10) and int(item["episode_index"]) == 2
+
+
+def test_lerobot_train_trains_the_ensemble_on_the_recording_with_its_eval_split(tiny, backend, tmp_path):
+    """The route the dataset card advertises, `--dataset.eval_split=0.25`, through the real `lerobot-train`
+    with the ensemble: video, environment state and the needle keypoints as its auxiliary target."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+    from lerobot.policies.factory import make_pre_post_processors
+    from lerobot_policy_ensemble_diffusion import EnsembleDiffusionPolicy
+    from lerobot_policy_ensemble_diffusion.testing import tiny_policy_cli_args
+
+    out = tmp_path / "train"
+    cmd = [
+        str(Path(sys.executable).parent / "lerobot-train"),
+        f"--dataset.repo_id={REPO_ID}",
+        f"--dataset.root={tiny.root}",
+        "--dataset.eval_split=0.25",
+        f"--dataset.video_backend={backend}",
+        *tiny_policy_cli_args(),
+        "--policy.vision_backbone_stages=1",
+        "--policy.needle_keypoints_weight=1.0",
+        "--batch_size=2",
+        "--steps=2",
+        "--eval_steps=2",
+        "--log_freq=1",
+        "--num_workers=0",
+        f"--output_dir={out}",
+    ]
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "WANDB_MODE": "disabled"}
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
+    log = proc.stdout + proc.stderr
+    assert proc.returncode == 0, log[-4000:]
+    assert "Train/eval split: 2 train, 1 eval (eval_split=0.25" in log, log[-4000:]
+    assert "step 2: eval_loss=" in log and "loss_needle_keypoints" in log, log[-4000:]
+
+    model_dir = out / "checkpoints" / "last" / "pretrained_model"
+    policy = EnsembleDiffusionPolicy.from_pretrained(model_dir)
+    assert set(policy.config.input_features) == {IMAGE_KEY, STATE_KEY, ENV_STATE_KEY}
+    assert policy.config.needle_keypoints_dim == 6
+    # The trained ensemble acts on a recorded frame through its saved processors, in dataset units.
+    preprocessor, postprocessor = make_pre_post_processors(policy.config, pretrained_path=str(model_dir))
+    frame = LeRobotDataset(REPO_ID, root=tiny.root, video_backend=backend)[0]
+    observation = {k: v for k, v in frame.items() if k in policy.config.input_features}
+    observation["task"] = frame["task"]
+    action = postprocessor(policy.select_action(preprocessor(observation)))
+    assert action.shape == (1, 10) and torch.isfinite(action).all()
+    assert torch.isfinite(policy.last_prediction.score).all()
 
 
 @pytest.mark.parametrize(

@@ -14,6 +14,8 @@ import functools
 import importlib
 
 VIDEO_BACKENDS = ("torchcodec", "pyav")
+# Each backend and the module it decodes with, in order of preference.
+BACKEND_MODULES = {"torchcodec": "torchcodec", "pyav": "av"}
 
 
 @functools.cache
@@ -23,6 +25,23 @@ def _loads(module: str) -> bool:
     except (ImportError, OSError, RuntimeError):
         return False
     return True
+
+
+def first_loading_backend(backend_modules: dict[str, str]) -> str:
+    """The first backend of ``backend_modules`` (backend -> module, in order of preference) whose module
+    imports here.
+
+    Raises:
+        RuntimeError: if none does.
+    """
+    for backend, module in backend_modules.items():
+        if _loads(module):
+            return backend
+    raise RuntimeError(
+        f"No video decoder loads here (tried modules {list(backend_modules.values())}): torchcodec needs a "
+        "system FFmpeg (e.g. `apt-get install ffmpeg`) and pyav is not installed (`pip install av`). Or record "
+        "without video: --video=false."
+    )
 
 
 def resolve_video_backend(preferred: str | None = None) -> str:
@@ -39,11 +58,4 @@ def resolve_video_backend(preferred: str | None = None) -> str:
         if preferred not in VIDEO_BACKENDS:
             raise ValueError(f"`video_backend` must be one of {VIDEO_BACKENDS} or None. Got {preferred!r}.")
         return preferred
-    if _loads("torchcodec"):
-        return "torchcodec"
-    if _loads("av"):
-        return "pyav"
-    raise RuntimeError(
-        "No video decoder loads here: torchcodec needs a system FFmpeg (e.g. `apt-get install ffmpeg`) and "
-        "pyav is not installed (`pip install av`). Or record without video: --video=false."
-    )
+    return first_loading_backend(BACKEND_MODULES)
