@@ -194,7 +194,7 @@ class RecordConfig:
     # Storage.
     video: bool = True  # images as MP4 video (true) or PNG frames (false)
     checkpoint_every: int = 10  # episodes between durable checkpoints (what a SIGKILL can lose)
-    # Session.
+    # Resume and publish.
     resume: bool = False  # continue the dataset at --root up to --num_episodes
     push_to_hub: bool = False  # push to the Hub when done (token checked first)
     private: bool = False  # create the Hub repository as private
