@@ -13,7 +13,7 @@ INSTALL_GIB := 7
 export MUJOCO_GL ?= egl
 export PYOPENGL_PLATFORM ?= egl
 
-.PHONY: install test test-slow demo bench lint clean
+.PHONY: install test test-slow demo reproduce bench lint clean
 
 install: $(STAMP)
 
@@ -44,6 +44,11 @@ test-slow: install
 
 demo: install
 	$(BIN)/lerobot-suture demo
+
+# The reference from nothing (dataset, training, calibration, experiments) and its table beside the
+# committed one; resumes after an interruption. About an hour on 2 CPU cores.
+reproduce: install
+	$(BIN)/lerobot-suture reproduce
 
 bench: install
 	for b in benchmarks/*.py; do echo "== $$b"; $(BIN)/python $$b; done

@@ -30,6 +30,10 @@ SUBCOMMANDS = {
         "lerobot_suture.experiments.score_study",
         "compare the gate's uncertainty scores on validation seeds",
     ),
+    "reproduce": (
+        "lerobot_suture.reproduce",
+        "record, train, calibrate and run the experiments with the reference recipe; compare the table",
+    ),
     "cbf-replay": (
         "lerobot_suture.experiments.cbf_offline",
         "filter a recorded unsafe throw offline, plot it",

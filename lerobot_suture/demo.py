@@ -23,10 +23,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
-import shutil
-import subprocess
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -36,6 +32,7 @@ from tqdm import tqdm
 
 from lerobot_suture.rollout_expert import run_expert_episode
 from lerobot_suture.sim.scenarios import SCENARIOS
+from lerobot_suture.training import run_lerobot_train
 
 logger = logging.getLogger(__name__)
 
@@ -149,11 +146,6 @@ TOY_POLICY_FLAGS = [
 ]
 
 
-def _checkpoint_step(checkpoint: Path) -> int:
-    """The training step a ``lerobot-train`` checkpoint directory was saved at."""
-    return int(json.loads((checkpoint / "training_state" / "training_step.json").read_text())["step"])
-
-
 def train_toy_ensemble(cfg: DemoConfig, dataset_root: Path) -> Path:
     """Train the toy ensemble with the real ``lerobot-train`` command; returns its pretrained directory.
 
@@ -162,49 +154,21 @@ def train_toy_ensemble(cfg: DemoConfig, dataset_root: Path) -> Path:
     from lerobot_suture.datasets.split import train_episodes
     from lerobot_suture.datasets.video import resolve_video_backend
 
-    out = cfg.output_dir / "train"
-    # lerobot-train points `last` at a checkpoint only once it is completely written.
-    last = out / "checkpoints" / "last"
-    policy_dir = last / "pretrained_model"
-    resume = last.is_dir()
-    if resume and _checkpoint_step(last) >= cfg.train_steps:
-        logger.info("toy ensemble already trained: %s", policy_dir)
-        return policy_dir
-    if out.exists() and not resume:
-        # Interrupted before its first checkpoint: only logs are there, and lerobot-train refuses an
-        # existing output_dir unless it resumes.
-        shutil.rmtree(out)
+    fresh = [
+        *TOY_POLICY_FLAGS,
+        "--dataset.repo_id=local/suture_demo",
+        f"--dataset.episodes=[{','.join(str(i) for i in train_episodes(dataset_root))}]",
+        "--batch_size=4",
+        "--num_workers=0",
+        "--log_freq=10",
+        "--job_name=suture_demo",
+    ]
     common = [
         f"--dataset.root={dataset_root}",
         f"--dataset.video_backend={resolve_video_backend()}",  # quietly, where torchcodec does not load
-        f"--steps={cfg.train_steps}",
         f"--save_freq={cfg.checkpoint_every}",
-        f"--output_dir={out}",
     ]
-    if resume:
-        logger.info("resuming the toy ensemble's training from step %d", _checkpoint_step(last))
-        command = [
-            str(Path(sys.executable).parent / "lerobot-train"),
-            f"--config_path={policy_dir / 'train_config.json'}",
-            "--resume=true",
-            *common,
-        ]
-    else:
-        command = [
-            str(Path(sys.executable).parent / "lerobot-train"),
-            *TOY_POLICY_FLAGS,
-            "--dataset.repo_id=local/suture_demo",
-            f"--dataset.episodes=[{','.join(str(i) for i in train_episodes(dataset_root))}]",
-            "--batch_size=4",
-            "--num_workers=0",
-            "--log_freq=10",
-            "--job_name=suture_demo",
-            *common,
-        ]
-    logger.info("training the toy ensemble: %s", " ".join(command))
-    env = {**os.environ, "HF_HUB_OFFLINE": "1"}
-    subprocess.run(command, check=True, env=env)
-    return policy_dir
+    return run_lerobot_train(cfg.output_dir / "train", fresh, cfg.train_steps, common)
 
 
 def calibrate_and_run_experiments(cfg: DemoConfig, policy_dir: Path) -> dict:
@@ -212,7 +176,7 @@ def calibrate_and_run_experiments(cfg: DemoConfig, policy_dir: Path) -> dict:
     run interrupted later left its result for this policy and calibration."""
     from lerobot_suture.calibrate import CalibrateConfig, PolicyPathConfig, run_calibration
     from lerobot_suture.experiments.runner import ExperimentsConfig, run_experiments
-    from lerobot_suture.safety.ood import CALIBRATION_FILENAME
+    from lerobot_suture.safety.ood.calibration_file import CALIBRATION_FILENAME
 
     calibration_file = policy_dir / CALIBRATION_FILENAME
     if calibration_file.is_file():  # written atomically once fitted; a retrained policy has none

@@ -1,0 +1,207 @@
+"""``lerobot-suture reproduce``: the reference from nothing, and its table beside the committed one.
+
+Four stages into ``output_dir`` (default ``outputs/reproduce/``), each with the recipe files of the
+repository, each skipped when an earlier (interrupted) run finished it:
+
+1. ``data/``: the moving-phantom expert dataset (``datasets/suture_expert_servo.yaml``);
+2. ``train/``: the reference ensemble (``policies/presets/reference.json``) trained by the real
+   ``lerobot-train``, resumed from its last checkpoint after an interruption;
+3. the gate's calibration (``policies/presets/reference_calibrate.yaml``), written beside the policy;
+4. ``experiments/``: the paper's experiments on the test seeds (``lerobot-suture experiments``).
+
+Then ``comparison.md`` / ``comparison.json``: every headline figure of the new run beside the committed
+reference's (``docs/results/prior_servo_5500/metrics.json``), marked within or outside its tolerance
+(``lerobot_suture.experiments.compare``). ``timings.json`` holds each stage's wall time, summed over the
+invocations that worked on it.
+
+``--toy=true`` runs the same pipeline at toy scale (4 episodes, 4 training steps, one run per
+experiment): minutes, for a smoke test; its figures are not expected to match.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import draccus
+
+logger = logging.getLogger(__name__)
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+REFERENCE_RESULTS = REPO_ROOT / "docs" / "results" / "prior_servo_5500"
+DATASET_RECIPE = REPO_ROOT / "datasets" / "suture_expert_servo.yaml"
+TRAIN_PRESET = REPO_ROOT / "policies" / "presets" / "reference.json"
+CALIBRATE_CONFIG = REPO_ROOT / "policies" / "presets" / "reference_calibrate.yaml"
+STAGES = ("record", "train", "calibrate", "experiments")
+
+_TOY_EXPERIMENTS = {
+    "nominal_episodes": 2,
+    "expert_episodes": 2,
+    "needle_drop_runs": 1,
+    "camera_moved_runs": 1,
+    "phantom_servo_runs": 1,
+    "phantom_moved_after_insertion_runs": 1,
+    "cbf_runs": 1,
+    "enforced_runs": 1,
+    "batch_envs": 2,
+}
+
+
+@dataclass
+class ReproduceConfig:
+    """Args:
+    output_dir: where the dataset, the training run, the experiments, the comparison and the timings go.
+    reference: a committed results folder whose ``metrics.json`` the new run is compared with.
+    toy: the same pipeline at toy scale (a smoke test; its table is not expected to match).
+    device: torch device for calibration and experiments (training takes the preset's).
+    """
+
+    output_dir: Path = Path("outputs/reproduce")
+    reference: Path = REFERENCE_RESULTS
+    toy: bool = False
+    device: str = "cpu"
+
+    def __post_init__(self):
+        missing = [p for p in (DATASET_RECIPE, TRAIN_PRESET, CALIBRATE_CONFIG) if not p.is_file()]
+        if missing:
+            raise ValueError(
+                f"The recipe files {[str(p) for p in missing]} are missing: `reproduce` runs from a clone of "
+                "the lerobot-suture repository (git clone, then `make reproduce`)."
+            )
+        if not (Path(self.reference) / "metrics.json").is_file():
+            raise ValueError(
+                f"`reference` must be a results folder holding metrics.json. Got {self.reference}."
+            )
+
+
+class _Timings:
+    """Wall time per stage (s), summed over invocations, kept in ``timings.json``."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.seconds: dict[str, float] = json.loads(path.read_text()) if path.is_file() else {}
+
+    def add(self, stage: str, seconds: float) -> None:
+        self.seconds[stage] = round(self.seconds.get(stage, 0.0) + seconds, 1)
+        self.path.write_text(json.dumps(self.seconds, indent=2))
+
+    @property
+    def total(self) -> float:
+        return round(sum(self.seconds.get(s, 0.0) for s in STAGES), 1)
+
+
+def record_stage(cfg: ReproduceConfig) -> Path:
+    from lerobot_suture.datasets.record import parse_config, record
+
+    root = cfg.output_dir / "data"
+    args = [f"--config_path={DATASET_RECIPE}", f"--root={root}", f"--resume={str(root.exists()).lower()}"]
+    if cfg.toy:
+        args += ["--num_episodes=4", "--checkpoint_every=2"]
+    record(parse_config(args))
+    return root
+
+
+def train_stage(cfg: ReproduceConfig, dataset_root: Path) -> Path:
+    from lerobot_suture.datasets.split import train_episodes
+    from lerobot_suture.datasets.video import resolve_video_backend
+    from lerobot_suture.training import run_lerobot_train
+
+    preset = json.loads(TRAIN_PRESET.read_text())
+    steps = 4 if cfg.toy else int(preset["steps"])
+    fresh = [f"--config_path={TRAIN_PRESET}"]
+    if cfg.toy:
+        episodes = ",".join(str(i) for i in train_episodes(dataset_root))
+        fresh += [f"--dataset.episodes=[{episodes}]", "--batch_size=4", "--num_workers=0", "--log_freq=1"]
+    common = [
+        f"--dataset.root={dataset_root}",
+        f"--dataset.video_backend={resolve_video_backend()}",
+        f"--save_freq={2 if cfg.toy else preset['save_freq']}",
+    ]
+    return run_lerobot_train(cfg.output_dir / "train", fresh, steps, common)
+
+
+def calibrate_stage(cfg: ReproduceConfig, policy_dir: Path, dataset_root: Path) -> Path:
+    from lerobot_suture.calibrate import CalibrateConfig, run_calibration
+    from lerobot_suture.safety.ood import CALIBRATION_FILENAME
+
+    calibration_file = policy_dir / CALIBRATION_FILENAME
+    if calibration_file.is_file():  # written atomically once fitted; a newly trained checkpoint has none
+        logger.info("already calibrated: %s", calibration_file)
+        return calibration_file
+    args = [f"--policy.path={policy_dir}", f"--dataset_root={dataset_root}", f"--device={cfg.device}"]
+    if cfg.toy:
+        args += [
+            "--calibration_episodes=2",
+            "--holdout_episodes=1",
+            "--mode=per_prediction",
+            "--batch_envs=2",
+        ]
+    run_calibration(draccus.parse(CalibrateConfig, config_path=CALIBRATE_CONFIG, args=args))
+    return calibration_file
+
+
+def experiments_stage(cfg: ReproduceConfig, policy_dir: Path, calibration_file: Path) -> dict:
+    from lerobot_suture.calibrate import PolicyPathConfig
+    from lerobot_suture.experiments.runner import ExperimentsConfig, run_experiments
+
+    out = cfg.output_dir / "experiments"
+    metrics_file = out / "metrics.json"
+    calibration = json.loads(calibration_file.read_text())
+    # metrics.json and report.md are the experiments' last writes; metrics.json names its calibration.
+    if metrics_file.is_file() and (out / "report.md").is_file():
+        metrics = json.loads(metrics_file.read_text())
+        if metrics["calibration"] == calibration:
+            logger.info("experiments already run with this calibration: %s", out)
+            return metrics
+    counts = _TOY_EXPERIMENTS if cfg.toy else {}
+    run_experiments(
+        ExperimentsConfig(
+            policy=PolicyPathConfig(path=policy_dir), output_dir=out, device=cfg.device, **counts
+        )
+    )
+    return json.loads(metrics_file.read_text())
+
+
+def write_comparison(cfg: ReproduceConfig, metrics: dict, timings: _Timings) -> str:
+    from lerobot_suture.experiments.compare import compare_metrics, comparison_json, comparison_markdown
+
+    committed = json.loads((Path(cfg.reference) / "metrics.json").read_text())
+    rows = compare_metrics(committed, metrics)
+    table = comparison_markdown(rows, f"committed ({Path(cfg.reference).name})", "this run")
+    stage_times = ", ".join(f"{s} {timings.seconds.get(s, 0.0) / 60:.1f} min" for s in STAGES)
+    text = (
+        f"# Reproduction{' (toy scale)' if cfg.toy else ''}\n\n{table}\n\n"
+        f"Wall time {timings.total / 60:.1f} min ({stage_times}).\n"
+    )
+    (cfg.output_dir / "comparison.md").write_text(text)
+    (cfg.output_dir / "comparison.json").write_text(
+        json.dumps({"toy": cfg.toy, "rows": comparison_json(rows), "timings_s": timings.seconds}, indent=2)
+    )
+    return text
+
+
+def run_reproduce(cfg: ReproduceConfig) -> str:
+    cfg.output_dir.mkdir(parents=True, exist_ok=True)
+    timings = _Timings(cfg.output_dir / "timings.json")
+
+    def timed(stage: str, fn, *args):
+        logger.info("reproduce: stage %d of %d, %s", STAGES.index(stage) + 1, len(STAGES), stage)
+        start = time.perf_counter()
+        result = fn(*args)
+        timings.add(stage, time.perf_counter() - start)
+        return result
+
+    dataset_root = timed("record", record_stage, cfg)
+    policy_dir = timed("train", train_stage, cfg, dataset_root)
+    calibration_file = timed("calibrate", calibrate_stage, cfg, policy_dir, dataset_root)
+    metrics = timed("experiments", experiments_stage, cfg, policy_dir, calibration_file)
+    return write_comparison(cfg, metrics, timings)
+
+
+def main(argv: list[str] | None = None) -> None:
+    cfg = draccus.parse(config_class=ReproduceConfig, args=argv)
+    print(run_reproduce(cfg))
+    print(f"comparison.md, comparison.json and timings.json in {cfg.output_dir}")
