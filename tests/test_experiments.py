@@ -5,7 +5,6 @@ import math
 import shutil
 
 import numpy as np
-import pytest
 from PIL import Image
 
 from lerobot_suture.cli import main as cli_main
@@ -28,8 +27,9 @@ def test_needle_in_tissue_at_handover_is_read_before_the_surgeon_acts():
     assert not _in_tissue_at_handover(log)
 
 
-@pytest.mark.slow
 def test_experiments_write_figures_metrics_and_report(tiny_policy_dir, tmp_path):
+    """The paper's results command at toy scale (an untrained tiny ensemble, one run per experiment): every
+    file it writes, and what is in each."""
     policy = tmp_path / "policy"
     shutil.copytree(tiny_policy_dir, policy)
     rng = np.random.default_rng(0)
@@ -97,3 +97,10 @@ def test_experiments_write_figures_metrics_and_report(tiny_policy_dir, tmp_path)
     for name in result["figures"].values():
         image = np.asarray(Image.open(out / name).convert("L"), dtype=float)
         assert image.std() > 5, f"{name} is blank"
+    assert "![experiment 3.2](experiment_3_2_phantom_moved_after_insertion.png)" in report
+    replay = json.loads((out / "cbf_replay.json").read_text())
+    assert replay == result["cbf"]["offline_replay"]
+    assert replay["left_set_reference"] and not replay["left_set_safe"] and replay["h_min_safe"] >= 0
+    # Nothing else is written, and nothing is missing.
+    written = {p.name for p in out.iterdir()}
+    assert written == {*result["figures"].values(), "metrics.json", "report.md", "traces.json", "cbf_replay.json"}

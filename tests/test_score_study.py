@@ -8,6 +8,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from PIL import Image
 
 import lerobot_suture
 from lerobot_suture.calibrate import SCORE_CHOICE_FIELDS, PolicyPathConfig
@@ -141,8 +142,9 @@ def test_rescoring_with_the_policy_own_choice_gives_its_logged_score(tiny_policy
         assert np.all(np.isfinite(trace)) and len(np.unique(trace[0])) > len(choices) // 2
 
 
-@pytest.mark.slow
 def test_score_study_writes_table_figure_and_numbers(tiny_policy_dir, tmp_path):
+    """The score study at toy scale (an untrained tiny ensemble, 2 nominal episodes, one run per scenario):
+    every file it writes, and what is in each."""
     policy = tmp_path / "policy"
     shutil.copytree(tiny_policy_dir, policy)  # no calibration: the study needs none
     out = tmp_path / "study"
@@ -169,6 +171,19 @@ def test_score_study_writes_table_figure_and_numbers(tiny_policy_dir, tmp_path):
     assert all(math.isfinite(r["threshold"]) for r in result["choices"])
     own = next(r for r in result["choices"] if r["policy_own"])
     assert own["label"] == "max_abs_cov/normalized/total/horizon" and own["threshold"] > 0
+    # The table: one row per choice in the JSON's order, best rank score first, the policy's own in bold.
     table = (out / "score_study.md").read_text()
-    assert table.count("\n| ") == 1 + 12 and "**" in table
-    assert (out / "score_study.png").stat().st_size > 10_000
+    rows = [line.split(" | ") for line in table.splitlines() if line.startswith("| ")][1:]
+    assert [r[0].removeprefix("| ") for r in rows] == [
+        f"**{c['label']}**" if c["policy_own"] else c["label"] for c in result["choices"]
+    ]
+    ranks = [math.nan if r[1] == "n/a" else float(r[1]) for r in rows]
+    assert ranks == pytest.approx([c["rank_score"] for c in result["choices"]], abs=5.1e-4, nan_ok=True)
+    finite = [x for x in ranks if not math.isnan(x)]
+    assert finite == sorted(finite, reverse=True) and ranks[: len(finite)] == finite
+    # The figure: not one flat colour, and its two AUROC heatmaps drawn in colour over a good part of it.
+    image = np.asarray(Image.open(out / "score_study.png").convert("RGB"), dtype=float)
+    assert image.mean(axis=2).std() > 5, "score_study.png is blank"
+    coloured = image.max(axis=2) - image.min(axis=2) > 60
+    assert coloured.mean() > 0.2, f"only {coloured.mean():.0%} of score_study.png is heatmap"
+    assert {p.name for p in out.iterdir()} == {"score_study.json", "score_study.md", "score_study.png"}
