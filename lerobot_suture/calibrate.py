@@ -19,13 +19,9 @@ import draccus
 import numpy as np
 
 from lerobot_suture.datasets.metadata import write_json_atomic
-from lerobot_suture.safety.ood import (
-    default_model,
-    false_alarm_rates,
-    fit_calibration,
-    min_calibration_episodes,
-    save_calibration,
-)
+from lerobot_suture.safety.ood.calibration import default_model, fit_calibration, min_calibration_episodes
+from lerobot_suture.safety.ood.calibration_file import save_calibration
+from lerobot_suture.safety.ood.likelihood_ratio import false_alarm_rates
 
 logger = logging.getLogger(__name__)
 

@@ -10,7 +10,8 @@ from PIL import Image
 from lerobot_suture.cli import main as cli_main
 from lerobot_suture.experiments.runner import _in_tissue_at_handover
 from lerobot_suture.rollout import EpisodeLog, StepLog
-from lerobot_suture.safety.ood import fit_calibration, save_calibration
+from lerobot_suture.safety.ood.calibration import fit_calibration
+from lerobot_suture.safety.ood.calibration_file import save_calibration
 
 
 def _step(in_tissue: bool) -> StepLog:

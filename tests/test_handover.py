@@ -11,7 +11,8 @@ import lerobot_suture
 from lerobot_suture.cli import main as cli_main
 from lerobot_suture.policy_runner import PolicyRunner, env_kwargs_for_policy
 from lerobot_suture.rollout import HOLD, POLICY, SURGEON, rollout_episode, rollout_episodes, rollout_seeds
-from lerobot_suture.safety.ood import fit_calibration, load_calibration, save_calibration
+from lerobot_suture.safety.ood.calibration import fit_calibration
+from lerobot_suture.safety.ood.calibration_file import load_calibration, save_calibration
 
 
 def _runner(policy_dir, tmp_path, threshold: float | None, enforce: bool) -> PolicyRunner:

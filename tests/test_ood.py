@@ -8,27 +8,33 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from lerobot_suture.safety.ood import (
-    CALIBRATION_FILENAME,
+from lerobot_suture.safety.ood.calibration import (
     CALIBRATION_FORMAT_VERSION,
     MIN_CALIBRATION_SAMPLES,
-    CalibrationNotFoundError,
     OODCalibration,
-    OODGate,
+    fit_calibration,
+    min_calibration_episodes,
+)
+from lerobot_suture.safety.ood.calibration_file import (
+    CALIBRATION_FILENAME,
+    CalibrationNotFoundError,
+    load_calibration,
+    save_calibration,
+)
+from lerobot_suture.safety.ood.gate import OODGate
+from lerobot_suture.safety.ood.likelihood_ratio import (
+    false_alarm_rates,
+    likelihood_ratio_test,
+    log_likelihood_ratio,
+    standardized_score,
+)
+from lerobot_suture.safety.ood.score import (
     ScoreName,
     compute_score,
-    false_alarm_rates,
-    fit_calibration,
     get_score_function,
-    likelihood_ratio_test,
-    load_calibration,
-    log_likelihood_ratio,
-    min_calibration_episodes,
-    save_calibration,
     score_logdet,
     score_max_abs_cov,
     score_trace,
-    standardized_score,
 )
 
 ALPHA = 0.05

@@ -9,7 +9,8 @@ from lerobot.utils.constants import OBS_STATE
 from lerobot_policy_ensemble_diffusion import EnsembleDiffusionPolicy
 from lerobot_policy_ensemble_diffusion.testing import fake_dataset_stats, random_observation, tiny_config
 
-from lerobot_suture.safety.ood import CalibrationNotFoundError, fit_calibration, save_calibration
+from lerobot_suture.safety.ood.calibration import fit_calibration
+from lerobot_suture.safety.ood.calibration_file import CalibrationNotFoundError, save_calibration
 
 
 def _policy(enforce: bool) -> EnsembleDiffusionPolicy:

@@ -81,7 +81,7 @@ def test_reference_preset_is_the_reference_run(tmp_path):
 
 def test_reference_calibration_config_is_the_reference_calibration():
     from lerobot_suture.calibrate import CalibrateConfig
-    from lerobot_suture.safety.ood import default_model
+    from lerobot_suture.safety.ood.calibration import default_model
 
     path = PRESETS / "reference_calibrate.yaml"
     cfg = draccus.parse(CalibrateConfig, config_path=str(path), args=["--policy.path=policy_dir"])

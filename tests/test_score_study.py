@@ -22,7 +22,8 @@ from lerobot_suture.experiments.score_study import (
 )
 from lerobot_suture.policy_runner import PolicyRunner, env_kwargs_for_policy
 from lerobot_suture.rollout import EpisodeLog, StepLog, rollout_seeds
-from lerobot_suture.safety.ood import OODGate, fit_calibration
+from lerobot_suture.safety.ood.calibration import fit_calibration
+from lerobot_suture.safety.ood.gate import OODGate
 
 
 def _log(scores, new_prediction, success=True, perturbed_from=None) -> EpisodeLog:

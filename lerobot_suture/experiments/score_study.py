@@ -38,7 +38,8 @@ from lerobot_suture.experiments.runner import (
     ood_metrics,
 )
 from lerobot_suture.rollout import EpisodeLog, make_scenario_env, rollout_seeds
-from lerobot_suture.safety.ood import OODGate, default_model, fit_calibration, min_calibration_episodes
+from lerobot_suture.safety.ood.calibration import default_model, fit_calibration, min_calibration_episodes
+from lerobot_suture.safety.ood.gate import OODGate
 
 logger = logging.getLogger(__name__)
 

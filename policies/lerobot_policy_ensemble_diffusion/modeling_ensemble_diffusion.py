@@ -44,7 +44,9 @@ from safetensors import safe_open
 from safetensors.torch import load_model as load_model_as_safetensor
 from torch import Tensor, nn
 
-from lerobot_suture.safety.ood import OODCalibration, OODGate, load_calibration
+from lerobot_suture.safety.ood.calibration import OODCalibration
+from lerobot_suture.safety.ood.calibration_file import load_calibration
+from lerobot_suture.safety.ood.gate import OODGate
 
 from .batched_members import FusedDiffusionEnsemble
 from .configuration_ensemble_diffusion import NEEDLE_KEYPOINTS_KEY, SCORE_CHOICES, EnsembleDiffusionConfig
