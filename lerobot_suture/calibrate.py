@@ -196,7 +196,7 @@ def run_calibration(cfg: CalibrateConfig) -> dict:
 
 
 def main(argv: list[str] | None = None) -> None:
-    cfg = draccus.parse(config_class=CalibrateConfig, args=argv)
+    cfg = draccus.parse(config_class=CalibrateConfig, args=argv, exit_on_error=False)
     report = run_calibration(cfg)
     cal = report["calibration"]
     print(

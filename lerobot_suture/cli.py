@@ -1,12 +1,17 @@
-"""``lerobot-suture SUBCOMMAND --flag=value ...``: one entry point, LeRobot-style flags per subcommand."""
+"""``lerobot-suture SUBCOMMAND --flag=value ...``: one entry point, LeRobot-style flags per subcommand.
+
+Bad input (an unknown or missing subcommand, a bad flag, a missing policy, calibration or dataset) ends
+with one line on stderr that names the problem and the fix, and exit status 2; Ctrl-C with 130.
+"""
 
 from __future__ import annotations
 
+import argparse
 import importlib
 import logging
 import sys
 
-from draccus.utils import ParsingError
+from draccus.utils import DecodingError, DraccusException, ParsingError
 
 # subcommand -> (module with `main(argv)`, one-line help)
 SUBCOMMANDS = {
@@ -48,23 +53,43 @@ def _usage() -> str:
     return "\n".join(lines)
 
 
+def flag_error(exc: DraccusException | argparse.ArgumentError) -> str:
+    """The useful line of a flag that draccus could not parse into a config (``exit_on_error=False``)."""
+    if isinstance(exc, ParsingError) and not isinstance(exc, DecodingError) and exc.__cause__ is not None:
+        return str(exc.__cause__)  # the config's own validation: it names the field and the allowed range
+    return str(exc)  # "`field`: Couldn't parse 'x' into an int", "unrecognized arguments: --x=1", ...
+
+
+def _fail(prefix: str, message: str) -> None:
+    print(f"{prefix}: error: {' '.join(message.split())}", file=sys.stderr)  # one line, whatever the message
+    raise SystemExit(2)
+
+
 def main(argv: list[str] | None = None) -> None:
     argv = list(sys.argv[1:] if argv is None else argv)
-    if not argv or argv[0] in ("-h", "--help"):
+    if argv[:1] in (["-h"], ["--help"]):
         print(_usage())
         return
+    choices = f"one of {', '.join(SUBCOMMANDS)}; `lerobot-suture --help` says what each does"
+    if not argv or argv[0].startswith("-"):
+        _fail("lerobot-suture", f"a subcommand is required before any flag: {choices}.")
     name, rest = argv[0], argv[1:]
     if name not in SUBCOMMANDS:
-        print(f"lerobot-suture: unknown subcommand {name!r}.\n\n{_usage()}", file=sys.stderr)
-        raise SystemExit(2)
+        _fail("lerobot-suture", f"unknown subcommand {name!r}: choose {choices}.")
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     module = importlib.import_module(SUBCOMMANDS[name][0])
+    prefix = f"lerobot-suture {name}"
     try:
         module.main(rest)
-    except ParsingError as exc:
-        # A config's own validation error is the useful part; draccus wraps it.
-        print(f"lerobot-suture {name}: {exc.__cause__ or exc}", file=sys.stderr)
-        raise SystemExit(2) from exc
+    except (DraccusException, argparse.ArgumentError) as exc:
+        _fail(prefix, f"{flag_error(exc)} (`{prefix} --help` lists the flags)")
+    except (FileNotFoundError, FileExistsError, NotADirectoryError, ValueError) as exc:
+        # Found past the flags: no policy, calibration or dataset where a flag points, or a setting the
+        # loaded policy refuses. Each message says what to run or pass instead.
+        _fail(prefix, str(exc))
+    except KeyboardInterrupt:
+        print(f"{prefix}: interrupted.", file=sys.stderr)
+        raise SystemExit(130) from None
 
 
 if __name__ == "__main__":

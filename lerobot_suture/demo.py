@@ -248,7 +248,7 @@ def run_demo(cfg: DemoConfig) -> dict:
 
 
 def main(argv: list[str] | None = None) -> None:
-    cfg = draccus.parse(config_class=DemoConfig, args=argv)
+    cfg = draccus.parse(config_class=DemoConfig, args=argv, exit_on_error=False)
     summary = run_demo(cfg)
     for name, entry in summary["scenarios"].items():
         print(f"{name:32s} expert success {entry['success_rate']:.2f}  strip: {entry['strip']}")

@@ -202,6 +202,6 @@ def run_reproduce(cfg: ReproduceConfig) -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
-    cfg = draccus.parse(config_class=ReproduceConfig, args=argv)
+    cfg = draccus.parse(config_class=ReproduceConfig, args=argv, exit_on_error=False)
     print(run_reproduce(cfg))
     print(f"comparison.md, comparison.json and timings.json in {cfg.output_dir}")

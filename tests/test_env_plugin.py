@@ -54,11 +54,25 @@ def test_cli_flags_parse_nested_cbf_and_scenario(suture_config_cls):
     assert suture_config_cls().gym_kwargs["cbf"] is None
 
 
-def test_bad_config_values_raise(suture_config_cls):
-    with pytest.raises(ValueError, match="scenario"):
-        suture_config_cls(scenario="earthquake")
-    with pytest.raises(ValueError, match="obs_type"):
-        suture_config_cls(obs_type="pixels")
+@pytest.mark.parametrize(
+    "flag, message",
+    [
+        ("--env.scenario=earthquake", "`scenario` must be one of ('nominal', "),
+        ("--env.obs_type=pixels", "`obs_type` must be one of ('pixels_agent_pos', "),
+        ("--env.fps=30", "`fps` must be 10 (the env's control rate). Got 30."),
+        ("--env.episode_length=0", "`episode_length` must be >= 1. Got 0."),
+    ],
+)
+def test_bad_config_values_raise_naming_the_field(suture_config_cls, flag, message):
+    """Each check of the env config, from the flag as lerobot-eval and lerobot-train parse it."""
+
+    @dataclass
+    class EvalLike:
+        env: EnvConfig
+
+    with pytest.raises(draccus.utils.ParsingError) as err:
+        draccus.parse(EvalLike, args=["--env.type=suture", flag])
+    assert isinstance(err.value.__cause__, ValueError) and message in str(err.value.__cause__)
 
 
 def test_async_vector_env_through_lerobot_factory(suture_config_cls):

@@ -1,6 +1,7 @@
 """Policy rollouts with the O.O.D. gate at the env step, handover to the surgeon, and calibration."""
 
 import json
+import re
 import shutil
 
 import gymnasium as gym
@@ -157,14 +158,16 @@ def test_calibrate_command_writes_a_calibration_the_policy_loads(tiny_policy_dir
     assert (directory / "config.json").read_bytes() == config_json  # no score flags: the config is kept
 
 
-def test_calibrate_with_a_score_choice_writes_it_beside_its_calibration(tiny_policy_dir, tmp_path):
+def test_calibrate_with_a_score_choice_writes_it_beside_its_calibration(tiny_policy_dir, tmp_path, capsys):
     directory = tmp_path / "policy"
     shutil.copytree(tiny_policy_dir, directory)
     args = ["calibrate", f"--policy.path={directory}", "--calibration_episodes=2", "--holdout_episodes=0"]
-    with pytest.raises(
-        ValueError, match="`uncertainty_source`=.aleatoric. needs `uncertainty_samples_per_member` >= 2"
-    ):
+    with pytest.raises(SystemExit) as exit_info:
         cli_main([*args, "--uncertainty_source=aleatoric", "--mode=per_prediction"])  # one sample per member
+    assert exit_info.value.code == 2
+    assert re.search(
+        "`uncertainty_source`=.aleatoric. needs `uncertainty_samples_per_member` >= 2", capsys.readouterr().err
+    )
     assert json.loads((directory / "config.json").read_text())["uncertainty_source"] == "total"
     cli_main([*args, "--uncertainty_score=trace", "--uncertainty_steps=action", "--mode=per_prediction"])
     runner = PolicyRunner.from_pretrained(directory)

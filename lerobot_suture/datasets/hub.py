@@ -152,12 +152,16 @@ class PushConfig:
 
 def main(argv: list[str] | None = None) -> None:
     """``lerobot-suture push``: push a dataset recorded with ``lerobot-suture record``."""
+    import argparse
+
     import draccus
 
+    from lerobot_suture.cli import flag_error
+
     try:
-        cfg = draccus.parse(config_class=PushConfig, args=argv, prog="lerobot-suture push")
-    except draccus.utils.ParsingError as exc:
-        print(f"lerobot-suture push: error: {exc.__cause__ or exc}", file=sys.stderr)
+        cfg = draccus.parse(config_class=PushConfig, args=argv, prog="lerobot-suture push", exit_on_error=False)
+    except (draccus.utils.DraccusException, argparse.ArgumentError) as exc:
+        print(f"lerobot-suture push: error: {flag_error(exc)}", file=sys.stderr)
         raise SystemExit(2) from None
     if cfg.root is None:
         from lerobot.utils.constants import HF_LEROBOT_HOME

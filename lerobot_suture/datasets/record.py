@@ -273,7 +273,7 @@ def parse_config(argv: list[str] | None = None) -> RecordConfig:
     """Parse ``lerobot-suture record`` flags as LeRobot's scripts do (draccus, ``--config_path`` files)."""
     import draccus
 
-    return draccus.parse(config_class=RecordConfig, args=argv, prog=COMMAND)
+    return draccus.parse(config_class=RecordConfig, args=argv, prog=COMMAND, exit_on_error=False)
 
 
 def dataset_features(obs_type: str, image_size: int, video: bool) -> dict[str, dict]:
@@ -889,8 +889,11 @@ def main(argv: list[str] | None = None) -> None:
     Exit status: 0 done; 2 bad flags or root; 1 other failures; 128 + signal number when interrupted
     (130 for Ctrl-C), with every finished episode kept.
     """
+    import argparse
+
     import draccus
 
+    from lerobot_suture.cli import flag_error
     from lerobot_suture.datasets.hub import HubPushError
 
     if not logging.getLogger().handlers:
@@ -902,9 +905,8 @@ def main(argv: list[str] | None = None) -> None:
         av.logging.set_level(av.logging.ERROR)
     try:
         cfg = parse_config(argv)
-    except draccus.utils.ParsingError as exc:
-        cause = exc.__cause__ or exc
-        print(f"{COMMAND}: error: {cause}", file=sys.stderr)
+    except (draccus.utils.DraccusException, argparse.ArgumentError) as exc:
+        print(f"{COMMAND}: error: {flag_error(exc)} (`{COMMAND} --help` lists the flags)", file=sys.stderr)
         raise SystemExit(2) from None
     try:
         record(cfg)

@@ -86,6 +86,6 @@ def run_cbf_replay(cfg: CBFReplayConfig) -> dict:
 
 
 def main(argv: list[str] | None = None) -> None:
-    cfg = draccus.parse(config_class=CBFReplayConfig, args=argv)
+    cfg = draccus.parse(config_class=CBFReplayConfig, args=argv, exit_on_error=False)
     metrics = run_cbf_replay(cfg)
     print(json.dumps(metrics, indent=2, default=float))

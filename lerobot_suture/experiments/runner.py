@@ -485,7 +485,7 @@ def render_report(result: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
-    cfg = draccus.parse(config_class=ExperimentsConfig, args=argv)
+    cfg = draccus.parse(config_class=ExperimentsConfig, args=argv, exit_on_error=False)
     result = run_experiments(cfg)
     print((cfg.output_dir / "report.md").read_text())
     print(f"Figures, metrics.json and report.md in {cfg.output_dir} ({result['seconds']} s).")

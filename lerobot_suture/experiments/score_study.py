@@ -354,7 +354,7 @@ def plot_score_study(result: dict, path: Path) -> Path:
 
 
 def main(argv: list[str] | None = None) -> None:
-    cfg = draccus.parse(config_class=ScoreStudyConfig, args=argv)
+    cfg = draccus.parse(config_class=ScoreStudyConfig, args=argv, exit_on_error=False)
     result = run_score_study(cfg)
     best = result["choices"][0]
     own = next(r for r in result["choices"] if r["policy_own"])

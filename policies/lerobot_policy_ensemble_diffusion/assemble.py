@@ -277,6 +277,6 @@ class AssembleConfig:
 def main(argv: list[str] | None = None) -> None:
     import draccus
 
-    cfg = draccus.parse(config_class=AssembleConfig, args=argv)
+    cfg = draccus.parse(config_class=AssembleConfig, args=argv, exit_on_error=False)
     path = assemble_members(cfg.members, cfg.output_dir, overwrite=cfg.overwrite)
     print(f"Assembled {len(cfg.members)} members into {path}")
