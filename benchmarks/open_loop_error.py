@@ -29,7 +29,7 @@ import torch  # noqa: E402
 
 from lerobot_suture.datasets.split import validation_episodes  # noqa: E402
 from lerobot_suture.policy_runner import load_policy  # noqa: E402
-from lerobot_suture.sim.suture_env import TASK  # noqa: E402
+from lerobot_suture.sim.task import TASK  # noqa: E402
 
 
 def checkpoint_dirs(paths: list[str]) -> list[Path]:

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from lerobot_suture.sim.suture_env import TASK
+from lerobot_suture.sim.task import TASK
 
 
 def load_policy(policy_path: str | Path, device: str = "cpu"):

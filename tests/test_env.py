@@ -16,7 +16,7 @@ from gymnasium.utils.env_checker import check_env
 import lerobot_suture
 from lerobot_suture.expert import ExpertConfig, ScriptedExpert
 from lerobot_suture.rollout_expert import iter_expert_steps
-from lerobot_suture.sim import suture_env
+from lerobot_suture.sim import suture_env, task
 from lerobot_suture.sim.geometry import grasp_transform, pose_vector
 from lerobot_suture.sim.scenarios import SCENARIOS, ScenarioConfig
 from lerobot_suture.sim.suture_env import SCENE_XML, SutureEnv
@@ -115,7 +115,7 @@ def test_the_wide_grasp_widens_every_range_of_the_grasp(monkeypatch):
     drawn = {}
 
     def spy(angle, offset, roll, *args, **kwargs):
-        deviation = (angle - suture_env.GRASP_ANGLE, offset, roll)
+        deviation = (angle - task.GRASP_ANGLE, offset, roll)
         if any(deviation):  # not the nominal grasp
             drawn.setdefault(grasp, []).append(deviation)
         return grasp_transform(angle, offset, roll, *args, **kwargs)
@@ -126,10 +126,10 @@ def test_the_wide_grasp_widens_every_range_of_the_grasp(monkeypatch):
         env.reset(seed=4)
         env.close()
     assert [len(d) for d in drawn.values()] == [1, 1]
-    narrow, wide = (np.array(drawn[g][0]) / suture_env.GRASP_RANGES[g] for g in ("narrow", "wide"))
+    narrow, wide = (np.array(drawn[g][0]) / task.GRASP_RANGES[g] for g in ("narrow", "wide"))
     np.testing.assert_allclose(wide, narrow, atol=1e-12)
     assert np.all(np.abs(narrow) <= 1) and np.any(np.abs(narrow) > 0.05)
-    assert np.all(np.array(suture_env.GRASP_RANGES["wide"]) > suture_env.GRASP_RANGES["narrow"])
+    assert np.all(np.array(task.GRASP_RANGES["wide"]) > task.GRASP_RANGES["narrow"])
     with pytest.raises(ValueError, match=r"`grasp` must be one of \['narrow', 'wide'\]"):
         SutureEnv(grasp="loose")
 
@@ -191,8 +191,8 @@ def test_reset_randomizes_phantom_within_training_range():
         positions.append(env.phantom_position[:2].copy())
         yaws.append(env.phantom_yaw)
     positions = np.array(positions)
-    assert np.all(np.abs(positions - suture_env.PHANTOM_NOMINAL[:2]) <= suture_env.PHANTOM_RANGE_XY + 1e-12)
-    assert np.all(np.abs(yaws) <= suture_env.PHANTOM_YAW_RANGE + 1e-12)
+    assert np.all(np.abs(positions - task.PHANTOM_NOMINAL[:2]) <= task.PHANTOM_RANGE_XY + 1e-12)
+    assert np.all(np.abs(yaws) <= task.PHANTOM_YAW_RANGE + 1e-12)
     assert positions.std(axis=0).min() > 1e-3
 
 
@@ -232,9 +232,9 @@ def test_degenerate_rotation_raises_and_out_of_range_is_clipped():
             positions.append(env.jaw_pose()[0])
         positions = np.asarray(positions)
         margin = 5e-4
-        assert np.all(positions >= suture_env.WORKSPACE_LOW - margin), positions.min(axis=0)
-        assert np.all(positions <= suture_env.WORKSPACE_HIGH + margin), positions.max(axis=0)
-        corner = suture_env.WORKSPACE_HIGH if direction > 0 else suture_env.WORKSPACE_LOW
+        assert np.all(positions >= task.WORKSPACE_LOW - margin), positions.min(axis=0)
+        assert np.all(positions <= task.WORKSPACE_HIGH + margin), positions.max(axis=0)
+        corner = task.WORKSPACE_HIGH if direction > 0 else task.WORKSPACE_LOW
         np.testing.assert_allclose(positions[-1], corner, atol=1e-3)
 
 
@@ -263,8 +263,8 @@ def test_expert_inserts_the_needle():
     for seed in range(5):
         _, info = run_expert(env, seed)[-1]
         successes += info["is_success"]
-        assert info["entry_error_m"] <= suture_env.ENTRY_TOLERANCE
-        assert info["exit_error_m"] <= suture_env.EXIT_TOLERANCE
+        assert info["entry_error_m"] <= task.ENTRY_TOLERANCE
+        assert info["exit_error_m"] <= task.EXIT_TOLERANCE
         assert info["needle_in_tissue"] and info["needle_grasped"]
     assert successes == 5
 
@@ -278,7 +278,7 @@ def test_expert_assuming_the_nominal_grasp_misses_by_the_grasp_error():
     blind = ScriptedExpert(ExpertConfig(assume_nominal_grasp=True))
     _, info = run_expert(env, seed=0, expert=blind)[-1]
     # Planning with the wrong grasp puts the tip off the mark by the grasp's error, within tolerance.
-    assert true_entry < 1e-4 < info["entry_error_m"] < suture_env.ENTRY_TOLERANCE
+    assert true_entry < 1e-4 < info["entry_error_m"] < task.ENTRY_TOLERANCE
     assert info["needle_in_tissue"] and info["is_success"]
 
 
@@ -289,7 +289,7 @@ def test_a_throw_off_the_marks_ends_the_episode_as_a_failure():
     env = make()
     env.reset(seed=0)
     u = env.unwrapped
-    u._grasp_pos, u._grasp_rot = grasp_transform(suture_env.GRASP_ANGLE, -0.003, 0.0)
+    u._grasp_pos, u._grasp_rot = grasp_transform(task.GRASP_ANGLE, -0.003, 0.0)
     u._snap_needle_to_jaw()
     expert = ScriptedExpert(ExpertConfig(assume_nominal_grasp=True))
     expert.reset(env)
@@ -299,11 +299,8 @@ def test_a_throw_off_the_marks_ends_the_episode_as_a_failure():
             break
     assert terminated and not truncated
     assert not info["is_success"] and reward == 0.0
-    assert (
-        info["entry_error_m"] > suture_env.ENTRY_TOLERANCE
-        and info["exit_error_m"] > suture_env.EXIT_TOLERANCE
-    )
-    assert info["protrusion_m"] >= suture_env.MIN_PROTRUSION and info["needle_in_tissue"]
+    assert info["entry_error_m"] > task.ENTRY_TOLERANCE and info["exit_error_m"] > task.EXIT_TOLERANCE
+    assert info["protrusion_m"] >= task.MIN_PROTRUSION and info["needle_in_tissue"]
 
 
 @pytest.mark.parametrize("scenario", [s for s in SCENARIOS if s != "nominal"])

@@ -18,7 +18,7 @@ from lerobot.envs.configs import HubEnvConfig
 from lerobot.envs.factory import make_env
 from lerobot.envs.utils import _import_hub_module
 
-from lerobot_suture.sim.suture_env import TASK
+from lerobot_suture.sim.task import TASK
 
 HUB_FOLDER = Path(__file__).resolve().parents[1] / "envs" / "hub"
 REPO_ID = "someuser/suture"

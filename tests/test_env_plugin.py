@@ -13,7 +13,7 @@ from lerobot.envs.factory import make_env
 from lerobot.envs.utils import check_env_attributes_and_types, env_to_policy_features, preprocess_observation
 from lerobot.utils.import_utils import register_third_party_plugins
 
-from lerobot_suture.sim.suture_env import TASK
+from lerobot_suture.sim.task import TASK
 
 
 @pytest.fixture(scope="module")

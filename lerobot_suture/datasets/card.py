@@ -74,9 +74,9 @@ def render_description(root: str | Path, template_path: str | Path | None = None
     import jinja2
     import mujoco
 
-    from lerobot_suture.sim import geometry
-    from lerobot_suture.sim import suture_env as se
+    from lerobot_suture.sim import geometry, task, tissue
     from lerobot_suture.sim.scenarios import ScenarioConfig
+    from lerobot_suture.sim.suture_env import SCENE_XML
 
     path = Path(template_path) if template_path is not None else default_template_path()
     if not path.is_file():
@@ -103,9 +103,9 @@ def render_description(root: str | Path, template_path: str | Path | None = None
     ]
     env_kwargs = log["env_kwargs"]
     grasp = env_kwargs.get("grasp", "narrow")  # absent in logs before it existed
-    grasp_angle, grasp_offset, grasp_roll = se.GRASP_RANGES[grasp]
+    grasp_angle, grasp_offset, grasp_roll = task.GRASP_RANGES[grasp]
     scenario = ScenarioConfig(name=env_kwargs["scenario"])
-    model = mujoco.MjModel.from_xml_path(str(se.SCENE_XML))
+    model = mujoco.MjModel.from_xml_path(str(SCENE_XML))
     endoscope = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, "endoscope")
     context = {
         "paper_title": PAPER_TITLE,
@@ -129,7 +129,7 @@ def render_description(root: str | Path, template_path: str | Path | None = None
         "video": info["features"].get("observation.images.endoscope", {}).get("dtype") == "video",
         "grasp": grasp,
         "grasp_blind_expert": bool(log["expert"]["config"].get("assume_nominal_grasp", False)),
-        "tissue_damping": f"{se.TISSUE_DAMPING:g}",
+        "tissue_damping": f"{tissue.TISSUE_DAMPING:g}",
         "steps_after_success": log.get("steps_after_success", 0),
         "num_episodes": len(log["episodes"]),
         "num_frames": info["total_frames"],
@@ -139,17 +139,17 @@ def render_description(root: str | Path, template_path: str | Path | None = None
         "num_discarded": len(log["discarded"]),
         "discard_reasons": ", ".join(f"{n} {r}" for r, n in sorted(reasons.items())),
         "needle_radius_mm": f"{geometry.NEEDLE_RADIUS * 1e3:g}",
-        "entry_tolerance_mm": f"{se.ENTRY_TOLERANCE * 1e3:g}",
-        "exit_tolerance_mm": f"{se.EXIT_TOLERANCE * 1e3:g}",
-        "min_protrusion_mm": f"{se.MIN_PROTRUSION * 1e3:g}",
-        "phantom_range_mm": f"{se.PHANTOM_RANGE_XY * 1e3:g}",
-        "phantom_yaw_rad": f"{se.PHANTOM_YAW_RANGE:g}",
-        "phantom_yaw_deg": f"{math.degrees(se.PHANTOM_YAW_RANGE):.1f}",
+        "entry_tolerance_mm": f"{task.ENTRY_TOLERANCE * 1e3:g}",
+        "exit_tolerance_mm": f"{task.EXIT_TOLERANCE * 1e3:g}",
+        "min_protrusion_mm": f"{task.MIN_PROTRUSION * 1e3:g}",
+        "phantom_range_mm": f"{task.PHANTOM_RANGE_XY * 1e3:g}",
+        "phantom_yaw_rad": f"{task.PHANTOM_YAW_RANGE:g}",
+        "phantom_yaw_deg": f"{math.degrees(task.PHANTOM_YAW_RANGE):.1f}",
         "grasp_angle_deg": f"{math.degrees(grasp_angle):g}",
-        "grasp_nominal_deg": f"{math.degrees(se.GRASP_ANGLE):g}",
+        "grasp_nominal_deg": f"{math.degrees(task.GRASP_ANGLE):g}",
         "grasp_offset_mm": f"{grasp_offset * 1e3:g}",
         "grasp_roll_rad": f"{grasp_roll:g}",
-        "arm_start_noise": ", ".join(f"{x:g}" for x in se.ARM_START_NOISE),
+        "arm_start_noise": ", ".join(f"{x:g}" for x in task.ARM_START_NOISE),
         "expert_class": log["expert"]["class"],
         "expert_config": log["expert"]["config"],
         "n_train": len(train),

@@ -68,16 +68,16 @@ from lerobot_suture.datasets.video import resolve_video_backend
 from lerobot_suture.expert import ExpertConfig, ScriptedExpert
 from lerobot_suture.registration import ENV_ID, MAX_EPISODE_STEPS
 from lerobot_suture.rollout_expert import iter_expert_steps
-from lerobot_suture.sim import suture_env
+from lerobot_suture.sim import suture_env, task
 from lerobot_suture.sim.scenarios import SCENARIOS
 
 logger = logging.getLogger(__name__)
 
 COMMAND = "lerobot-suture record"
-TASK = suture_env.TASK
+TASK = task.TASK
 """The task string of every frame (LeRobot's ``task``)."""
 ROBOT_TYPE = "psm"
-FPS = round(1.0 / suture_env.CONTROL_DT)
+FPS = round(1.0 / task.CONTROL_DT)
 """Dataset fps: the env's control rate (10 Hz)."""
 MAX_STEPS_AFTER_SUCCESS = 10
 """Most control steps ``--steps_after_success`` records past success: 6 mm more of the 31 mm needle
@@ -156,7 +156,7 @@ class RecordConfig:
         scenario: perturbation scenario (``lerobot_suture.sim.scenarios.SCENARIOS``); the expert fails
             under some of them and those episodes are discarded.
         seed: env seed of the first attempt; attempt ``k`` uses ``seed + k``.
-        grasp: the grasp's randomization (``suture_env.GRASP_RANGES``): ``narrow``, that of every scene a
+        grasp: the grasp's randomization (``task.GRASP_RANGES``): ``narrow``, that of every scene a
             policy is tested in, or ``wide``, which contains it and makes the needle's pose in the jaw
             change the expert's action enough that a policy must read it from the image.
         grasp_blind_expert: the expert plans with the nominal grasp instead of the true one, as a policy
@@ -212,8 +212,8 @@ class RecordConfig:
             raise ValueError(f"`image_size` must be in [16, 640] px. Got {self.image_size}.")
         if self.scenario not in SCENARIOS:
             raise ValueError(f"`scenario` must be one of {SCENARIOS}. Got {self.scenario!r}.")
-        if self.grasp not in suture_env.GRASP_RANGES:
-            raise ValueError(f"`grasp` must be one of {list(suture_env.GRASP_RANGES)}. Got {self.grasp!r}.")
+        if self.grasp not in task.GRASP_RANGES:
+            raise ValueError(f"`grasp` must be one of {list(task.GRASP_RANGES)}. Got {self.grasp!r}.")
         if not 0 <= self.seed < 2**32 - 1_000_000:
             raise ValueError(f"`seed` must be in [0, 2**32 - 1e6). Got {self.seed}.")
         if self.checkpoint_every < 1:
@@ -261,7 +261,7 @@ def expert_config(steps_after_success: int, grasp_blind_expert: bool = False) ->
     past its usual protrusion (at ``drive_rate``), so it still turns the needle in them; with
     ``grasp_blind_expert`` it plans with the nominal grasp instead of the true one."""
     default = ExpertConfig()
-    extra = steps_after_success * default.drive_rate * suture_env.CONTROL_DT  # rad of arc
+    extra = steps_after_success * default.drive_rate * task.CONTROL_DT  # rad of arc
     return dataclasses.replace(
         default,
         protrusion_angle=default.protrusion_angle + extra,
@@ -325,17 +325,17 @@ def _failure_reason(info: dict, steps: int) -> tuple[str, str]:
         return "needle dropped", f"the jaw lost the needle; episode ended after {steps} steps"
     if not math.isfinite(entry):
         return "needle never entered the tissue", f"no entry within {steps} steps"
-    if entry > suture_env.ENTRY_TOLERANCE:
+    if entry > task.ENTRY_TOLERANCE:
         return (
             "entry error above tolerance",
-            f"entry error {entry * 1e3:.2f} mm > {suture_env.ENTRY_TOLERANCE * 1e3} mm",
+            f"entry error {entry * 1e3:.2f} mm > {task.ENTRY_TOLERANCE * 1e3} mm",
         )
     if not math.isfinite(exit_):
         return "needle did not emerge", f"no exit within {steps} steps"
-    if exit_ > suture_env.EXIT_TOLERANCE:
+    if exit_ > task.EXIT_TOLERANCE:
         return (
             "exit error above tolerance",
-            f"exit error {exit_ * 1e3:.2f} mm > {suture_env.EXIT_TOLERANCE * 1e3} mm",
+            f"exit error {exit_ * 1e3:.2f} mm > {task.EXIT_TOLERANCE * 1e3} mm",
         )
     return "time limit", f"not done within {steps} steps (protrusion {info['protrusion_m'] * 1e3:.2f} mm)"
 

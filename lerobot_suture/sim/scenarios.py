@@ -1,4 +1,4 @@
-"""The paper's perturbation scenarios, applied to a running :class:`SutureEnv`.
+"""The paper's perturbation scenarios, applied to a running :class:`~lerobot_suture.sim.suture_env.SutureEnv`.
 
 Each scenario has an onset (control step) and a magnitude; ``perturbed`` becomes True on the step
 the perturbation begins, so detection delay can be measured from it.
@@ -24,12 +24,9 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
-
-if TYPE_CHECKING:
-    from lerobot_suture.sim.suture_env import SutureEnv
 
 SCENARIOS = (
     "nominal",
@@ -53,6 +50,39 @@ _DEFAULT_MAGNITUDE = {
     "phantom_servo": 0.008,
     "phantom_moved_after_insertion": 0.006,
 }
+
+
+class PerturbableEnv(Protocol):
+    """What a scenario reads from and moves in the env; ``SutureEnv`` is one.
+
+    Stated here, rather than imported from ``suture_env``, so that imports run one way: the env
+    holds a :class:`Scenario`, and this module needs nothing of the env's but these members.
+    """
+
+    np_random: np.random.Generator
+
+    @property
+    def step_index(self) -> int: ...
+
+    @property
+    def phantom_position(self) -> np.ndarray: ...
+
+    @property
+    def phantom_yaw(self) -> float: ...
+
+    @property
+    def needle_touched_tissue(self) -> bool: ...
+
+    @property
+    def first_in_tissue_step(self) -> int | None: ...
+
+    def release_needle(self) -> None: ...
+
+    def set_phantom_pose(self, position: np.ndarray, yaw: float) -> None: ...
+
+    def clip_to_phantom_range(self, xy: np.ndarray) -> np.ndarray: ...
+
+    def set_endoscope_viewpoint(self, azimuth_offset: float = 0.0, elevation_offset: float = 0.0) -> None: ...
 
 
 @dataclass
@@ -102,13 +132,13 @@ class Scenario:
         self._glide: list[tuple[np.ndarray, float]] = []
         self._next_move_step = 0
 
-    def reset(self, env: SutureEnv) -> None:
+    def reset(self, env: PerturbableEnv) -> None:
         self.perturbed = False
         self._glide = []
         self._next_move_step = self.config.onset_step
         self.before_step(env)
 
-    def before_step(self, env: SutureEnv) -> None:
+    def before_step(self, env: PerturbableEnv) -> None:
         """Apply the perturbation due at ``env.step_index`` (called before each control step)."""
         cfg = self.config
         step = env.step_index
@@ -137,7 +167,7 @@ class Scenario:
             position, yaw = self._glide.pop(0)
             env.set_phantom_pose(position, yaw)
 
-    def _start_glide(self, env: SutureEnv, within_training_range: bool) -> None:
+    def _start_glide(self, env: PerturbableEnv, within_training_range: bool) -> None:
         rng = env.np_random
         start, yaw = env.phantom_position.copy(), env.phantom_yaw
         direction = rng.uniform(-math.pi, math.pi)

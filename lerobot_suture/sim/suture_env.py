@@ -15,15 +15,16 @@ one env step is 50 physics steps.
 ``Box(10,)``, float32: the target pose of the needle holder (the jaw tip frame ``jaw_tip``) at the
 end of the control step, in the world frame.
 
-=====  ================================================  ==============  ====
-index  meaning                                           range           unit
-=====  ================================================  ==============  ====
-0-2    jaw tip position x, y, z                          see ``WORKSPACE``  m
-3-5    first column of the jaw rotation matrix           [-1, 1]         --
-6-8    second column of the jaw rotation matrix          [-1, 1]         --
-9      jaw closure (1 closed, < 0.5 opens and releases   [0, 1]          --
+=====  ================================================  ======================  ====
+index  meaning                                           range                   unit
+=====  ================================================  ======================  ====
+0-2    jaw tip position x, y, z                          ``task.WORKSPACE_LOW``  m
+                                                         to ``..._HIGH``
+3-5    first column of the jaw rotation matrix           [-1, 1]                 --
+6-8    second column of the jaw rotation matrix          [-1, 1]                 --
+9      jaw closure (1 closed, < 0.5 opens and releases   [0, 1]                  --
        the needle)
-=====  ================================================  ==============  ====
+=====  ================================================  ======================  ====
 
 The env turns the action into a Cartesian velocity command (reach the target in one control step,
 speed-limited), expresses it at the needle tip while the needle is held, passes the needle tip's
@@ -32,8 +33,8 @@ acts), maps the twist to joint velocities by damped differential inverse kinemat
 tip, and the arm's velocity actuators track those at physics rate. While a filter is installed the
 inverse kinematics puts the tip's linear velocity first, inside the joints' speed and range bounds,
 and the rotation in its null space (``controller.tip_first_velocity_ik``), re-solved 10 times per
-control step with feedback towards the filtered segment, so the tip goes where the filter allowed. Values outside the action space
-are clipped; a wrong shape, NaN or inf raise ``ValueError``.
+control step with feedback towards the filtered segment, so the tip goes where the filter allowed.
+Values outside the action space are clipped; a wrong shape, NaN or inf raise ``ValueError``.
 
 ## Observation Space
 ``obs_type="pixels_agent_pos"`` (default, the paper's): ``{"pixels": {"endoscope": (H, W, 3) uint8},
@@ -49,17 +50,17 @@ low-dimensional experiments; ``obs_type="pixels_agent_pos_state"``: all three.
 1.0 on the step the insertion succeeds, else 0.0 (``info["reward_success"]``).
 
 ## Starting State
-The phantom's position is uniform within ``PHANTOM_RANGE_XY`` of the nominal one and its yaw within
-``PHANTOM_YAW_RANGE``; the grasp angle on the needle within 4 degrees of the nominal, its offset along
-the jaw and its roll slightly (``GRASP_RANGES["narrow"]``; ``grasp="wide"`` widens all three); the arm
-starts near its home pose above the site. All randomness comes from ``self.np_random`` (seeded by
-``reset(seed=...)``).
+The phantom's position is uniform within ``task.PHANTOM_RANGE_XY`` of the nominal one and its yaw
+within ``task.PHANTOM_YAW_RANGE``; the grasp angle on the needle within 4 degrees of the nominal, its
+offset along the jaw and its roll slightly (``task.GRASP_RANGES["narrow"]``; ``grasp="wide"`` widens all
+three); the arm starts near its home pose above the site. All randomness comes from ``self.np_random``
+(seeded by ``reset(seed=...)``).
 
 ## Episode End
-Terminated when the throw is over: the tip has emerged and protrudes at least ``MIN_PROTRUSION``
+Terminated when the throw is over: the tip has emerged and protrudes at least ``task.MIN_PROTRUSION``
 beyond where it left the tissue, the needle still spanning the wound. It succeeded
-(``info["is_success"]``) if the tip entered within ``ENTRY_TOLERANCE`` of the entry point and emerged
-within ``EXIT_TOLERANCE`` of the exit point; a throw off the marks is over too, since driving on only
+(``info["is_success"]``) if the tip entered within ``task.ENTRY_TOLERANCE`` of the entry point and emerged
+within ``task.EXIT_TOLERANCE`` of the exit point; a throw off the marks is over too, since driving on only
 pulls the needle further through the wrong holes. Truncated by the registered ``max_episode_steps``
 (100 = 10 s).
 
@@ -86,7 +87,7 @@ argument                 default                 meaning
 ``record_tip_trace``     ``False``               step physics one at a time and return the needle
                                                  tip after every physics step in
                                                  ``info["needle_tip_trace"]`` (slower)
-``grasp``                ``"narrow"``            grasp randomization (``GRASP_RANGES``): ``narrow``
+``grasp``                ``"narrow"``            grasp randomization (``task.GRASP_RANGES``): ``narrow``
                                                  (the test scenes) or ``wide`` (demonstrations
                                                  that make the needle's pose matter)
 =======================  ======================  ===============================================
@@ -94,7 +95,6 @@ argument                 default                 meaning
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from pathlib import Path
 
@@ -104,8 +104,8 @@ import numpy as np
 from gymnasium import spaces
 
 from lerobot_suture.sim import controller, tissue
+from lerobot_suture.sim.endoscope import Endoscope
 from lerobot_suture.sim.geometry import (
-    NEEDLE_RADIUS,
     InsertionFrame,
     cross3,
     grasp_transform,
@@ -116,85 +116,47 @@ from lerobot_suture.sim.geometry import (
     needle_arc_points,
     needle_in_world,
     pose_vector,
-    project_to_image,
     quat_from_matrix,
     rot6_from_matrix,
     rotation_about_z,
 )
-from lerobot_suture.sim.rendering import make_renderer
+from lerobot_suture.sim.insertion import InsertionProgress
+from lerobot_suture.sim.psm import (
+    ARM_JOINTS,
+    IK_UPDATES_WHEN_FILTERED,
+    MAX_ANGULAR_SPEED,
+    MAX_LINEAR_SPEED,
+    PSM,
+    SEGMENT_TRACKING_GAIN,
+    TIME_TO_TARGET,
+)
 from lerobot_suture.sim.scenarios import Scenario, ScenarioConfig
+from lerobot_suture.sim.task import (
+    ARM_START_NOISE,
+    CONTROL_DT,
+    ENTRY_TOLERANCE,
+    EXIT_TOLERANCE,
+    GRASP_ANGLE,
+    GRASP_RANGES,
+    MIN_PROTRUSION,
+    NEEDLE_TILT,
+    PHANTOM_NOMINAL,
+    PHANTOM_RANGE_XY,
+    PHANTOM_YAW_RANGE,
+    TASK,
+    WORKSPACE_HIGH,
+    WORKSPACE_LOW,
+)
 
 SCENE_XML = Path(__file__).parent / "assets" / "scene.xml"
 
 OBS_TYPES = ("pixels_agent_pos", "state", "pixels_agent_pos_state")
-TASK = "Insert the curved suture needle at the entry point and drive it out through the exit point."
-"""The task string of the dataset's frames and of policy inputs."""
-CONTROL_DT = 0.1
-"""Control period (s): 10 Hz, the dataset's fps."""
 
-# Workspace of the jaw tip (m, world): the action-space bounds of the position.
-WORKSPACE_LOW = np.array([-0.05, -0.06, 0.0])
-WORKSPACE_HIGH = np.array([0.05, 0.04, 0.08])
-
-# Phantom placement (m, rad): nominal pose of the top-surface centre, and the training range.
-PHANTOM_NOMINAL = np.array([0.0, 0.0, 0.01])
-PHANTOM_RANGE_XY = 0.010
-PHANTOM_YAW_RANGE = 0.25
-
-# Grasp (rad, m): the jaw holds the needle near its tail; the expert reads the true grasp.
-GRASP_ANGLE = math.radians(165.0)
-GRASP_ANGLE_RANGE = math.radians(4.0)
-GRASP_OFFSET_RANGE = 0.0005
-GRASP_ROLL_RANGE = 0.05
-GRASP_RANGES = {
-    "narrow": (GRASP_ANGLE_RANGE, GRASP_OFFSET_RANGE, GRASP_ROLL_RANGE),
-    "wide": (math.radians(12.0), 0.001, 0.10),
-}
-"""Half-ranges of the grasp's randomization (angle rad, offset along the jaw m, roll rad) by name. "narrow"
-is every scene the policy is tested in; "wide" (which contains it) records demonstrations in which the
-needle's pose in the jaw changes the action enough that a policy must read it from the image."""
-ARM_START_NOISE = np.array([0.03, 0.03, 0.002, 0.05, 0.03, 0.03])
-"""Half-range of the uniform noise on the arm's start joints (rad; m for insertion), in the order
-outer yaw, outer pitch, insertion, instrument roll, wrist pitch, wrist yaw."""
-NEEDLE_TILT = math.radians(30.0)
-"""Tilt of the needle's plane from the tissue normal during a throw, towards the arm's port."""
-
-# Endoscope viewpoint of the training data: spherical about the work site (rad, m).
-ENDOSCOPE_TARGET = np.array([0.0, 0.0, 0.012])
-ENDOSCOPE_AZIMUTH = math.radians(90.0)
-ENDOSCOPE_ELEVATION = math.radians(52.0)
-ENDOSCOPE_DISTANCE = 0.105
-
-# Controller: reach the target pose in one control step, within these speeds.
-TIME_TO_TARGET = CONTROL_DT
-MAX_LINEAR_SPEED = 0.05  # m/s
-MAX_ANGULAR_SPEED = 2.0  # rad/s
-IK_DAMPING = 0.01
-IK_LINEAR_WEIGHT = 10.0  # 0.1 m of tip motion weighs as much as 1 rad of turn
-IK_UPDATES_WHEN_FILTERED = 10  # IK solves per control step (100 Hz) while a tip-velocity filter acts
-SEGMENT_TRACKING_GAIN = 20.0  # 1/s: feedback on the tip's distance from its filtered segment, per IK solve
-JOINT_LIMIT_LOOKAHEAD = 0.03  # s: a joint covers at most its distance to a range stop in this time
-
-# Tissue: viscous resistance to off-arc motion of the needle (N per m/s, N m per rad/s).
-TISSUE_DAMPING = 2.0
-TISSUE_ROTATIONAL_DAMPING = 0.0001
-
-# Success (m): in the manner of the Surgical Robotics Challenge's needle-insertion scoring.
-ENTRY_TOLERANCE = 0.002
-EXIT_TOLERANCE = 0.002
-MIN_PROTRUSION = 0.003
-
-_ARM_JOINTS = ("outer_yaw", "outer_pitch", "insertion", "instrument_roll", "wrist_pitch", "wrist_yaw")
 _JAW_OPEN_ANGLE = 0.6  # rad, the jaw joint's range
 _N_ARC_POINTS = 13
 NEEDLE_KEYPOINTS = 3
 """Points of the needle located in the image by ``needle_keypoints_in_image``: tip, middle, tail."""
 _NEEDLE_CONTACT_BIT = 2  # the needle geoms' contype in scene.xml
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    """Matrix of ``w -> cross(v, w)``."""
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 class SutureEnv(gym.Env):
@@ -239,16 +201,10 @@ class SutureEnv(gym.Env):
         self.n_substeps = int(round(self.control_dt / self.physics_dt))
 
         m = self.model
-        self._arm_dofs = np.array([m.joint(n).dofadr[0] for n in _ARM_JOINTS])
-        self._arm_qpos = np.array([m.joint(n).qposadr[0] for n in _ARM_JOINTS])
-        self._arm_ctrl_limit = np.array([m.actuator(n).ctrlrange[1] for n in _ARM_JOINTS])
-        self._arm_range = m.jnt_range[[m.joint(n).id for n in _ARM_JOINTS]].T.copy()  # (2, 6) low, high
-        self._arm_ctrl = np.array([m.actuator(n).id for n in _ARM_JOINTS])
+        self._arm = PSM(m)
         self._jaw_ctrl = m.actuator("jaw").id
         self._jaw_qpos = m.joint("jaw").qposadr[0]
         self._jaw_dof = m.joint("jaw").dofadr[0]
-        self._jaw_body = m.body("jaw").id
-        self._jaw_site = m.site("jaw_tip").id
         self._jaw_pivot_to_tip = float(m.site("jaw_tip").pos[2])
         # Inner faces of the closed jaws are this far apart (m): the jaw geoms' offsets less their half-thickness.
         self._jaw_closed_gap = float(
@@ -262,7 +218,7 @@ class SutureEnv(gym.Env):
         needle_geom = int(np.flatnonzero(m.geom_bodyid == self._needle_body)[0])
         self._needle_wire_diameter = 2.0 * float(m.geom_size[needle_geom][0])
         self._phantom_mocap = m.body("phantom").mocapid[0]
-        self._camera = m.camera("endoscope").id
+        self._endoscope = Endoscope(m, self.image_size, self.render_size)
         self._pad_geom = m.geom("tissue_pad").id
         self._entry_local = m.site("entry_point").pos.copy()
         self._exit_local = m.site("exit_point").pos.copy()
@@ -289,8 +245,6 @@ class SutureEnv(gym.Env):
         """None or f(needle_tip_pos (3,) m, v_nominal (3,) m/s) -> v_safe (3,) m/s; called once per
         control step while the needle is held, before inverse kinematics."""
 
-        self._renderer = None
-        self._video_renderer = None
         self._home_qpos = self._solve_home_pose()
         self._reset_state()
 
@@ -339,15 +293,15 @@ class SutureEnv(gym.Env):
 
     @property
     def needle_in_tissue(self) -> bool:
-        return self._in_tissue
+        return self._progress.in_tissue
 
     @property
     def needle_touched_tissue(self) -> bool:
-        return self._first_in_tissue_step is not None
+        return self._progress.first_in_tissue_step is not None
 
     @property
     def first_in_tissue_step(self) -> int | None:
-        return self._first_in_tissue_step
+        return self._progress.first_in_tissue_step
 
     @property
     def grasp_in_jaw(self) -> tuple[np.ndarray, np.ndarray]:
@@ -371,22 +325,13 @@ class SutureEnv(gym.Env):
         Privileged (the simulator's needle pose): recorded as a training target that teaches an image encoder
         where the needle is, never an input a policy acts on.
         """
-        self._update_render_poses()
+        self._endoscope.update_poses(self.data)
         centre, rotation = self.needle_pose()
-        points = centre + self._keypoints_local @ rotation.T
-        d = self.data
-        camera_rotation = d.cam_xmat[self._camera].reshape(3, 3)
-        fovy = math.radians(float(self.model.cam_fovy[self._camera]))
-        return (
-            project_to_image(points, d.cam_xpos[self._camera], camera_rotation, fovy)
-            .ravel()
-            .astype(np.float32)
-        )
+        return self._endoscope.project(self.data, centre + self._keypoints_local @ rotation.T)
 
     def jaw_pose(self) -> tuple[np.ndarray, np.ndarray]:
         """Measured jaw-tip pose, world: (position (3,) m, rotation (3, 3))."""
-        d = self.data
-        return d.site_xpos[self._jaw_site].copy(), d.site_xmat[self._jaw_site].reshape(3, 3).copy()
+        return self._arm.jaw_pose(self.data)
 
     def needle_pose(self) -> tuple[np.ndarray, np.ndarray]:
         """Needle centre and orientation, world: (position (3,) m, rotation (3, 3))."""
@@ -408,13 +353,14 @@ class SutureEnv(gym.Env):
         self._set_needle_free_pose(centre, rot)
         # Carry the jaw's velocity into the needle's free joint.
         vel = np.zeros(6)
-        mujoco.mj_objectVelocity(self.model, self.data, mujoco.mjtObj.mjOBJ_BODY, self._jaw_body, vel, 0)
+        jaw_body = self._arm.jaw_body
+        mujoco.mj_objectVelocity(self.model, self.data, mujoco.mjtObj.mjOBJ_BODY, jaw_body, vel, 0)
         self.data.qvel[self._needle_dof : self._needle_dof + 3] = vel[3:] + cross3(
-            vel[:3], centre - self.data.xpos[self._jaw_body]
+            vel[:3], centre - self.data.xpos[jaw_body]
         )
         self.data.qvel[self._needle_dof + 3 : self._needle_dof + 6] = rot.T @ vel[:3]
         self.model.body_gravcomp[self._needle_body] = 0.0
-        if not self._in_tissue:
+        if not self._progress.in_tissue:
             # A needle lost above the phantom lands on it (one inside tissue would be expelled).
             self._set_pad_collides_with_needle(True)
         self._grasped = False
@@ -433,18 +379,7 @@ class SutureEnv(gym.Env):
 
     def set_endoscope_viewpoint(self, azimuth_offset: float = 0.0, elevation_offset: float = 0.0) -> None:
         """Place the endoscope on its sphere about the work site, offset from the training view (rad)."""
-        az = ENDOSCOPE_AZIMUTH + azimuth_offset
-        el = ENDOSCOPE_ELEVATION + elevation_offset
-        pos = ENDOSCOPE_TARGET + ENDOSCOPE_DISTANCE * np.array(
-            [math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)]
-        )
-        forward = ENDOSCOPE_TARGET - pos
-        forward /= np.linalg.norm(forward)
-        right = np.cross(forward, [0.0, 0.0, 1.0])
-        right /= np.linalg.norm(right)
-        up = np.cross(right, forward)
-        self.model.cam_pos[self._camera] = pos
-        self.model.cam_quat[self._camera] = quat_from_matrix(np.column_stack([right, up, -forward]))
+        self._endoscope.set_viewpoint(azimuth_offset, elevation_offset)
 
     def observe(self, needle_visible: bool = True) -> dict:
         """The observation of the current state (what the last ``reset``/``step`` returned).
@@ -483,8 +418,8 @@ class SutureEnv(gym.Env):
         self._grasp_pos, self._grasp_rot = grasp_transform(
             angle, self._grasp_offset, rng.uniform(-1, 1) * roll_range
         )
-        qpos = self._home_qpos + rng.uniform(-1, 1, size=len(_ARM_JOINTS)) * ARM_START_NOISE
-        self.data.qpos[self._arm_qpos] = qpos
+        qpos = self._home_qpos + rng.uniform(-1, 1, size=len(ARM_JOINTS)) * ARM_START_NOISE
+        self.data.qpos[self._arm.qpos] = qpos
         self.data.qpos[self._jaw_qpos] = self._held_jaw_angle()
         mujoco.mj_forward(self.model, self.data)
         self._snap_needle_to_jaw()
@@ -552,9 +487,9 @@ class SutureEnv(gym.Env):
             if filtered:
                 elapsed = block * substeps * self.physics_dt
                 v_track = v_command + SEGMENT_TRACKING_GAIN * (segment_start + v_command * elapsed - point)
-                self._actuate_tip_first(point, v_track, angular, jaw_pos, jaw_rot)
+                self._actuate(point, v_track, angular, jaw_pos, jaw_rot, tip_first=True)
             else:
-                self._actuate(point, v_command, angular, jaw_pos, jaw_rot)
+                self._actuate(point, v_command, angular, jaw_pos, jaw_rot, tip_first=False)
             if trace is not None:
                 for k in range(block * substeps, (block + 1) * substeps):
                     mujoco.mj_step(m, d)
@@ -581,17 +516,10 @@ class SutureEnv(gym.Env):
     def render(self):
         if self.render_mode != "rgb_array":
             return None
-        if self._video_renderer is None:
-            self._video_renderer = make_renderer(self.model, self.render_size, self.render_size)
-        self._update_render_poses()
-        self._video_renderer.update_scene(self.data, camera=self._camera)
-        return self._video_renderer.render()
+        return self._endoscope.video_frame(self.data)
 
     def close(self):
-        for r in (self._renderer, self._video_renderer):
-            if r is not None:
-                r.close()
-        self._renderer = self._video_renderer = None
+        self._endoscope.close()
 
     # ------------------------------------------------------------------ internals
     def _set_pad_collides_with_needle(self, collides: bool) -> None:
@@ -600,24 +528,10 @@ class SutureEnv(gym.Env):
         # MuJoCo's broad phase filters on the per-body union of the geoms' bits too.
         self.model.body_conaffinity[self.model.geom_bodyid[self._pad_geom]] = bit
 
-    def _update_render_poses(self) -> None:
-        # The held needle was snapped and the camera may have moved after MuJoCo's last forward pass.
-        mujoco.mj_kinematics(self.model, self.data)
-        mujoco.mj_camlight(self.model, self.data)
-
     def _reset_state(self) -> None:
         self._step_index = 0
         self._grasped = True
-        self._in_tissue = False
-        self._tip_inside = False
-        self._first_in_tissue_step: int | None = None
-        self._entry_location: np.ndarray | None = None
-        self._exit_location: np.ndarray | None = None
-        self._entry_error = math.inf  # until the tip has entered
-        self._exit_error = math.inf
-        self._strain = 0.0
-        self._prev_tip_local: np.ndarray | None = None
-        self._prev_needle_local: tuple[np.ndarray, np.ndarray] | None = None
+        self._progress = InsertionProgress(self._arc_local, self._entry_local, self._exit_local)
         self._phantom_pos = PHANTOM_NOMINAL.copy()
         self._phantom_yaw = 0.0
         self._phantom_rot = np.eye(3)
@@ -641,63 +555,26 @@ class SutureEnv(gym.Env):
         frame = self.insertion_frame()
         centre = frame.centre + np.array([0.0, 0.0, 0.025])
         target_pos, target_rot = jaw_holding(centre, frame.start_rotation, self._grasp_pos, self._grasp_rot)
-        d, m = self.data, self.model
-        mujoco.mj_resetData(m, d)
-        jacp, jacr = np.zeros((3, m.nv)), np.zeros((3, m.nv))
-        lo, hi = m.jnt_range[[m.joint(n).id for n in _ARM_JOINTS]].T
-        for _ in range(200):
-            mujoco.mj_kinematics(m, d)
-            mujoco.mj_comPos(m, d)  # the Jacobian needs the dof frames
-            p, r = self.jaw_pose()
-            lin, ang = controller.pose_velocity_command(p, r, target_pos, target_rot, 1.0, 1.0, 1.0)
-            mujoco.mj_jac(m, d, jacp, jacr, p, self._jaw_body)
-            jac = np.vstack([IK_LINEAR_WEIGHT * jacp[:, self._arm_dofs], jacr[:, self._arm_dofs]])
-            qdot = controller.damped_least_squares(
-                jac, np.concatenate([IK_LINEAR_WEIGHT * lin, ang]), IK_DAMPING
-            )
-            d.qpos[self._arm_qpos] = np.clip(d.qpos[self._arm_qpos] + 0.5 * qdot, lo, hi)
-        return d.qpos[self._arm_qpos].copy()
+        mujoco.mj_resetData(self.model, self.data)
+        return self._arm.solve_jaw_pose(self.data, target_pos, target_rot)
 
-    def _actuate(self, point, v_point, angular, jaw_pos, jaw_rot) -> None:
-        """Joint velocity commands (damped differential IK at ``point``) and the tissue's resistance."""
-        m, d = self.model, self.data
-        jacp = np.zeros((3, m.nv))
-        jacr = np.zeros((3, m.nv))
-        mujoco.mj_jac(m, d, jacp, jacr, point, self._jaw_body)
-        jacobian = np.vstack([IK_LINEAR_WEIGHT * jacp[:, self._arm_dofs], jacr[:, self._arm_dofs]])
-        twist = np.concatenate([IK_LINEAR_WEIGHT * v_point, angular])
-        qdot = controller.damped_least_squares(jacobian, twist, IK_DAMPING)
-        # Scale uniformly so the direction of motion survives the actuator limits.
-        scale = float(np.max(np.abs(qdot) / self._arm_ctrl_limit))
-        if scale > 1.0:
-            qdot /= scale
-        d.ctrl[self._arm_ctrl] = qdot
-        d.qfrc_applied[:] = 0.0
-        if self._grasped and self._in_tissue:
-            d.qfrc_applied[self._arm_dofs] = self._tissue_resistance(
-                jaw_pos, jaw_rot, point, v_point, angular, jacp, jacr
-            )
-
-    def _actuate_tip_first(self, point, v_point, angular, jaw_pos, jaw_rot) -> None:
-        """Joint velocity commands by tip-first IK at ``point`` inside the joints' speed and range bounds,
-        and the tissue's resistance to the motion that command makes."""
-        m, d = self.model, self.data
-        jacp = np.zeros((3, m.nv))
-        jacr = np.zeros((3, m.nv))
-        mujoco.mj_jac(m, d, jacp, jacr, point, self._jaw_body)
-        jac_linear, jac_angular = jacp[:, self._arm_dofs], jacr[:, self._arm_dofs]
-        low, high = controller.joint_velocity_bounds(
-            d.qpos[self._arm_qpos], *self._arm_range, self._arm_ctrl_limit, JOINT_LIMIT_LOOKAHEAD
-        )
-        qdot, _, _ = controller.tip_first_velocity_ik(
-            jac_linear, jac_angular, v_point, angular, low, high, IK_DAMPING / IK_LINEAR_WEIGHT, IK_DAMPING
-        )
-        d.ctrl[self._arm_ctrl] = qdot
-        d.qfrc_applied[:] = 0.0
-        if self._grasped and self._in_tissue:
+    def _actuate(self, point, v_point, angular, jaw_pos, jaw_rot, tip_first: bool) -> None:
+        """Joint velocity commands that move ``point`` with the twist (plain or tip-first IK, see
+        ``psm.PSM``), and the tissue's resistance to the motion they make."""
+        d = self.data
+        if tip_first:
+            qdot, jac_linear, jac_angular = self._arm.tip_first_velocity_ik(d, point, v_point, angular)
             # The tissue resists the motion the joints are asked for (part of the rotation may be dropped).
-            d.qfrc_applied[self._arm_dofs] = self._tissue_resistance(
-                jaw_pos, jaw_rot, point, jac_linear @ qdot, jac_angular @ qdot, jacp, jacr
+            v_point, angular = jac_linear @ qdot, jac_angular @ qdot
+        else:
+            qdot, jac_linear, jac_angular = self._arm.velocity_ik(d, point, v_point, angular)
+        d.ctrl[self._arm.ctrl] = qdot
+        d.qfrc_applied[:] = 0.0
+        if self._grasped and self._progress.in_tissue:
+            centre = jaw_pos + jaw_rot @ self._grasp_pos
+            axis = jaw_rot @ self._grasp_rot[:, 2]
+            d.qfrc_applied[self._arm.dofs] = tissue.resistance_joint_forces(
+                centre, axis, point, v_point, angular, jac_linear, jac_angular
             )
 
     def _set_needle_free_pose(self, centre: np.ndarray, rotation: np.ndarray) -> None:
@@ -725,79 +602,31 @@ class SutureEnv(gym.Env):
         self._set_needle_free_pose(centre, rot)
         self.data.qvel[self._needle_dof : self._needle_dof + 6] = 0.0
 
-    def _tissue_resistance(self, jaw_pos, jaw_rot, point, v_point, angular, jacp, jacr) -> np.ndarray:
-        """Generalized arm forces resisting the commanded (filtered) off-arc motion of the needle in tissue.
-
-        ``point`` is where the Jacobians were taken (the needle tip) and ``v_point`` its commanded velocity.
-        """
-        centre = jaw_pos + jaw_rot @ self._grasp_pos
-        axis = jaw_rot @ self._grasp_rot[:, 2]
-        v_centre = controller.point_velocity(v_point, angular, point, centre)
-        w_off = angular - (angular @ axis) * axis
-        force = -TISSUE_DAMPING * v_centre
-        torque = -TISSUE_ROTATIONAL_DAMPING * w_off
-        # The force acts at the needle centre: shift the linear Jacobian from the control point.
-        jac_centre = jacp[:, self._arm_dofs] - _skew(centre - point) @ jacr[:, self._arm_dofs]
-        return jac_centre.T @ force + jacr[:, self._arm_dofs].T @ torque
-
     def _update_tissue_state(self, first: bool = False) -> None:
-        centre, rot = self.needle_pose()
-        inv = self._phantom_rot.T
-        centre_local = inv @ (centre - self._phantom_pos)
-        rot_local = inv @ rot
-        arc = centre_local + self._arc_local @ rot_local.T  # (n, 3) phantom frame
-        inside = tissue.inside_pad(arc)
-        tip_local = arc[0]
-        was_in_tissue = self._in_tissue
-        self._in_tissue = bool(inside.any())
-        if self._in_tissue and self._first_in_tissue_step is None:
-            self._first_in_tissue_step = self._step_index
-        tip_inside = bool(inside[0])
-        if not first and self._prev_tip_local is not None:
-            if tip_inside and not self._tip_inside and self._entry_location is None:
-                self._entry_location = tissue.surface_crossing(self._prev_tip_local, tip_local)
-                self._entry_error = float(np.linalg.norm(self._entry_location[:2] - self._entry_local[:2]))
-            elif not tip_inside and self._tip_inside and self._entry_location is not None:
-                if self._exit_location is None:
-                    self._exit_location = tissue.surface_crossing(self._prev_tip_local, tip_local)
-                    self._exit_error = float(np.linalg.norm(self._exit_location[:2] - self._exit_local[:2]))
-            if (self._in_tissue or was_in_tissue) and self._prev_needle_local is not None:
-                translation, rotation = tissue.off_arc_motion(
-                    *self._prev_needle_local, centre_local, rot_local, NEEDLE_RADIUS
-                )
-                self._strain += translation + rotation
-        self._tip_inside = tip_inside
-        self._prev_tip_local = tip_local
-        self._prev_needle_local = (centre_local, rot_local)
-        self._tip_world = self._phantom_pos + self._phantom_rot @ tip_local
-
-    def _protrusion(self) -> float:
-        if self._exit_location is None or self._tip_inside:
-            return 0.0
-        return float(np.linalg.norm(self._prev_tip_local - self._exit_location))
+        self._progress.update(
+            *self.needle_pose(), self._phantom_pos, self._phantom_rot, self._step_index, first
+        )
 
     def _throw_over(self) -> bool:
         """The tip protrudes ``MIN_PROTRUSION`` beyond where it emerged, the needle spanning the wound."""
-        return bool(self._protrusion() >= MIN_PROTRUSION and self._in_tissue)
+        return bool(self._progress.protrusion >= MIN_PROTRUSION and self._progress.in_tissue)
 
     def _on_the_marks(self) -> bool:
         """The tip entered and emerged within tolerance of the marked entry and exit points."""
-        return bool(self._entry_error <= ENTRY_TOLERANCE and self._exit_error <= EXIT_TOLERANCE)
+        return bool(
+            self._progress.entry_error <= ENTRY_TOLERANCE and self._progress.exit_error <= EXIT_TOLERANCE
+        )
 
     def _observation(self) -> dict:
         jaw_pos, jaw_rot = self.jaw_pose()
         closure = 1.0 - self.data.qpos[self._jaw_qpos] / _JAW_OPEN_ANGLE
         obs: dict = {"agent_pos": pose_vector(jaw_pos, jaw_rot, closure).astype(np.float32)}
         if "pixels" in self.obs_type:
-            if self._renderer is None:
-                self._renderer = make_renderer(self.model, self.image_size, self.image_size)
-            self._update_render_poses()
-            self._renderer.update_scene(self.data, camera=self._camera)
-            obs["pixels"] = {"endoscope": self._renderer.render().copy()}
+            obs["pixels"] = {"endoscope": self._endoscope.image(self.data)}
         if self.obs_type in ("state", "pixels_agent_pos_state"):
             centre, rot = self.needle_pose()
             obs["environment_state"] = np.concatenate(
-                [self.entry_point, self.exit_point, centre, rot6_from_matrix(rot), self._tip_world]
+                [self.entry_point, self.exit_point, centre, rot6_from_matrix(rot), self._progress.tip_world]
             ).astype(np.float32)
         return obs
 
@@ -805,12 +634,12 @@ class SutureEnv(gym.Env):
         return {
             "is_success": success,
             "reward_success": 1.0 if success else 0.0,
-            "entry_error_m": self._entry_error,
-            "exit_error_m": self._exit_error,
-            "protrusion_m": self._protrusion(),
-            "tissue_strain": self._strain,
-            "needle_tip_pos": self._tip_world.copy(),
-            "needle_in_tissue": self._in_tissue,
+            "entry_error_m": self._progress.entry_error,
+            "exit_error_m": self._progress.exit_error,
+            "protrusion_m": self._progress.protrusion,
+            "tissue_strain": self._progress.strain,
+            "needle_tip_pos": self._progress.tip_world.copy(),
+            "needle_in_tissue": self._progress.in_tissue,
             "needle_grasped": self._grasped,
             "perturbed": self.scenario.perturbed,
             "tip_velocity_nominal": np.asarray(v_nominal, dtype=np.float64).copy(),

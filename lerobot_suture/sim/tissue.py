@@ -4,7 +4,8 @@ Pure numpy. The phantom frame has its origin at the centre of the tissue pad's t
 surface normal, x the entry->exit direction. A needle moving only along its own arc (rotating about
 its centre and axis) slides through the holes it made; any other motion of the needle while in
 tissue (its centre moving, or turning about any other axis) cuts and stretches tissue. We measure
-that off-arc motion (metres of tissue displacement) and the env applies a viscous resistance to it.
+that off-arc motion (metres of tissue displacement) and resist it viscously
+(:func:`resistance_joint_forces`, which the env applies to the arm).
 """
 
 from __future__ import annotations
@@ -13,8 +14,14 @@ import math
 
 import numpy as np
 
+from lerobot_suture.sim.controller import point_velocity
+
 PAD_HALF_SIZE = np.array([0.03, 0.02, 0.005])
 """Half extents of the tissue pad (m), as ``tissue_pad`` in ``assets/scene.xml``; top at z = 0."""
+
+# Viscous resistance to off-arc motion of the needle (N per m/s, N m per rad/s).
+TISSUE_DAMPING = 2.0
+TISSUE_ROTATIONAL_DAMPING = 0.0001
 
 
 def inside_pad(points_phantom: np.ndarray) -> np.ndarray:
@@ -65,3 +72,40 @@ def off_arc_motion(
     norm = np.linalg.norm(axis)
     off_axis_fraction = math.hypot(axis[0], axis[1]) / norm if norm > 1e-12 else 1.0
     return translation, radius * angle * off_axis_fraction
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """Matrix of ``w -> cross(v, w)``."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def resistance_joint_forces(
+    centre: np.ndarray,
+    axis: np.ndarray,
+    point: np.ndarray,
+    v_point: np.ndarray,
+    angular: np.ndarray,
+    jac_linear: np.ndarray,
+    jac_angular: np.ndarray,
+) -> np.ndarray:
+    """Generalized joint forces resisting the off-arc motion of a needle in tissue (world frame).
+
+    Args:
+        centre: (3,) needle centre (m), where the resisting force acts.
+        axis: (3,) unit needle axis; turning about it slides the needle along its own arc, unresisted.
+        point: (3,) point where the Jacobians were taken (the needle tip, m).
+        v_point: (3,) commanded velocity of ``point`` (m/s).
+        angular: (3,) commanded angular velocity (rad/s).
+        jac_linear: (3, J) linear Jacobian of the J joints at ``point``.
+        jac_angular: (3, J) angular Jacobian of the J joints.
+
+    Returns:
+        (J,) joint forces (N or N m).
+    """
+    v_centre = point_velocity(v_point, angular, point, centre)
+    w_off = angular - (angular @ axis) * axis
+    force = -TISSUE_DAMPING * v_centre
+    torque = -TISSUE_ROTATIONAL_DAMPING * w_off
+    # The force acts at the needle centre: shift the linear Jacobian from the control point.
+    jac_centre = jac_linear - _skew(centre - point) @ jac_angular
+    return jac_centre.T @ force + jac_angular.T @ torque
