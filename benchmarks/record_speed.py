@@ -44,7 +44,8 @@ def _quiet_tqdm() -> None:
 
 
 def _record(workdir: Path, name: str, episodes: int, video: bool, image_size: int) -> dict:
-    from lerobot_suture.datasets.record import RecordConfig, record
+    from lerobot_suture.datasets.record import record
+    from lerobot_suture.datasets.record_config import RecordConfig
 
     root = workdir / name
     cfg = RecordConfig(
@@ -68,7 +69,7 @@ def _record(workdir: Path, name: str, episodes: int, video: bool, image_size: in
 
 def _rollout_only(episodes: int, image_size: int) -> dict:
     """Env + expert alone (no dataset), to show where the time goes."""
-    from lerobot_suture.datasets.record import make_env, rollout_expert
+    from lerobot_suture.datasets.episode import make_env, rollout_expert
     from lerobot_suture.expert import ScriptedExpert
 
     env, expert = make_env("pixels_agent_pos", image_size, "nominal"), ScriptedExpert()

@@ -99,7 +99,8 @@ def save_strip(frames: list[np.ndarray], path: Path) -> None:
 
 def record_demo_dataset(cfg: DemoConfig) -> dict:
     """Record (or finish recording) the demo's expert dataset; a rerun adds nothing."""
-    from lerobot_suture.datasets.record import RecordConfig, record
+    from lerobot_suture.datasets.record import record
+    from lerobot_suture.datasets.record_config import RecordConfig
 
     root = cfg.output_dir / "dataset"
     result = record(

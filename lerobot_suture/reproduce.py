@@ -94,7 +94,8 @@ class _Timings:
 
 
 def record_stage(cfg: ReproduceConfig) -> Path:
-    from lerobot_suture.datasets.record import parse_config, record
+    from lerobot_suture.datasets.record import record
+    from lerobot_suture.datasets.record_config import parse_config
 
     root = cfg.output_dir / "data"
     args = [f"--config_path={DATASET_RECIPE}", f"--root={root}", f"--resume={str(root.exists()).lower()}"]

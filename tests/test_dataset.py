@@ -21,17 +21,16 @@ import pytest
 import torch
 
 from lerobot_suture.datasets import metadata
-from lerobot_suture.datasets.record import (
+from lerobot_suture.datasets.features import (
     ACTION_KEY,
     ENV_STATE_KEY,
     IMAGE_KEY,
     NEEDLE_KEYPOINTS_KEY,
     STATE_KEY,
     TASK,
-    RecordConfig,
-    record,
-    regenerate_episode,
 )
+from lerobot_suture.datasets.record import record, regenerate_episode
+from lerobot_suture.datasets.record_config import RecordConfig
 from lerobot_suture.datasets.split import (
     episode_seeds,
     split_episodes,

@@ -5,7 +5,8 @@ from __future__ import annotations
 import pytest
 
 from lerobot_suture.datasets.card import render_description
-from lerobot_suture.datasets.record import RecordConfig, record
+from lerobot_suture.datasets.record import record
+from lerobot_suture.datasets.record_config import RecordConfig
 
 
 @pytest.fixture(scope="module")

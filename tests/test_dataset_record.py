@@ -16,21 +16,12 @@ import numpy as np
 import pytest
 
 from lerobot_suture.datasets import metadata
-from lerobot_suture.datasets.record import (
-    ACTION_KEY,
-    DONE_KEY,
-    MAX_STEPS_AFTER_SUCCESS,
-    SUCCESS_KEY,
-    RecordConfig,
-    RecordingInterrupted,
-    expert_config,
-    main,
-    make_env,
-    record,
-    regenerate_episode,
-    rollout_expert,
-)
+from lerobot_suture.datasets.episode import make_env, rollout_expert
+from lerobot_suture.datasets.features import ACTION_KEY, DONE_KEY, SUCCESS_KEY
+from lerobot_suture.datasets.record import main, record, regenerate_episode
+from lerobot_suture.datasets.record_config import MAX_STEPS_AFTER_SUCCESS, RecordConfig, expert_config
 from lerobot_suture.datasets.split import episode_seeds
+from lerobot_suture.datasets.stop_signals import RecordingInterrupted
 from lerobot_suture.datasets.video import resolve_video_backend
 from lerobot_suture.expert import ScriptedExpert
 
@@ -111,7 +102,7 @@ def test_bad_flags_name_the_field(flag, match, tmp_path):
 
 @pytest.mark.parametrize("recipe, episodes", [("suture_expert.yaml", 133), ("suture_demo.yaml", 12)])
 def test_dataset_recipes_parse(recipe, episodes):
-    from lerobot_suture.datasets.record import parse_config
+    from lerobot_suture.datasets.record_config import parse_config
 
     path = Path(__file__).parents[1] / "datasets" / recipe
     cfg = parse_config([f"--config_path={path}", f"--repo_id={REPO_ID}", "--seed=3"])
@@ -120,7 +111,7 @@ def test_dataset_recipes_parse(recipe, episodes):
 
 
 def test_the_grasp_blind_expert_plans_with_the_nominal_grasp(tmp_path):
-    from lerobot_suture.datasets.record import expert_config
+    from lerobot_suture.datasets.record_config import expert_config
 
     assert not expert_config(0).assume_nominal_grasp
     blind = expert_config(3, grasp_blind_expert=True)

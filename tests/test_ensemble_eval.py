@@ -34,7 +34,8 @@ from lerobot.utils.import_utils import register_third_party_plugins
 from lerobot_policy_ensemble_diffusion import EnsembleDiffusionPolicy
 from lerobot_policy_ensemble_diffusion.testing import tiny_policy_cli_args
 
-from lerobot_suture.datasets.record import RecordConfig, record
+from lerobot_suture.datasets.record import record
+from lerobot_suture.datasets.record_config import RecordConfig
 from lerobot_suture.datasets.video import resolve_video_backend
 from lerobot_suture.expert import ScriptedExpert
 from lerobot_suture.rollout_expert import iter_expert_steps

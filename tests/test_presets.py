@@ -95,7 +95,7 @@ def test_reference_calibration_config_is_the_reference_calibration():
 
 
 def test_reference_dataset_recipe_parses_as_record_parses_it():
-    from lerobot_suture.datasets.record import parse_config
+    from lerobot_suture.datasets.record_config import parse_config
 
     reference = parse_config([f"--config_path={DATASETS / 'suture_expert_servo.yaml'}"])
     paper = parse_config([f"--config_path={DATASETS / 'suture_expert.yaml'}", "--repo_id=local/x"])

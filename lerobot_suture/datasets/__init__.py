@@ -1,7 +1,10 @@
 """Expert needle-insertion datasets in LeRobot's format: record, split, inspect, push.
 
-- :mod:`~lerobot_suture.datasets.record`: ``lerobot-suture record`` (``RecordConfig``, ``record``,
-  ``regenerate_episode``).
+- :mod:`~lerobot_suture.datasets.record`: ``lerobot-suture record`` (``record``, ``regenerate_episode``);
+  its flags in :mod:`~lerobot_suture.datasets.record_config` (``RecordConfig``), the frames' layout in
+  :mod:`~lerobot_suture.datasets.features`, one expert episode in :mod:`~lerobot_suture.datasets.episode`,
+  starting or resuming a root in :mod:`~lerobot_suture.datasets.resume`, Ctrl-C and kill in
+  :mod:`~lerobot_suture.datasets.stop_signals`.
 - :mod:`~lerobot_suture.datasets.split`: the train/validation split and the episodes' seeds
   (``train_episodes``, ``validation_episodes``, ``validation_seeds``); no LeRobot import.
 - :mod:`~lerobot_suture.datasets.card`: the dataset card from ``datasets/card_template.md``.

@@ -25,6 +25,34 @@ _RETRY = (
 )
 
 
+def validate_repo_id(repo_id: str) -> None:
+    """Check ``repo_id`` is ``USER/NAME`` as the Hugging Face Hub accepts it; no network.
+
+    Raises:
+        ValueError: naming what is wrong and the form expected.
+    """
+    if not repo_id:
+        raise ValueError(
+            "`repo_id` is required: pass --repo_id=USER/NAME (your Hugging Face user or organisation and "
+            "a dataset name, e.g. --repo_id=alice/suture_expert)."
+        )
+    parts = repo_id.split("/")
+    if len(parts) != 2 or not all(parts):
+        raise ValueError(
+            f"`repo_id` must be USER/NAME with exactly one '/', e.g. alice/suture_expert. Got {repo_id!r}."
+        )
+    from huggingface_hub.utils import HFValidationError
+    from huggingface_hub.utils import validate_repo_id as hf_validate
+
+    try:
+        hf_validate(repo_id)
+    except HFValidationError as exc:
+        raise ValueError(
+            f"`repo_id` {repo_id!r} is not a valid Hugging Face repo id: use letters, digits, '-', '_' "
+            f"and '.', at most 96 characters, no '--' or '..'. ({exc})"
+        ) from exc
+
+
 class HubPushError(RuntimeError):
     """The dataset cannot be pushed to the Hub (no token, no network, no permission, upload failed)."""
 
@@ -98,7 +126,6 @@ def push_dataset(repo_id: str, root: str | Path, private: bool = False) -> str:
         RuntimeError: the dataset's recording is unfinished (resume it first).
     """
     from lerobot_suture.datasets.card import LICENSE, TAGS, card_kwargs
-    from lerobot_suture.datasets.record import validate_repo_id
     from lerobot_suture.datasets.video import resolve_video_backend
 
     validate_repo_id(repo_id)
@@ -145,8 +172,6 @@ class PushConfig:
     private: bool = False  # create the Hub repository as private
 
     def __post_init__(self):
-        from lerobot_suture.datasets.record import validate_repo_id
-
         validate_repo_id(self.repo_id)
 
 
@@ -159,7 +184,9 @@ def main(argv: list[str] | None = None) -> None:
     from lerobot_suture.cli import flag_error
 
     try:
-        cfg = draccus.parse(config_class=PushConfig, args=argv, prog="lerobot-suture push", exit_on_error=False)
+        cfg = draccus.parse(
+            config_class=PushConfig, args=argv, prog="lerobot-suture push", exit_on_error=False
+        )
     except (draccus.utils.DraccusException, argparse.ArgumentError) as exc:
         print(f"lerobot-suture push: error: {flag_error(exc)}", file=sys.stderr)
         raise SystemExit(2) from None

@@ -1,0 +1,137 @@
+"""One expert episode for the dataset: the scripted expert rolled out from a seed, its frames in the
+dataset's layout, and whether it is kept (a success that holds through the steps recorded after it) or
+discarded, and why."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import gymnasium as gym
+import numpy as np
+
+from lerobot_suture.datasets.features import (
+    ACTION_KEY,
+    DONE_KEY,
+    ENV_STATE_KEY,
+    IMAGE_KEY,
+    NEEDLE_KEYPOINTS_KEY,
+    REWARD_KEY,
+    STATE_KEY,
+    SUCCESS_KEY,
+    TASK,
+)
+from lerobot_suture.registration import ENV_ID
+from lerobot_suture.rollout_expert import iter_expert_steps
+from lerobot_suture.sim import task
+
+
+@dataclass
+class ExpertRollout:
+    """One expert episode as dataset frames, with its outcome."""
+
+    seed: int
+    frames: list[dict]
+    success: bool
+    info: dict
+    reason: str | None = None
+    """Why the episode failed (a short category), None on success."""
+    detail: str | None = None
+
+    @property
+    def length(self) -> int:
+        return len(self.frames)
+
+
+def _failure_reason(info: dict, steps: int) -> tuple[str, str]:
+    """(category, detail) of a failed insertion, from the env's final ``info``."""
+    entry, exit_ = info["entry_error_m"], info["exit_error_m"]
+    if not info["needle_grasped"]:
+        return "needle dropped", f"the jaw lost the needle; episode ended after {steps} steps"
+    crossings = (
+        ("entry", entry, task.ENTRY_TOLERANCE, "needle never entered the tissue"),
+        ("exit", exit_, task.EXIT_TOLERANCE, "needle did not emerge"),
+    )
+    for name, error, tolerance, missing in crossings:
+        if not math.isfinite(error):
+            return missing, f"no {name} within {steps} steps"
+        if error > tolerance:
+            return (
+                f"{name} error above tolerance",
+                f"{name} error {error * 1e3:.2f} mm > {tolerance * 1e3} mm",
+            )
+    return "time limit", f"not done within {steps} steps (protrusion {info['protrusion_m'] * 1e3:.2f} mm)"
+
+
+def make_env(obs_type: str, image_size: int, scenario: str, grasp: str = "narrow"):
+    """The env the dataset is recorded in (``gym.make`` of :data:`~lerobot_suture.ENV_ID`)."""
+    return gym.make(
+        ENV_ID,
+        obs_type=obs_type,
+        image_size=image_size,
+        scenario=scenario,
+        grasp=grasp,
+        disable_env_checker=True,
+    )
+
+
+def rollout_expert(
+    env,
+    expert,
+    seed: int,
+    on_step: Callable[[], None] | None = None,
+    steps_after_success: int = 0,
+) -> ExpertRollout:
+    """Run the expert for one episode from ``env.reset(seed=seed)``; frames in dataset layout.
+
+    Args:
+        env: the (wrapped) env from :func:`make_env`.
+        expert: a :class:`~lerobot_suture.expert.ScriptedExpert`.
+        seed: env seed.
+        on_step: called after every control step (progress).
+        steps_after_success: control steps recorded after the insertion succeeds; the episode counts as a
+            success only if all of them are recorded and the insertion holds through every one.
+    """
+    obs, info = env.reset(seed=seed)
+    frames = []
+    # The needle's place in the image is recorded with the image (a target for the image encoders).
+    keypoints = "pixels" in obs
+    for step in iter_expert_steps(env, expert, obs, steps_after_success, needle_keypoints=keypoints):
+        frame = {
+            STATE_KEY: step.obs["agent_pos"],
+            ACTION_KEY: np.asarray(step.action, dtype=np.float32),
+            REWARD_KEY: np.array([step.reward], dtype=np.float32),
+            SUCCESS_KEY: np.array([bool(step.info["is_success"])]),
+            DONE_KEY: np.array([step.done]),
+            "task": TASK,
+        }
+        if "pixels" in step.obs:
+            frame[IMAGE_KEY] = step.obs["pixels"]["endoscope"]
+            frame[NEEDLE_KEYPOINTS_KEY] = step.needle_keypoints
+        if "environment_state" in step.obs:
+            frame[ENV_STATE_KEY] = step.obs["environment_state"]
+        frames.append(frame)
+        info = step.info
+        if on_step is not None:
+            on_step()
+    rollout = ExpertRollout(seed=seed, frames=frames, success=False, info=info)
+    succeeded = [bool(f[SUCCESS_KEY][0]) for f in frames]
+    if True not in succeeded:
+        rollout.reason, rollout.detail = _failure_reason(info, len(frames))
+        return rollout
+    first = succeeded.index(True)
+    after = len(frames) - 1 - first
+    if not all(succeeded[first:]):
+        lost = first + succeeded[first:].index(False)
+        rollout.reason = "success lost while driving on"
+        rollout.detail = (
+            f"succeeded at step {first + 1}, lost it at step {lost + 1} of the {steps_after_success} steps "
+            "after success; record with a smaller --steps_after_success"
+        )
+    elif after < steps_after_success:
+        rollout.reason = "time limit after success"
+        rollout.detail = f"{after} of the {steps_after_success} steps after success fit in the time limit"
+    else:
+        rollout.success = True
+    return rollout

@@ -1,0 +1,60 @@
+"""The recorded dataset's layout: LeRobot feature keys, shapes and names, its fps and its task string.
+
+``record``'s module docstring has the table of features; ``dataset_features`` is what
+``LeRobotDataset.create`` receives.
+"""
+
+from __future__ import annotations
+
+from lerobot_suture.sim import task
+
+TASK = task.TASK
+"""The task string of every frame (LeRobot's ``task``)."""
+ROBOT_TYPE = "psm"
+FPS = round(1.0 / task.CONTROL_DT)
+"""Dataset fps: the env's control rate (10 Hz)."""
+
+IMAGE_KEY = "observation.images.endoscope"
+STATE_KEY = "observation.state"
+ENV_STATE_KEY = "observation.environment_state"
+NEEDLE_KEYPOINTS_KEY = "observation.needle_keypoints"
+ACTION_KEY = "action"
+REWARD_KEY = "next.reward"
+SUCCESS_KEY = "next.success"
+DONE_KEY = "next.done"
+
+POSE_NAMES = ["x", "y", "z", "r11", "r21", "r31", "r12", "r22", "r32", "jaw"]
+"""Jaw-tip pose: position (m), first two columns of the rotation matrix, jaw closure (1 = closed)."""
+ENV_STATE_NAMES = (
+    [f"entry_{a}" for a in "xyz"]
+    + [f"exit_{a}" for a in "xyz"]
+    + [f"needle_centre_{a}" for a in "xyz"]
+    + ["needle_r11", "needle_r21", "needle_r31", "needle_r12", "needle_r22", "needle_r32"]
+    + [f"needle_tip_{a}" for a in "xyz"]
+)
+NEEDLE_KEYPOINT_NAMES = [f"{point}_{axis}" for point in ("tip", "middle", "tail") for axis in "xy"]
+"""The needle in the endoscope image: normalized x (right) and y (down) of its tip, middle and tail."""
+
+
+def dataset_features(obs_type: str, image_size: int, video: bool) -> dict[str, dict]:
+    """LeRobot feature specification of the dataset (``LeRobotDataset.create(features=...)``)."""
+    features: dict[str, dict] = {}
+    if "pixels" in obs_type:
+        features[IMAGE_KEY] = {
+            "dtype": "video" if video else "image",
+            "shape": (image_size, image_size, 3),
+            "names": ["height", "width", "channels"],
+        }
+        features[NEEDLE_KEYPOINTS_KEY] = {
+            "dtype": "float32",
+            "shape": (len(NEEDLE_KEYPOINT_NAMES),),
+            "names": NEEDLE_KEYPOINT_NAMES,
+        }
+    features[STATE_KEY] = {"dtype": "float32", "shape": (10,), "names": list(POSE_NAMES)}
+    if obs_type in ("state", "pixels_agent_pos_state"):
+        features[ENV_STATE_KEY] = {"dtype": "float32", "shape": (18,), "names": list(ENV_STATE_NAMES)}
+    features[ACTION_KEY] = {"dtype": "float32", "shape": (10,), "names": list(POSE_NAMES)}
+    features[REWARD_KEY] = {"dtype": "float32", "shape": (1,), "names": None}
+    features[SUCCESS_KEY] = {"dtype": "bool", "shape": (1,), "names": None}
+    features[DONE_KEY] = {"dtype": "bool", "shape": (1,), "names": None}
+    return features

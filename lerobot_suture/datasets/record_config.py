@@ -1,0 +1,159 @@
+"""Flags of ``lerobot-suture record``: :class:`RecordConfig` (validated at construction), the recording
+expert they describe, and their parsing as LeRobot's scripts parse theirs (draccus)."""
+
+from __future__ import annotations
+
+import dataclasses
+import shlex
+from dataclasses import dataclass
+from pathlib import Path
+
+from lerobot_suture.datasets.hub import validate_repo_id
+from lerobot_suture.datasets.split import split_episodes
+from lerobot_suture.expert import ExpertConfig
+from lerobot_suture.sim import suture_env, task
+from lerobot_suture.sim.scenarios import SCENARIOS
+
+COMMAND = "lerobot-suture record"
+MAX_STEPS_AFTER_SUCCESS = 10
+"""Most control steps ``--steps_after_success`` records past success: 6 mm more of the 31 mm needle
+through the tissue (the expert's nominal insertions of seeds 0-39 all stay successful through 10; an
+episode whose success lapses is discarded)."""
+
+
+@dataclass
+class RecordConfig:
+    """Flags of ``lerobot-suture record`` (draccus: ``--field=value``, or ``--config_path=FILE.yaml``).
+
+    Args:
+        repo_id: ``USER/NAME`` of the dataset on the Hugging Face Hub (also its local name).
+        root: directory the dataset is written to; None: ``$HF_LEROBOT_HOME/<repo_id>`` (LeRobot's home,
+            ``~/.cache/huggingface/lerobot``). It must not exist unless ``resume`` is true.
+        num_episodes: successful episodes the dataset holds when done (the paper: 100 train + 33 val).
+        val_fraction: fraction of episodes held out for validation, in [0, 1): the last
+            ``ceil(num_episodes * val_fraction)`` episodes, LeRobot's ``--dataset.eval_split`` rule. It must
+            leave a training episode (0 for a single episode).
+        obs_type: ``pixels_agent_pos`` (endoscope + state, the paper's), ``pixels_agent_pos_state`` (adds
+            the privileged 18-dim ``observation.environment_state``) or ``state`` (no image).
+        image_size: endoscope image side (px), in [16, 640].
+        scenario: perturbation scenario (``lerobot_suture.sim.scenarios.SCENARIOS``); the expert fails
+            under some of them and those episodes are discarded.
+        seed: env seed of the first attempt; attempt ``k`` uses ``seed + k``.
+        grasp: the grasp's randomization (``task.GRASP_RANGES``): ``narrow``, that of every scene a
+            policy is tested in, or ``wide``, which contains it and makes the needle's pose in the jaw
+            change the expert's action enough that a policy must read it from the image.
+        grasp_blind_expert: the expert plans with the nominal grasp instead of the true one, as a policy
+            that does not read the needle must (``ExpertConfig.assume_nominal_grasp``). Its motion then
+            does not depend on the grasp, so where the needle is in the image cannot be told from the
+            jaw and the phantom: only from the needle (the target of ``needle_keypoints_weight``).
+        steps_after_success: control steps recorded after the insertion succeeds, the expert driving on
+            (its planned protrusion raised by the arc it turns in them, :func:`expert_config`). A policy's
+            episode ends when the throw is over, so the action chunks it predicts there then reach into
+            demonstrated motion instead of the padded stop at a demonstration's last frame. 0: episodes
+            end at success (the paper's demonstrations).
+        video: store images as MP4 video (true) or as PNG frames in the parquet files (false).
+        checkpoint_every: episodes between durable checkpoints (finalize + resume): a SIGKILL loses
+            at most this many; each checkpoint starts new data/video files. >= 1.
+        resume: continue the dataset at ``root`` up to ``num_episodes`` (after rolling back any
+            episodes a killed run left unfinished).
+        push_to_hub: push the dataset to ``repo_id`` when done (needs a token: `hf auth login`). The
+            token and the Hub are checked before recording starts.
+        private: create the Hub repository as private (true) or public (false).
+    """
+
+    # Dataset.
+    repo_id: str = ""  # USER/NAME on the Hugging Face Hub (required)
+    root: str | None = None  # dataset directory (default: $HF_LEROBOT_HOME/<repo_id>)
+    num_episodes: int = 133  # successful episodes in the finished dataset
+    val_fraction: float = 0.25  # held-out validation fraction: the last ceil(n * f) episodes
+    # Environment.
+    obs_type: str = "pixels_agent_pos"  # pixels_agent_pos | pixels_agent_pos_state | state
+    image_size: int = 96  # endoscope image side (px)
+    scenario: str = "nominal"  # perturbation scenario the expert is recorded in
+    grasp: str = "narrow"  # grasp randomization: narrow (the test scenes) | wide
+    grasp_blind_expert: bool = False  # the expert plans with the nominal grasp, not the true one
+    seed: int = 0  # env seed of the first attempt; attempt k uses seed + k
+    steps_after_success: int = 0  # control steps recorded past success, the expert driving on
+    # Storage.
+    video: bool = True  # images as MP4 video (true) or PNG frames (false)
+    checkpoint_every: int = 10  # episodes between durable checkpoints (what a SIGKILL can lose)
+    # Resume and publish.
+    resume: bool = False  # continue the dataset at --root up to --num_episodes
+    push_to_hub: bool = False  # push to the Hub when done (token checked first)
+    private: bool = False  # create the Hub repository as private
+
+    def __post_init__(self):
+        validate_repo_id(self.repo_id)
+        if self.num_episodes < 1:
+            raise ValueError(f"`num_episodes` must be >= 1. Got {self.num_episodes}.")
+        if not (0.0 <= self.val_fraction < 1.0):
+            raise ValueError(f"`val_fraction` must be in [0, 1). Got {self.val_fraction}.")
+        split_episodes(self.num_episodes, self.val_fraction)  # the finished dataset has a training episode
+        if self.obs_type not in suture_env.OBS_TYPES:
+            raise ValueError(f"`obs_type` must be one of {suture_env.OBS_TYPES}. Got {self.obs_type!r}.")
+        if not 16 <= self.image_size <= 640:
+            raise ValueError(f"`image_size` must be in [16, 640] px. Got {self.image_size}.")
+        if self.scenario not in SCENARIOS:
+            raise ValueError(f"`scenario` must be one of {SCENARIOS}. Got {self.scenario!r}.")
+        if self.grasp not in task.GRASP_RANGES:
+            raise ValueError(f"`grasp` must be one of {list(task.GRASP_RANGES)}. Got {self.grasp!r}.")
+        if not 0 <= self.seed < 2**32 - 1_000_000:
+            raise ValueError(f"`seed` must be in [0, 2**32 - 1e6). Got {self.seed}.")
+        if self.checkpoint_every < 1:
+            raise ValueError(f"`checkpoint_every` must be >= 1. Got {self.checkpoint_every}.")
+        if not 0 <= self.steps_after_success <= MAX_STEPS_AFTER_SUCCESS:
+            raise ValueError(
+                f"`steps_after_success` must be in [0, {MAX_STEPS_AFTER_SUCCESS}] control steps (the needle "
+                f"is a semicircle; driving on further pushes the jaw into the tissue). Got "
+                f"{self.steps_after_success}."
+            )
+
+    @property
+    def has_images(self) -> bool:
+        return "pixels" in self.obs_type
+
+    def dataset_root(self) -> Path:
+        """``root``, or LeRobot's default ``$HF_LEROBOT_HOME/<repo_id>``."""
+        if self.root is not None:
+            return Path(self.root).expanduser()
+        from lerobot.utils.constants import HF_LEROBOT_HOME
+
+        return Path(HF_LEROBOT_HOME) / self.repo_id
+
+    def command(self) -> str:
+        """The command that records this dataset from scratch (every flag spelled out)."""
+        flags = [f"--repo_id={self.repo_id}"]
+        if self.root is not None:
+            flags.append(f"--root={self.root}")
+        for name in ("num_episodes", "val_fraction", "obs_type", "image_size", "scenario", "seed", "video"):
+            value = getattr(self, name)
+            flags.append(f"--{name}={str(value).lower() if isinstance(value, bool) else value}")
+        if self.grasp != "narrow":
+            flags.append(f"--grasp={self.grasp}")
+        if self.grasp_blind_expert:
+            flags.append("--grasp_blind_expert=true")
+        if self.steps_after_success:
+            flags.append(f"--steps_after_success={self.steps_after_success}")
+        if self.checkpoint_every != 10:
+            flags.append(f"--checkpoint_every={self.checkpoint_every}")
+        return " ".join([COMMAND, *(shlex.quote(f) for f in flags)])
+
+
+def expert_config(steps_after_success: int, grasp_blind_expert: bool = False) -> ExpertConfig:
+    """The recording expert: the default one, driving on through ``steps_after_success`` control steps
+    past its usual protrusion (at ``drive_rate``), so it still turns the needle in them; with
+    ``grasp_blind_expert`` it plans with the nominal grasp instead of the true one."""
+    default = ExpertConfig()
+    extra = steps_after_success * default.drive_rate * task.CONTROL_DT  # rad of arc
+    return dataclasses.replace(
+        default,
+        protrusion_angle=default.protrusion_angle + extra,
+        assume_nominal_grasp=grasp_blind_expert,
+    )
+
+
+def parse_config(argv: list[str] | None = None) -> RecordConfig:
+    """Parse ``lerobot-suture record`` flags as LeRobot's scripts do (draccus, ``--config_path`` files)."""
+    import draccus
+
+    return draccus.parse(config_class=RecordConfig, args=argv, prog=COMMAND, exit_on_error=False)

@@ -1,0 +1,141 @@
+"""Where a recording starts: a new episode log for an empty root, or, with ``--resume=true``, the dataset
+a stopped run left there, rolled back to its last checkpoint and checked against the flags."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import shutil
+from pathlib import Path
+
+from lerobot_suture.datasets import metadata
+from lerobot_suture.datasets.features import FPS, TASK
+from lerobot_suture.datasets.record_config import COMMAND, RecordConfig, expert_config
+from lerobot_suture.registration import ENV_ID, MAX_EPISODE_STEPS
+
+# What a recording reports goes to one logger, the recorder's.
+logger = logging.getLogger("lerobot_suture.datasets.record")
+
+
+def _versions() -> dict[str, str]:
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {}
+    for dist in ("lerobot_suture", "lerobot", "mujoco", "gymnasium"):
+        try:
+            out[dist] = version(dist)
+        except PackageNotFoundError:
+            out[dist] = "unknown"
+    return out
+
+
+def new_episode_log(cfg: RecordConfig) -> dict:
+    return {
+        "format_version": metadata.FORMAT_VERSION,
+        "repo_id": cfg.repo_id,
+        "task": TASK,
+        "fps": FPS,
+        "gym_id": ENV_ID,
+        "max_episode_steps": MAX_EPISODE_STEPS,
+        "env_kwargs": {
+            "obs_type": cfg.obs_type,
+            "image_size": cfg.image_size,
+            "scenario": cfg.scenario,
+            "grasp": cfg.grasp,
+        },
+        "expert": {
+            "class": "lerobot_suture.expert.ScriptedExpert",
+            "config": dataclasses.asdict(expert_config(cfg.steps_after_success, cfg.grasp_blind_expert)),
+        },
+        "steps_after_success": cfg.steps_after_success,
+        "seed": cfg.seed,
+        "next_seed": cfg.seed,
+        "video": cfg.video,
+        "val_fraction": cfg.val_fraction,
+        "command": cfg.command(),
+        "splits": {"train": [], "val": []},
+        "episodes": [],
+        "discarded": [],
+        "runs": [],
+        "versions": _versions(),
+    }
+
+
+_RESUME_FIELDS = ("obs_type", "image_size", "scenario", "grasp")
+
+
+def _check_resumable(cfg: RecordConfig, log: dict, root: Path) -> None:
+    recorded = {
+        "grasp": "narrow",  # absent in logs before it existed
+        **log["env_kwargs"],
+        "video": log["video"],
+        "seed": log["seed"],
+        "steps_after_success": log.get("steps_after_success", 0),  # absent in logs before it existed
+        "grasp_blind_expert": log["expert"]["config"].get("assume_nominal_grasp", False),
+    }
+    for name in (*_RESUME_FIELDS, "video", "seed", "steps_after_success", "grasp_blind_expert"):
+        if getattr(cfg, name) != recorded[name]:
+            value = str(recorded[name]).lower() if isinstance(recorded[name], bool) else recorded[name]
+            raise ValueError(
+                f"`{name}` differs from the dataset at {root}: it was recorded with --{name}={value}, got "
+                f"--{name}={getattr(cfg, name)}. Resume with --{name}={value}, or record a new dataset "
+                "with another --root."
+            )
+    if log["repo_id"] != cfg.repo_id:
+        logger.warning("Dataset at %s was recorded as %s; it is now %s.", root, log["repo_id"], cfg.repo_id)
+        log["repo_id"] = cfg.repo_id
+
+
+def prepare_root(cfg: RecordConfig, root: Path) -> tuple[dict, bool]:
+    """Check ``root`` against ``--resume``; roll back a killed run. Returns (episode log, fresh)."""
+    exists = root.exists() and (not root.is_dir() or any(root.iterdir()))
+    if not cfg.resume:
+        if exists:
+            raise FileExistsError(
+                f"The dataset root {root} already exists. Pass --resume=true to continue recording into it "
+                f"(up to --num_episodes), or choose another --root (or delete {root})."
+            )
+        if root.exists():
+            root.rmdir()  # an empty directory: LeRobot wants to create it
+        return new_episode_log(cfg), True
+    if not exists:
+        raise FileNotFoundError(
+            f"--resume=true but there is no dataset at {root} to resume. Pass the --root (and --repo_id) "
+            "of the dataset to continue, or drop --resume to record a new one there."
+        )
+    checkpoint = metadata.read_checkpoint(root)
+    if checkpoint is not None:
+        if metadata.checkpoint_owner_alive(checkpoint):
+            raise RuntimeError(
+                f"Another recording (pid {checkpoint['pid']}) is writing to {root}. Wait for it to finish "
+                "or stop it (Ctrl-C / kill keeps its finished episodes), then resume."
+            )
+        log = checkpoint["episode_log"]
+        removed = metadata.roll_back_to_checkpoint(root, checkpoint)
+        logger.warning(
+            "The last recording into %s stopped without finishing (killed?): rolled back to its last "
+            "checkpoint, %d episodes (%d unfinished files removed).",
+            root,
+            len(log["episodes"]),
+            len(removed),
+        )
+    else:
+        try:
+            log = metadata.read_episode_log(root)
+        except FileNotFoundError as exc:
+            raise FileNotFoundError(
+                f"Cannot resume {root}: it has no {metadata.EPISODE_LOG_PATH}, so it was not recorded by "
+                f"`{COMMAND}`. Record a new dataset with another --root."
+            ) from exc
+        info = metadata.read_json(root / metadata.INFO_PATH)
+        if info["total_episodes"] != len(log["episodes"]):
+            raise RuntimeError(
+                f"The dataset at {root} is inconsistent: meta/info.json counts {info['total_episodes']} "
+                f"episodes, {metadata.EPISODE_LOG_PATH} {len(log['episodes'])}. It was changed outside "
+                f"`{COMMAND}`; record a new dataset with another --root."
+            )
+    _check_resumable(cfg, log, root)
+    if not log["episodes"]:
+        shutil.rmtree(root)  # nothing kept: start afresh (the same seeds give the same episodes)
+        return new_episode_log(cfg), True
+    return log, False
