@@ -75,7 +75,7 @@ def make_encoder(blocks: int) -> tuple[torch.nn.Module, int]:
     from lerobot.configs import FeatureType, PolicyFeature
     from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
     from lerobot.policies.diffusion.modeling_diffusion import DiffusionRgbEncoder
-    from lerobot_policy_ensemble_diffusion.modeling_ensemble_diffusion import cut_image_backbone
+    from lerobot_policy_ensemble_diffusion.members import cut_image_backbone
 
     config = DiffusionConfig(
         input_features={

@@ -8,7 +8,7 @@ import torch
 from lerobot.utils.constants import ACTION, OBS_IMAGES, OBS_STATE
 from lerobot_policy_ensemble_diffusion import EnsembleDiffusionPolicy
 from lerobot_policy_ensemble_diffusion.batched_members import FusedDiffusionEnsemble
-from lerobot_policy_ensemble_diffusion.modeling_ensemble_diffusion import action_affine_from_stats
+from lerobot_policy_ensemble_diffusion.normalization import action_affine_from_stats
 from lerobot_policy_ensemble_diffusion.testing import (
     SUTURE_DATASET_FEATURES,
     fake_dataset_stats,

@@ -24,7 +24,7 @@ from .configuration_ensemble_diffusion import EnsembleDiffusionConfig, EnsembleO
 
 _LAZY = {
     "EnsembleDiffusionPolicy": "modeling_ensemble_diffusion",
-    "EnsemblePrediction": "modeling_ensemble_diffusion",
+    "EnsemblePrediction": "prediction",
     "make_ensemble_diffusion_pre_post_processors": "processor_ensemble_diffusion",
     "assemble_members": "assemble",
     "export_member": "assemble",

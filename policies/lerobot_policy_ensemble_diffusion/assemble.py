@@ -37,8 +37,9 @@ from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
 from lerobot.utils.constants import POLICY_POSTPROCESSOR_DEFAULT_NAME, POLICY_PREPROCESSOR_DEFAULT_NAME
 from safetensors.torch import load_file, save_file
 
+from .compatibility import MEMBERS_PREFIX
 from .configuration_ensemble_diffusion import EnsembleDiffusionConfig
-from .modeling_ensemble_diffusion import MEMBERS_PREFIX, EnsembleDiffusionPolicy
+from .modeling_ensemble_diffusion import EnsembleDiffusionPolicy
 
 # Member settings that may differ between separately trained members: they do not change the trained
 # network or how it is run (training schedule, hub and device bookkeeping). Everything else must match.

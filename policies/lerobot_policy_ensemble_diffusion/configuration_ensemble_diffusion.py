@@ -50,7 +50,7 @@ class EnsembleOODConfig:
     """Options of the out-of-distribution gate that reads the ensemble's uncertainty score.
 
     The gate itself (calibration, likelihood-ratio test, release of control) lives in
-    `lerobot_suture/safety/ood.py`; this dataclass is where its options live so that they are saved in the
+    `lerobot_suture/safety/ood/`; this dataclass is where its options live so that they are saved in the
     policy's `config.json` and settable as `--policy.ood.<name>`.
 
     Args:

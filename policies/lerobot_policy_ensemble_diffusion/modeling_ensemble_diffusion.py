@@ -21,26 +21,18 @@ per-step covariance, whose largest absolute entry is the paper's uncertainty sco
 
 from __future__ import annotations
 
-import logging
 import math
-import re
 from collections import deque
-from collections.abc import Mapping
-from contextlib import contextmanager
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import numpy as np
 import torch
 from lerobot.configs import FeatureType, NormalizationMode
-from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy, SpatialSoftmax
 from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.policies.utils import populate_queues
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 from lerobot.utils.device_utils import resolve_safetensors_device
 from lerobot.utils.import_utils import require_package
-from safetensors import safe_open
 from safetensors.torch import load_model as load_model_as_safetensor
 from torch import Tensor, nn
 
@@ -49,133 +41,17 @@ from lerobot_suture.safety.ood.calibration_file import load_calibration
 from lerobot_suture.safety.ood.gate import OODGate
 
 from .batched_members import FusedDiffusionEnsemble
+from .compatibility import check_checkpoint_matches, check_features_match, check_observation
 from .configuration_ensemble_diffusion import NEEDLE_KEYPOINTS_KEY, SCORE_CHOICES, EnsembleDiffusionConfig
-from .ensemble_stats import EnsembleActionStats, compute_ensemble_stats, uncertainty_score
-from .prior import RandomPrior, UnetWithPrior, unet_global_cond_dim
+from .ensemble_stats import compute_ensemble_stats
+from .members import bootstrap_batch, captured_outputs, image_encoders, make_member
+from .needle_keypoints import estimate_needle_keypoints, make_needle_heads, needle_keypoint_error
+from .normalization import action_affine_from_stats, saved_normalizer_stats
+from .ood_gate import check_calibration_fits, gate_status, update_gates
+from .prediction import EnsemblePrediction, score_ensemble_stats
 
 if TYPE_CHECKING:
     from lerobot.datasets import LeRobotDatasetMetadata
-
-logger = logging.getLogger(__name__)
-
-MEMBERS_PREFIX = "members"
-_MEMBER_KEY = re.compile(rf"^{MEMBERS_PREFIX}\.(\d+)\.")
-
-
-@dataclass(frozen=True)
-class EnsemblePrediction:
-    """One ensemble prediction: statistics of every member's sampled chunks for one observation batch.
-
-    Attributes:
-        normalized: statistics in the policy's normalized action space (what the members predict).
-        unnormalized: the same in dataset units (the postprocessor's inverse normalization); None when
-            the policy holds no action statistics (built without `dataset_stats` and never trained/loaded).
-        score: (B,) the configured uncertainty score (sigma_hat by default), one per batch element.
-        score_name: the score's name (`config.uncertainty_score`).
-        score_space: "normalized" or "unnormalized".
-        score_source: "total", "epistemic" or "aleatoric".
-        action_steps: the slice of the T = horizon predicted steps that `select_action` executes.
-    """
-
-    normalized: EnsembleActionStats
-    unnormalized: EnsembleActionStats | None
-    score: Tensor
-    score_name: str
-    score_space: str
-    score_source: str
-    action_steps: slice
-
-
-def action_affine_from_stats(
-    stats: dict[str, dict], mode: NormalizationMode, eps: float = 1e-8, key: str = ACTION
-) -> tuple[Tensor, Tensor]:
-    """The map x_norm -> x = x_norm * scale + offset that inverts LeRobot's normalization of ``key``.
-
-    Mirrors `lerobot.processor.normalize_processor` (`_apply_transform(..., inverse=True)`), which is affine in
-    every mode.
-
-    Args:
-        stats: dataset statistics, {"action": {"mean"|"std"|"min"|"max"|"q01"|...: (A,)}}.
-        mode: the normalization mode of ``key``.
-        key: the feature (default the action; the OOD gate's hold action also needs the state's).
-    Returns:
-        scale: (A,), offset: (A,) float32.
-    """
-    if key not in stats:
-        raise ValueError(f"`dataset_stats` has no '{key}' entry. Got keys {sorted(stats)}.")
-    action_stats = {
-        k: torch.as_tensor(np.asarray(v.cpu() if isinstance(v, Tensor) else v), dtype=torch.float32)
-        for k, v in stats[key].items()
-    }
-
-    def need(*names: str) -> list[Tensor]:
-        missing = [n for n in names if n not in action_stats]
-        if missing:
-            raise ValueError(
-                f"{mode.value} normalization of '{key}' needs stats {missing}; got {sorted(action_stats)}."
-            )
-        return [action_stats[n] for n in names]
-
-    if mode == NormalizationMode.IDENTITY:
-        dim = next(iter(action_stats.values())).shape[-1]
-        return torch.ones(dim), torch.zeros(dim)
-    if mode == NormalizationMode.MEAN_STD:
-        mean, std = need("mean", "std")
-        return std.clone(), mean.clone()
-    low_high = {
-        NormalizationMode.MIN_MAX: ("min", "max"),
-        NormalizationMode.QUANTILES: ("q01", "q99"),
-        NormalizationMode.QUANTILE10: ("q10", "q90"),
-    }
-    if mode not in low_high:
-        raise ValueError(f"Unsupported normalization mode for '{key}': {mode}.")
-    low, high = need(*low_high[mode])
-    denom = high - low
-    denom = torch.where(denom == 0, torch.tensor(eps), denom)
-    return denom / 2, low + denom / 2
-
-
-def score_ensemble_stats(
-    normalized: EnsembleActionStats,
-    unnormalized: EnsembleActionStats | None,
-    action_steps: slice,
-    choice: Mapping[str, str],
-    *,
-    logdet_eps: float,
-) -> Tensor:
-    """(B,) the uncertainty score of one prediction's statistics under one choice of score.
-
-    Args:
-        normalized: the statistics in the normalized action space.
-        unnormalized: the same in dataset units; None when the policy holds no action statistics.
-        action_steps: the executed steps of the T predicted ones (used with `uncertainty_steps`="action").
-        choice: a value for each of `SCORE_CHOICES`' fields (`uncertainty_score`, `uncertainty_space`,
-            `uncertainty_source`, `uncertainty_steps`; see `EnsembleDiffusionConfig`).
-        logdet_eps: the config's `logdet_eps`.
-    """
-    if set(choice) != set(SCORE_CHOICES):
-        raise ValueError(f"A score choice names each of {list(SCORE_CHOICES)}. Got {sorted(choice)}.")
-    for name, allowed in SCORE_CHOICES.items():
-        if choice[name] not in allowed:
-            raise ValueError(f"`{name}` must be one of {list(allowed)}. Got {choice[name]!r}.")
-    scored = normalized
-    if choice["uncertainty_space"] == "unnormalized":
-        if unnormalized is None:
-            raise ValueError(
-                "`uncertainty_space`='unnormalized' needs the action statistics, which this policy does not "
-                "hold: build it with `dataset_stats` (lerobot-train does) or load a trained checkpoint."
-            )
-        scored = unnormalized
-    if choice["uncertainty_steps"] == "action":
-        scored = scored.select_steps(action_steps)
-    source = choice["uncertainty_source"]
-    if source == "aleatoric" and scored.aleatoric is None:
-        raise ValueError(
-            "`uncertainty_source`='aleatoric' needs `uncertainty_samples_per_member` >= 2 (the members' own "
-            "covariances need two samples each)."
-        )
-    cov = {"total": scored.covariance, "epistemic": scored.epistemic, "aleatoric": scored.aleatoric}[source]
-    return uncertainty_score(cov, choice["uncertainty_score"], logdet_eps=logdet_eps)
 
 
 class EnsembleDiffusionPolicy(PreTrainedPolicy):
@@ -214,21 +90,14 @@ class EnsembleDiffusionPolicy(PreTrainedPolicy):
         members = []
         for i in range(config.n_members):
             if config.member_seeds is None:
-                members.append(_make_member(config))
+                members.append(make_member(config))
             else:
                 with torch.random.fork_rng(devices=[]):
                     torch.manual_seed(config.member_seeds[i])
-                    members.append(_make_member(config))
+                    members.append(make_member(config))
         self.members = nn.ModuleList(members)
         # Training-only heads of the auxiliary needle loss, one per member, on its image features.
-        self.needle_heads: nn.ModuleList | None = None
-        if config.needle_keypoints_weight > 0:
-            if not config.image_features:
-                raise ValueError("`needle_keypoints_weight` > 0 needs an image input; the policy has none.")
-            width = _image_encoders(members[0])[0].feature_dim * len(config.image_features)
-            self.needle_heads = nn.ModuleList(
-                nn.Linear(width, config.needle_keypoints_dim) for _ in range(config.n_members)
-            )
+        self.needle_heads: nn.ModuleList | None = make_needle_heads(config, members)
 
         action_dim = config.action_feature.shape[0]
         # x = x_norm * scale + offset inverts the action normalization (NaN: unknown until stats are given).
@@ -339,13 +208,23 @@ class EnsembleDiffusionPolicy(PreTrainedPolicy):
             member_batch = batch
             if self.config.bootstrap and self.training:
                 index = torch.randint(0, batch_size, (batch_size,), device=batch[OBS_STATE].device)
-                member_batch = _index_batch(batch, index, batch_size)
+                member_batch = bootstrap_batch(batch, index, batch_size)
             if self.needle_heads is None:
                 loss, _ = member.forward(member_batch)
             else:
-                with _captured_outputs(_image_encoders(member)) as encoded:
+                with captured_outputs(image_encoders(member)) as encoded:
                     loss, _ = member.forward(member_batch)
-                needle_errors.append(self._needle_error(n, encoded, member_batch, batch_size))
+                needle_errors.append(
+                    needle_keypoint_error(
+                        self.needle_heads[n],
+                        member,
+                        n,
+                        encoded,
+                        member_batch[NEEDLE_KEYPOINTS_KEY],
+                        self.config.n_obs_steps,
+                        batch_size,
+                    )
+                )
             losses.append(loss)
         losses = torch.stack(losses)  # (N,)
         output = {f"loss_member_{n}": value for n, value in enumerate(losses.detach().cpu().tolist())}
@@ -355,27 +234,6 @@ class EnsembleDiffusionPolicy(PreTrainedPolicy):
             output["loss_needle_keypoints"] = needle_error.item()
             total = total + self.config.needle_keypoints_weight * needle_error
         return total, output
-
-    def _needle_error(
-        self, n: int, encoded: list[Tensor], batch: dict[str, Tensor], batch_size: int
-    ) -> Tensor:
-        """Member `n`'s mean squared error in locating the needle from its features of the current image.
-
-        `encoded`: the outputs of the member's image encoder(s) in this loss, as
-        `DiffusionModel._prepare_global_conditioning` makes them: one (B * S * n_cameras, F) from a shared
-        encoder, or one (B * S, F) per camera from separate encoders.
-        """
-        n_encoders = len(_image_encoders(self.members[n]))
-        if len(encoded) != n_encoders:
-            raise RuntimeError(
-                f"Expected one pass of each of member {n}'s {n_encoders} image encoder(s), saw {len(encoded)}."
-            )
-        s = self.config.n_obs_steps
-        features = torch.cat([out.reshape(batch_size, s, -1) for out in encoded], dim=-1)[:, -1]
-        target = batch[NEEDLE_KEYPOINTS_KEY]
-        target = target[:, -1] if target.ndim == 3 else target  # (B, S, D) from the dataset: the current step
-        predicted = self.needle_heads[n](features.float())
-        return nn.functional.mse_loss(predicted, target.to(predicted.dtype))
 
     @torch.no_grad()
     def predict_needle_keypoints(self, batch: dict[str, Tensor]) -> Tensor:
@@ -392,15 +250,7 @@ class EnsembleDiffusionPolicy(PreTrainedPolicy):
             )
         images = [batch[key] for key in self.config.image_features]
         images = [im[:, -1] if im.ndim == 5 else im for im in images]
-        estimates = []
-        for n, member in enumerate(self.members):
-            encoders = _image_encoders(member)
-            if len(encoders) == 1:
-                features = [encoders[0](im) for im in images]
-            else:
-                features = [encoder(im) for encoder, im in zip(encoders, images, strict=True)]
-            estimates.append(self.needle_heads[n](torch.cat(features, dim=-1)))
-        return torch.stack(estimates, dim=1)
+        return estimate_needle_keypoints(self.members, self.needle_heads, images)
 
     # ---- inference ----------------------------------------------------------------------------------
 
@@ -415,29 +265,6 @@ class EnsembleDiffusionPolicy(PreTrainedPolicy):
                     batch[key] = batch[key].unsqueeze(1)
             batch[OBS_IMAGES] = torch.stack([batch[key] for key in self.config.image_features], dim=-4)
         return batch
-
-    def _check_observation(self, batch: dict[str, Tensor]) -> None:
-        """Raise a clear error when the observation does not match the features the policy was built for."""
-        state_dim = self.config.robot_state_feature.shape[0]
-        if batch[OBS_STATE].shape[-1] != state_dim:
-            raise ValueError(
-                f"'{OBS_STATE}' has {batch[OBS_STATE].shape[-1]} dimensions but the policy was trained with "
-                f"{state_dim} (config.input_features). Check the env/dataset features."
-            )
-        if self.config.n_obs_steps != batch[OBS_STATE].shape[1]:
-            raise ValueError(
-                f"Expected {self.config.n_obs_steps} observation steps, got {batch[OBS_STATE].shape[1]}."
-            )
-        if self.config.image_features:
-            images = batch[OBS_IMAGES]  # (B, S, n_cameras, C, H, W)
-            expected = next(iter(self.config.image_features.values())).shape
-            got = tuple(images.shape[-3:])
-            same_size = self.config.resize_shape is not None or got[1:] == tuple(expected[1:])
-            if got[0] != expected[0] or not same_size:
-                raise ValueError(
-                    f"Images have shape {got} but the policy was trained with {tuple(expected)} "
-                    f"({list(self.config.image_features)}). Check the env/dataset camera features."
-                )
 
     def _sample(
         self,
@@ -502,7 +329,7 @@ class EnsembleDiffusionPolicy(PreTrainedPolicy):
         if self.config.uncertainty_source == "aleatoric" and k < 2:
             raise ValueError("`uncertainty_source`='aleatoric' needs `samples_per_member` >= 2.")
         model_batch = self._stack_observation(batch)
-        self._check_observation(model_batch)
+        check_observation(self.config, model_batch)
         # Always full precision, also under lerobot-eval's `use_amp` autocast: bf16 sampling moved the
         # score by up to 10% on the reference checkpoint (no faster on the CPU), and the gate's
         # calibration is only valid for the numerics it was fitted with.
@@ -621,64 +448,13 @@ class EnsembleDiffusionPolicy(PreTrainedPolicy):
             ValueError: the file is malformed, or was fitted on another score than this policy computes.
         """
         calibration = load_calibration(directory, filename=self.config.ood.calibration_file)
-        if (calibration.score_name, calibration.space) != (
-            self.config.uncertainty_score,
-            self.config.uncertainty_space,
-        ):
-            raise ValueError(
-                f"The calibration in {directory} was fitted on score {calibration.score_name!r} in "
-                f"{calibration.space} space, but this policy computes {self.config.uncertainty_score!r} in "
-                f"{self.config.uncertainty_space} space. Recalibrate with `lerobot-suture calibrate "
-                f"--policy.path={directory}` or set the policy's uncertainty options to match."
-            )
-        if calibration.score_settings is not None:  # None: a file from before they were recorded
-            ours = self.config.score_settings()
-            differ = {
-                key: (value, ours.get(key))
-                for key, value in calibration.score_settings.items()
-                if ours.get(key) != value
-            }
-            if differ:
-                described = ", ".join(
-                    f"{key}={fitted!r} (this policy: {current!r})"
-                    for key, (fitted, current) in differ.items()
-                )
-                raise ValueError(
-                    f"The calibration in {directory} was fitted with {described}; its threshold does not hold "
-                    f"for this policy's scores. Recalibrate with `lerobot-suture calibrate "
-                    f"--policy.path={directory}` or set the policy's options back."
-                )
+        check_calibration_fits(calibration, self.config, directory)
         self.ood_calibration = calibration
         self._ood_gates = []
         return calibration
 
     def _update_ood_gates(self, scores: Tensor) -> None:
-        if self.config.ood.enforce and self.ood_calibration is None:
-            raise ValueError(
-                "`ood.enforce=true` needs a calibration of the O.O.D. gate, and this policy has none. Run "
-                "`lerobot-suture calibrate --policy.path=DIR` on the trained policy directory (it writes "
-                f"{self.config.ood.calibration_file} there), or set `--policy.ood.enforce=false` to report only."
-            )
-        values = scores.detach().cpu().tolist()
-        if len(self._ood_gates) != len(values):
-            self._ood_gates = [
-                OODGate(calibration=self.ood_calibration, enforce=self.config.ood.enforce) for _ in values
-            ]
-        for index, (gate, value) in enumerate(zip(self._ood_gates, values, strict=True)):
-            was_released = gate.released
-            gate.update(value)
-            if gate.released and not was_released:
-                # The one report a user of `lerobot-eval` sees: the rollout loop there knows nothing of gates.
-                logger.info(
-                    "O.O.D. gate: env %d flagged at prediction %d (score %.4g > threshold %.4g); %s",
-                    index,
-                    gate.released_at,
-                    gate.last_score,
-                    gate.threshold,
-                    "control released to the surgeon, the arm holds its pose"
-                    if self.config.ood.enforce
-                    else "reported only (ood.enforce=false)",
-                )
+        self._ood_gates = update_gates(self._ood_gates, scores, self.ood_calibration, self.config)
 
     def _hold_action(self, batch: dict[str, Tensor]) -> Tensor:
         """The measured pose as a normalized action, (B, A): the arm stops where it is."""
@@ -699,22 +475,7 @@ class EnsembleDiffusionPolicy(PreTrainedPolicy):
         `decision` (the last test said O.O.D.), `released` (control was released, latched until `reset`),
         `new_prediction` (this call predicted a new chunk).
         """
-        if index >= len(self._ood_gates):
-            return {
-                "score": math.nan,
-                "threshold": math.nan,
-                "decision": False,
-                "released": False,
-                "new_prediction": False,
-            }
-        gate = self._ood_gates[index]
-        return {
-            "score": float(gate.last_score),
-            "threshold": float(gate.threshold),
-            "decision": bool(gate.decision),
-            "released": bool(gate.released and self.config.ood.enforce),
-            "new_prediction": self._new_prediction,
-        }
+        return gate_status(self._ood_gates, index, self.config.ood.enforce, self._new_prediction)
 
     @classmethod
     def from_pretrained(cls, pretrained_name_or_path, **kwargs):
@@ -735,7 +496,7 @@ class EnsembleDiffusionPolicy(PreTrainedPolicy):
         if policy.config.ood.enforce or (directory / policy.config.ood.calibration_file).is_file():
             policy.load_ood_calibration(directory)
         if not bool(torch.isfinite(policy.state_unnormalize_scale).all()):
-            stats = _saved_normalizer_stats(directory)
+            stats = saved_normalizer_stats(directory)
             if stats is not None and OBS_STATE in stats:
                 policy.set_state_normalization(stats)
         return policy
@@ -751,163 +512,3 @@ class EnsembleDiffusionPolicy(PreTrainedPolicy):
         model._apply_given_action_affine()
         model.invalidate_fused_cache()
         return model
-
-
-def _saved_normalizer_stats(directory: Path) -> dict | None:
-    """The statistics of the normalizer step in the preprocessor saved beside the policy, if any."""
-    from lerobot.processor import PolicyProcessorPipeline
-
-    if not (directory / "policy_preprocessor.json").is_file():
-        return None
-    pipeline = PolicyProcessorPipeline.from_pretrained(directory, config_filename="policy_preprocessor.json")
-    for step in pipeline.steps:
-        stats = getattr(step, "stats", None)
-        if stats:
-            return stats
-    return None
-
-
-def _make_member(config: EnsembleDiffusionConfig) -> DiffusionPolicy:
-    """One LeRobot `DiffusionPolicy` of the ensemble, its image backbone cut to `vision_backbone_stages`, with
-    its random prior when `prior_scale` > 0."""
-    member = DiffusionPolicy(config.member_config())
-    if config.prior_scale > 0:
-        unet = member.diffusion.unet
-        prior = RandomPrior(
-            unet_global_cond_dim(getattr(unet, "_orig_mod", unet)),
-            config.horizon,
-            config.action_feature.shape[0],
-            config.prior_scale,
-        )
-        member.diffusion.unet = UnetWithPrior(unet, prior)
-    if config.image_features and config.vision_backbone_stages < 4:
-        # The encoder sees the image after its resize and crop, as in LeRobot's own dry run.
-        image_shape = next(iter(config.image_features.values())).shape
-        height_width = config.crop_shape or config.resize_shape or image_shape[1:]
-        for encoder in _image_encoders(member):
-            cut_image_backbone(
-                encoder,
-                config.vision_backbone_stages,
-                (1, image_shape[0], *height_width),
-                config.spatial_softmax_num_keypoints,
-            )
-    return member
-
-
-def cut_image_backbone(
-    encoder: nn.Module, stages: int, input_shape: tuple[int, ...], num_keypoints: int
-) -> None:
-    """Keep a LeRobot `DiffusionRgbEncoder`'s ResNet backbone up to stage `stages` and rebuild its spatial
-    softmax for the finer feature map (same number of keypoints, so the encoder's output is unchanged)."""
-    # LeRobot's backbone is the ResNet's children up to layer4: conv1, norm, relu, maxpool, layer1..layer4.
-    encoder.backbone = nn.Sequential(*list(encoder.backbone.children())[: 4 + stages])
-    with torch.no_grad():
-        feature_map_shape = tuple(encoder.backbone(torch.zeros(input_shape)).shape[1:])
-    encoder.pool = SpatialSoftmax(feature_map_shape, num_kp=num_keypoints)
-
-
-def _image_encoders(member: DiffusionPolicy) -> list[nn.Module]:
-    """A member's image encoder(s): one shared by the cameras, or one per camera."""
-    encoder = member.diffusion.rgb_encoder
-    return list(encoder) if isinstance(encoder, nn.ModuleList) else [encoder]
-
-
-@contextmanager
-def _captured_outputs(modules: list[nn.Module]):
-    """Collect the outputs of `modules`, in call order, while the context is open (forward hooks)."""
-    outputs: list[Tensor] = []
-    handles = [m.register_forward_hook(lambda _m, _args, out: outputs.append(out)) for m in modules]
-    try:
-        yield outputs
-    finally:
-        for handle in handles:
-            handle.remove()
-
-
-def _index_batch(batch: dict, index: Tensor, batch_size: int) -> dict:
-    """Rows `index` of every per-sample entry of `batch` (tensors and lists with `batch_size` rows)."""
-    out = {}
-    for key, value in batch.items():
-        if isinstance(value, Tensor) and value.ndim > 0 and value.shape[0] == batch_size:
-            out[key] = value[index]
-        elif isinstance(value, list) and len(value) == batch_size:
-            out[key] = [value[i] for i in index.tolist()]
-        else:
-            out[key] = value
-    return out
-
-
-def check_features_match(config: EnsembleDiffusionConfig, features: dict, source: str) -> None:
-    """Raise a ValueError naming every policy input/output feature that `features` lacks or shapes differently.
-
-    Args:
-        config: the policy config (its `input_features` / `output_features`).
-        features: LeRobot dataset features ({"key": {"dtype", "shape", ...}}) or policy features.
-        source: what `features` describe, for the message (e.g. "dataset local/suture").
-    """
-    from lerobot.utils.feature_utils import dataset_to_policy_features
-
-    if features and isinstance(next(iter(features.values())), dict):
-        features = dataset_to_policy_features(features)
-    problems = []
-    for kind, expected in (("input", config.input_features or {}), ("output", config.output_features or {})):
-        for key, ft in expected.items():
-            if key not in features:
-                problems.append(f"{kind} feature '{key}' {tuple(ft.shape)} is missing")
-            elif tuple(features[key].shape) != tuple(ft.shape):
-                problems.append(
-                    f"{kind} feature '{key}' has shape {tuple(features[key].shape)} there but {tuple(ft.shape)} "
-                    "in the policy"
-                )
-    if problems:
-        raise ValueError(f"The policy's features do not match the {source}: " + "; ".join(problems) + ".")
-
-
-def check_checkpoint_matches(model: EnsembleDiffusionPolicy, model_file: str) -> None:
-    """Raise a clear error when `model_file` does not hold exactly the tensors `model` expects.
-
-    Names missing or extra members (against `config.n_members`), missing or unexpected keys, and tensors whose
-    shapes differ (typically: features or architecture settings that differ from the checkpoint's).
-    """
-    expected = {k: tuple(v.shape) for k, v in model.state_dict().items()}
-    with safe_open(model_file, framework="pt") as f:
-        found = {k: tuple(f.get_slice(k).get_shape()) for k in f.keys()}  # noqa: SIM118
-
-    def members_of(keys) -> set[int]:
-        return {int(m.group(1)) for k in keys if (m := _MEMBER_KEY.match(k))}
-
-    found_members, expected_members = members_of(found), members_of(expected)
-    problems = []
-    if found_members != expected_members:
-        missing = sorted(expected_members - found_members)
-        extra = sorted(found_members - expected_members)
-        problems.append(
-            f"the checkpoint holds members {sorted(found_members)} but the config has n_members="
-            f"{model.config.n_members}"
-            + (f" (missing member(s) {missing})" if missing else "")
-            + (f" (unexpected member(s) {extra})" if extra else "")
-        )
-    common_members = found_members & expected_members
-
-    def relevant(key: str) -> bool:
-        m = _MEMBER_KEY.match(key)
-        return m is None or int(m.group(1)) in common_members
-
-    missing_keys = sorted(k for k in expected if k not in found and relevant(k))
-    unexpected_keys = sorted(k for k in found if k not in expected and relevant(k))
-    if missing_keys:
-        problems.append(f"{len(missing_keys)} missing tensor(s), e.g. {missing_keys[:5]}")
-    if unexpected_keys:
-        problems.append(f"{len(unexpected_keys)} unexpected tensor(s), e.g. {unexpected_keys[:5]}")
-    mismatched = [
-        f"{k}: checkpoint {found[k]} vs policy {expected[k]}"
-        for k in sorted(expected)
-        if k in found and found[k] != expected[k]
-    ]
-    if mismatched:
-        problems.append(
-            f"{len(mismatched)} tensor(s) with mismatched shapes (do the input/output features or architecture "
-            f"settings differ from the checkpoint's?), e.g. {mismatched[:5]}"
-        )
-    if problems:
-        raise ValueError(f"{model_file} does not match the ensemble policy: " + "; ".join(problems) + ".")
