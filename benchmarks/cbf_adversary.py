@@ -35,7 +35,7 @@ from lerobot_suture.experiments.attacks import (  # noqa: E402
     run_attack_episode,
     run_policy_attack_episode,
 )
-from lerobot_suture.safety.cbf import CBFConfig  # noqa: E402
+from lerobot_suture.safety.cbf_config import CBFConfig  # noqa: E402
 
 BAR_EPISODES = 1000
 

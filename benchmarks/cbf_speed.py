@@ -18,7 +18,8 @@ import timeit
 
 import numpy as np
 
-from lerobot_suture.safety.cbf import CBFConfig, ellipsoid_h, filter_velocity, filter_velocity_discrete
+from lerobot_suture.safety.cbf import ellipsoid_h, filter_velocity, filter_velocity_discrete
+from lerobot_suture.safety.cbf_config import CBFConfig
 
 BAR_SINGLE_US = 20.0
 BAR_STATES_PER_S = 1_000_000.0

@@ -33,7 +33,7 @@ from lerobot_policy_ensemble_diffusion.testing import fake_dataset_stats, save_u
 
 import lerobot_suture  # noqa: E402
 from lerobot_suture.policy_runner import PolicyRunner, env_kwargs_for_policy  # noqa: E402
-from lerobot_suture.safety.cbf import CBFConfig  # noqa: E402
+from lerobot_suture.safety.cbf_config import CBFConfig  # noqa: E402
 from lerobot_suture.safety.ood.calibration import fit_calibration  # noqa: E402
 from lerobot_suture.safety.ood.calibration_file import save_calibration  # noqa: E402
 

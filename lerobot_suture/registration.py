@@ -17,7 +17,7 @@ def make_suture_env(cbf=None, **kwargs) -> gym.Env:
     """A :class:`~lerobot_suture.sim.suture_env.SutureEnv`, behind the CBF safety filter when asked.
 
     Args:
-        cbf: None (no filter), or a :class:`~lerobot_suture.safety.cbf.CBFConfig` (or its fields
+        cbf: None (no filter), or a :class:`~lerobot_suture.safety.cbf_config.CBFConfig` (or its fields
             as a dict); the env is then wrapped in
             :class:`~lerobot_suture.safety.cbf_wrapper.CBFActionWrapper`.
         **kwargs: the env's own arguments (see its docstring).
@@ -27,7 +27,7 @@ def make_suture_env(cbf=None, **kwargs) -> gym.Env:
     env = SutureEnv(**kwargs)
     if cbf is None:
         return env
-    from lerobot_suture.safety.cbf import CBFConfig
+    from lerobot_suture.safety.cbf_config import CBFConfig
     from lerobot_suture.safety.cbf_wrapper import CBFActionWrapper
 
     if isinstance(cbf, dict):

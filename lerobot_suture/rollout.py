@@ -29,7 +29,7 @@ from lerobot_suture.expert import ScriptedExpert
 from lerobot_suture.registration import ENV_ID, MAX_EPISODE_STEPS
 
 if TYPE_CHECKING:
-    from lerobot_suture.safety.cbf import CBFConfig
+    from lerobot_suture.safety.cbf_config import CBFConfig
 
 SURGEONS = ("none", "expert")
 POLICY, SURGEON, HOLD = "policy", "surgeon", "hold"

@@ -13,7 +13,6 @@ from scipy.optimize import minimize
 from scipy.spatial.transform import Rotation
 
 from lerobot_suture.safety.cbf import (
-    CBFConfig,
     ellipsoid_grad_h,
     ellipsoid_h,
     filter_velocity,
@@ -22,6 +21,7 @@ from lerobot_suture.safety.cbf import (
     margin_level,
     suture_ellipsoid_frame,
 )
+from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.safety.cbf_replay import replay_and_plot, replay_cbf
 from lerobot_suture.safety.cbf_wrapper import PHASE_ACTIVE, PHASE_DONE, PHASE_IDLE, CBFActionWrapper
 

@@ -25,7 +25,7 @@ from lerobot_suture.experiments.attacks import (
 )
 from lerobot_suture.expert import ScriptedExpert
 from lerobot_suture.rollout import SURGEON, rollout_episode
-from lerobot_suture.safety.cbf import CBFConfig
+from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.safety.cbf_wrapper import PHASE_ACTIVE, CBFActionWrapper, segment_distance
 from lerobot_suture.sim import controller
 from lerobot_suture.sim.geometry import pose_vector

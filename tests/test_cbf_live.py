@@ -12,7 +12,7 @@ import pytest
 
 from lerobot_suture.experiments.adversary import CBFEpisode, run_cbf_episode
 from lerobot_suture.expert import ScriptedExpert
-from lerobot_suture.safety.cbf import CBFConfig
+from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.safety.cbf_wrapper import PHASE_ACTIVE, CBFActionWrapper
 from lerobot_suture.sim.suture_env import SutureEnv
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lerobot_suture.expert import ScriptedExpert
-from lerobot_suture.safety.cbf import CBFConfig
+from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.safety.cbf_wrapper import PHASE_ACTIVE, PHASE_IDLE, CBFActionWrapper
 from lerobot_suture.sim.suture_env import SutureEnv
 

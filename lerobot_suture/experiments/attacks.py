@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lerobot_suture.expert import ScriptedExpert
-from lerobot_suture.safety.cbf import CBFConfig
+from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.safety.cbf_wrapper import PHASE_ACTIVE, PHASE_IDLE, CBFActionWrapper
 from lerobot_suture.sim.geometry import matrix_from_rotvec, pose_vector, rot6_from_matrix
 from lerobot_suture.sim.suture_env import SutureEnv

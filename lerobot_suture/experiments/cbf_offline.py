@@ -16,7 +16,7 @@ import draccus
 import numpy as np
 
 from lerobot_suture.experiments.adversary import SidewaysPull
-from lerobot_suture.safety.cbf import CBFConfig
+from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.safety.cbf_replay import replay_and_plot
 from lerobot_suture.safety.cbf_wrapper import CBFActionWrapper
 from lerobot_suture.sim.suture_env import SutureEnv

@@ -37,7 +37,7 @@ from lerobot_suture.experiments.adversary import run_cbf_episode
 from lerobot_suture.experiments.plots import plot_uncertainty
 from lerobot_suture.rollout import EpisodeLog, make_scenario_env, rollout_seeds
 from lerobot_suture.rollout_expert import run_expert_episode
-from lerobot_suture.safety.cbf import CBFConfig
+from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.sim.task import ENTRY_TOLERANCE, EXIT_TOLERANCE
 
 logger = logging.getLogger(__name__)

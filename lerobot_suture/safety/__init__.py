@@ -1,12 +1,11 @@
-"""Safety layers: the model-free control barrier function (``cbf``, ``cbf_wrapper``, ``cbf_replay``)
-and the out-of-distribution gate (``ood``).
+"""Safety layers: the model-free control barrier function (``cbf``, its ``cbf_config``, ``cbf_wrapper``,
+``cbf_replay``) and the out-of-distribution gate (``ood``).
 
 The CBF names are re-exported here; ``cbf_replay`` (matplotlib) and ``ood`` are imported from their
 modules.
 """
 
 from lerobot_suture.safety.cbf import (
-    CBFConfig,
     CBFResult,
     ellipsoid_grad_h,
     ellipsoid_h,
@@ -16,6 +15,7 @@ from lerobot_suture.safety.cbf import (
     margin_level,
     suture_ellipsoid_frame,
 )
+from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.safety.cbf_wrapper import CBFActionWrapper
 
 __all__ = [

@@ -89,7 +89,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -466,87 +465,3 @@ def suture_ellipsoid_frame(entry_point, exit_point, surface_normal) -> tuple[np.
     along = along / length
     lateral = np.cross(normal, along)
     return 0.5 * (entry_point + exit_point), np.column_stack([along, lateral, normal])
-
-
-# Configuration.
-
-
-@dataclass
-class CBFConfig:
-    """Configuration of the safety filter applied to the needle tip's velocity (draccus-compatible).
-
-    Defaults: the safe ellipsoid has semi-axes 16 x 8 x 10 mm around the midpoint of an 18 mm
-    entry-exit pair. A nominal throw (10 mm needle radius, 5.6 mm deep, plane tilted 30 degrees, tip
-    protruding 5 mm past the exit point) reaches a scaled radius of about 0.81, inside the set
-    tightened by the default 1 mm margin (scale 0.875); see ``tests/test_cbf.py``.
-
-    Args:
-        enabled: Apply the filter. When False, :class:`~lerobot_suture.safety.cbf_wrapper.CBFActionWrapper`
-            only monitors (reports ``h`` and the activation state) and passes velocities through.
-        alpha: Barrier rate (1/s, > 0). With ``discrete`` the tightened barrier may decay by at most a
-            factor ``1 - alpha * control_dt`` per control step; without it this is the paper's alpha.
-        semi_axis_along: Semi-axis (m, > 0) along the entry->exit line.
-        semi_axis_lateral: Semi-axis (m, > 0) across the wound, in the tissue surface.
-        semi_axis_normal: Semi-axis (m, > 0) along the tissue surface normal.
-        margin: Tracking-error allowance (m), in [0, min semi-axis): the commanded tip stays this far
-            inside the ellipsoid (discrete mode only; activation also waits until the tip is this far in).
-        discrete: Enforce the discrete-time condition with the step-length limit
-            (:func:`filter_velocity_discrete`, keeps h >= 0 at every physics step). False applies the
-            paper's continuous-time closed form only (:func:`filter_velocity`), for comparison: held
-            for a 0.1 s step it can leave the set, and once outside its inward push of ``alpha |h|`` m/s
-            ignores the step length and can overshoot.
-    """
-
-    # Switch.
-    enabled: bool = False
-    # Barrier.
-    alpha: float = 5.0
-    semi_axis_along: float = 0.016
-    semi_axis_lateral: float = 0.008
-    semi_axis_normal: float = 0.010
-    # Discrete-time enforcement.
-    margin: float = 0.001
-    discrete: bool = True
-
-    def __post_init__(self):
-        if not isinstance(self.enabled, bool):
-            raise ValueError(f"`enabled` must be a bool. Got {self.enabled!r}.")
-        if not isinstance(self.discrete, bool):
-            raise ValueError(f"`discrete` must be a bool. Got {self.discrete!r}.")
-        for name in ("alpha", "semi_axis_along", "semi_axis_lateral", "semi_axis_normal", "margin"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-                raise ValueError(f"`{name}` must be a finite number. Got {value!r}.")
-        for name in ("alpha", "semi_axis_along", "semi_axis_lateral", "semi_axis_normal"):
-            value = getattr(self, name)
-            if not value > 0:
-                raise ValueError(f"`{name}` must be > 0. Got {value}.")
-        smallest = min(self.semi_axis_along, self.semi_axis_lateral, self.semi_axis_normal)
-        if not 0 <= self.margin < smallest:
-            raise ValueError(
-                f"`margin` must be in [0, {smallest}) m (the smallest semi-axis). Got {self.margin}."
-            )
-
-    @property
-    def semi_axes(self) -> np.ndarray:
-        """(3,) semi-axes (m): along, lateral, normal."""
-        return np.array([self.semi_axis_along, self.semi_axis_lateral, self.semi_axis_normal])
-
-    @property
-    def margin_level(self) -> float:
-        """Barrier level of the tightened set, :func:`margin_level` (unit-free)."""
-        return float(margin_level(self.margin, self.semi_axes))
-
-    def filter(self, x, v_nominal, center, rotation, dt: float) -> CBFResult:
-        """Apply the configured filter (discrete or continuous) on the configured ellipsoid.
-
-        Args:
-            x: (3,) or (..., 3) tip position (m). v_nominal: same shape, m/s.
-            center: (3,) ellipsoid centre (m). rotation: (3, 3) world-from-ellipsoid or None.
-            dt: control period (s), used in discrete mode.
-        """
-        if self.discrete:
-            return filter_velocity_discrete(
-                x, v_nominal, center, self.semi_axes, self.alpha, dt, self.margin, rotation
-            )
-        return filter_velocity(x, v_nominal, center, self.semi_axes, self.alpha, rotation)

@@ -93,7 +93,7 @@ def replay_cbf(
         reference_tip_positions: (T, 3) reference needle-tip positions (m), T >= 2, one per step.
         dt: control period (s, > 0).
         center: (3,) ellipsoid centre (m). axes: (3,) semi-axes (m). rotation: (3, 3) or None.
-        alpha: barrier rate (1/s), as in :class:`~lerobot_suture.safety.cbf.CBFConfig`.
+        alpha: barrier rate (1/s), as in :class:`~lerobot_suture.safety.cbf_config.CBFConfig`.
         margin: tracking-error allowance (m), discrete mode only.
         discrete: use :func:`filter_velocity_discrete` (True) or the paper's :func:`filter_velocity`.
         tracking_rate: first-order velocity tracking rate (1/s, > 0), or None for perfect tracking.

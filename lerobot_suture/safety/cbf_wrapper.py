@@ -6,8 +6,8 @@ inverse kinematics on the velocity it gets back; the velocity is held for the wh
 (``control_dt``, 0.1 s) while physics runs at ``physics_dt`` (2 ms). :class:`CBFActionWrapper` sets
 that hook. Whatever produced the action (policy, scripted surgeon) is filtered the same way.
 
-Safe set: the ellipsoid of :class:`~lerobot_suture.safety.cbf.CBFConfig`, centred midway between the
-phantom's current entry and exit markers, with axes (entry->exit, lateral, tissue normal); it is
+Safe set: the ellipsoid of :class:`~lerobot_suture.safety.cbf_config.CBFConfig`, centred midway between
+the phantom's current entry and exit markers, with axes (entry->exit, lateral, tissue normal); it is
 rebuilt from the env every control step, so it follows a moving phantom.
 
 Activation (one throw per episode): the filter switches on at the first control step where the
@@ -25,7 +25,8 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from lerobot_suture.safety.cbf import CBFConfig, ellipsoid_h, suture_ellipsoid_frame
+from lerobot_suture.safety.cbf import ellipsoid_h, suture_ellipsoid_frame
+from lerobot_suture.safety.cbf_config import CBFConfig
 
 PHASE_IDLE = "idle"
 """No throw yet: velocities pass through."""
