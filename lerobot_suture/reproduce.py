@@ -126,7 +126,7 @@ def train_stage(cfg: ReproduceConfig, dataset_root: Path) -> Path:
 
 def calibrate_stage(cfg: ReproduceConfig, policy_dir: Path, dataset_root: Path) -> Path:
     from lerobot_suture.calibrate import CalibrateConfig, run_calibration
-    from lerobot_suture.safety.ood import CALIBRATION_FILENAME
+    from lerobot_suture.safety.ood.calibration_file import CALIBRATION_FILENAME
 
     calibration_file = policy_dir / CALIBRATION_FILENAME
     if calibration_file.is_file():  # written atomically once fitted; a newly trained checkpoint has none
