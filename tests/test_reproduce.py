@@ -9,8 +9,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
-
 from lerobot_suture.experiments.compare import compare_metrics, comparison_markdown
 from lerobot_suture.reproduce import REFERENCE_RESULTS, STAGES
 
@@ -74,14 +72,14 @@ def _reproduce(out: Path) -> str:
     return log
 
 
-@pytest.mark.slow
 def test_the_pipeline_at_toy_scale_runs_and_a_rerun_redoes_nothing(tmp_path):
     out = tmp_path / "reproduce"
     log = _reproduce(out)
     assert "# Reproduction (toy scale)" in log and "rows within tolerance" in log
     comparison = json.loads((out / "comparison.json").read_text())
     assert comparison["toy"] and len(comparison["rows"]) == len(compare_metrics(COMMITTED, COMMITTED))
-    assert all(row["new"] is not None for row in comparison["rows"])
+    # Every rate, AUROC and count has a value; a delay is undefined when no run was flagged.
+    assert all(row["new"] is not None for row in comparison["rows"] if "delay" not in row["name"])
     first = json.loads((out / "timings.json").read_text())
     assert set(first) == set(STAGES) and all(seconds > 0 for seconds in first.values())
     metrics = json.loads((out / "experiments" / "metrics.json").read_text())

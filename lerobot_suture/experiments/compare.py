@@ -49,11 +49,10 @@ def _rate_row(name: str, committed_rate: float, committed_n: int, new_rate: floa
 
 
 def _band_row(name: str, committed: float | None, new: float | None, band: float, unit: str) -> Row:
+    tolerance = f"+-{band:g} {unit}".rstrip() + "; undefined only beside undefined"
     if committed is None or new is None:
-        return Row(
-            name, committed, new, f"+-{band:g} {unit}; both undefined", committed is None and new is None
-        )
-    return Row(name, committed, new, f"+-{band:g} {unit}", abs(new - committed) <= band + 1e-12)
+        return Row(name, committed, new, tolerance, committed is None and new is None)
+    return Row(name, committed, new, tolerance, abs(new - committed) <= band + 1e-12)
 
 
 def _get(metrics: dict, *keys: str):
