@@ -33,6 +33,15 @@ class Endoscope:
         self._render_size = render_size
         self._renderer = None
         self._video_renderer = None
+        self._jitter_offset = np.zeros(3)
+        self._jitter_roll = 0.0
+
+    def set_jitter(self, position_offset: np.ndarray = (0.0, 0.0, 0.0), roll: float = 0.0) -> None:
+        """Hold the camera ``position_offset`` (3,) m from, and rolled ``roll`` rad about its optical axis
+        relative to, every viewpoint :meth:`set_viewpoint` places it at (appearance randomization); the
+        jitter stays through a scenario's change of viewpoint. Call :meth:`set_viewpoint` to apply it."""
+        self._jitter_offset = np.asarray(position_offset, dtype=np.float64).copy()
+        self._jitter_roll = float(roll)
 
     def set_viewpoint(self, azimuth_offset: float = 0.0, elevation_offset: float = 0.0) -> None:
         """Place the camera on its sphere about the work site, offset from the training view (rad)."""
@@ -46,6 +55,11 @@ class Endoscope:
         right = np.cross(forward, [0.0, 0.0, 1.0])
         right /= np.linalg.norm(right)
         up = np.cross(right, forward)
+        if self._jitter_roll or self._jitter_offset.any():
+            # Rolling the camera by +roll turns the image by -roll.
+            c, s = math.cos(self._jitter_roll), math.sin(self._jitter_roll)
+            right, up = c * right + s * up, c * up - s * right
+            pos = pos + self._jitter_offset
         self._model.cam_pos[self._camera] = pos
         self._model.cam_quat[self._camera] = quat_from_matrix(np.column_stack([right, up, -forward]))
 
@@ -81,6 +95,16 @@ class Endoscope:
             .ravel()
             .astype(np.float32)
         )
+
+    def upload_texture(self, texture_id: int) -> None:
+        """Send a texture whose pixels changed in the model to the renderers made so far (renderers made
+        later upload every texture when they open)."""
+        for r in (self._renderer, self._video_renderer):
+            if r is None:
+                continue
+            # mujoco.Renderer keeps its GL and MuJoCo render contexts private; the upload needs both.
+            r._gl_context.make_current()
+            mujoco.mjr_uploadTexture(self._model, r._mjr_context, texture_id)
 
     def close(self) -> None:
         for r in (self._renderer, self._video_renderer):

@@ -73,6 +73,35 @@ the tip has entered / emerged); ``protrusion_m`` (tip distance beyond the exit c
 ``tip_velocity_nominal`` and ``tip_velocity_command`` (3,) m/s (before and after
 ``tip_velocity_filter``); with ``record_tip_trace``, ``needle_tip_trace`` (50, 3) m.
 
+## Appearance randomization
+``appearance`` varies what the endoscope sees, per episode, without changing the physics: each option is
+a range, 0 (off) by default. Drawn once per episode at ``reset`` from a generator spawned from
+``self.np_random`` (the phantom, grasp and arm draws, hence the trajectories, are those of the same seed
+without it; with every option off nothing is drawn and the images are those of an env without it).
+Scene options edit the MuJoCo model and are restored and redrawn at every reset; haze, blur and noise
+are applied to the endoscope observation only (not to ``render()`` frames). The drawn look is
+``appearance_sample``.
+
+=====================  ==========  ==============  ================================================
+option                 unit        allowed range   per-episode draw (``r`` the option's value)
+=====================  ==========  ==============  ================================================
+``light_intensity``    fraction    [0, 0.9]        every light's colour x ``1 + U(-r, r)``
+``light_direction``    rad         [0, 1.0]        overhead light tilted ``U(-r, r)`` about x and y
+``tissue_hue``         turn        [0, 0.5]        tissue and wound hue shifted ``U(-r, r)``
+``tissue_value``       fraction    [0, 0.9]        tissue and wound colour x ``1 + U(-r, r)``
+``tissue_texture``     fraction    [0, 1]          mottled tissue texture, darkest ``1 - U(0, r)``
+``instrument_value``   fraction    [0, 0.9]        instrument colour x ``1 + U(-r, r)``
+``instrument_tint``    fraction    [0, 1]          instrument grey mixed ``U(0, r)`` to a random hue
+``haze``               fraction    [0, 0.9]        image blended ``U(0, r)`` with a grey veil
+``blur``               fraction    [0, 0.05]       Gaussian blur, sigma ``U(0, r)`` x image side
+``noise``              fraction    [0, 0.25]       pixel noise, std ``U(0, r)`` x 255, every frame
+``camera_position``    m           [0, 0.02]       endoscope moved ``U(-r, r)`` along x, y, z
+``camera_roll``        rad         [0, pi]         endoscope rolled ``U(-r, r)`` about its axis
+=====================  ==========  ==============  ================================================
+
+The needle and the entry and exit markers keep their look. ``lerobot_suture.sim.appearance`` has the
+details; the dataset card lists a recording's ranges.
+
 ## Arguments
 =======================  ======================  ===============================================
 argument                 default                 meaning
@@ -90,6 +119,9 @@ argument                 default                 meaning
 ``grasp``                ``"narrow"``            grasp randomization (``task.GRASP_RANGES``): ``narrow``
                                                  (the test scenes) or ``wide`` (demonstrations
                                                  that make the needle's pose matter)
+``appearance``           ``None``                appearance randomization (see above): an
+                                                 ``appearance.AppearanceConfig``, a dict of its
+                                                 fields, or None (all off)
 =======================  ======================  ===============================================
 """
 
@@ -104,6 +136,14 @@ import numpy as np
 from gymnasium import spaces
 
 from lerobot_suture.sim import controller, tissue
+from lerobot_suture.sim.appearance import (
+    AppearanceConfig,
+    AppearanceSample,
+    SceneAppearance,
+    add_tissue_texture,
+    degrade_image,
+    sample_appearance,
+)
 from lerobot_suture.sim.endoscope import Endoscope
 from lerobot_suture.sim.geometry import (
     InsertionFrame,
@@ -173,6 +213,7 @@ class SutureEnv(gym.Env):
         scenario_magnitude: float | None = None,
         record_tip_trace: bool = False,
         grasp: str = "narrow",
+        appearance: AppearanceConfig | dict | None = None,
     ):
         if obs_type not in OBS_TYPES:
             raise ValueError(f"`obs_type` must be one of {OBS_TYPES}. Got {obs_type!r}.")
@@ -194,7 +235,14 @@ class SutureEnv(gym.Env):
             ScenarioConfig(name=scenario, onset_step=scenario_onset_step, magnitude=scenario_magnitude)
         )
 
-        self.model = mujoco.MjModel.from_xml_path(str(SCENE_XML))
+        self.appearance = AppearanceConfig.from_value(appearance)
+
+        if self.appearance.tissue_texture > 0:
+            spec = mujoco.MjSpec.from_file(str(SCENE_XML))
+            add_tissue_texture(spec)
+            self.model = spec.compile()
+        else:
+            self.model = mujoco.MjModel.from_xml_path(str(SCENE_XML))
         self.data = mujoco.MjData(self.model)
         self.physics_dt = float(self.model.opt.timestep)
         self.control_dt = CONTROL_DT
@@ -219,6 +267,9 @@ class SutureEnv(gym.Env):
         self._needle_wire_diameter = 2.0 * float(m.geom_size[needle_geom][0])
         self._phantom_mocap = m.body("phantom").mocapid[0]
         self._endoscope = Endoscope(m, self.image_size, self.render_size)
+        self._scene_appearance = SceneAppearance(m)
+        self._appearance_sample: AppearanceSample | None = None
+        self._appearance_rng: np.random.Generator | None = None
         self._pad_geom = m.geom("tissue_pad").id
         self._entry_local = m.site("entry_point").pos.copy()
         self._exit_local = m.site("exit_point").pos.copy()
@@ -314,6 +365,11 @@ class SutureEnv(gym.Env):
         return grasp_transform(GRASP_ANGLE, 0.0, 0.0)
 
     @property
+    def appearance_sample(self) -> AppearanceSample | None:
+        """This episode's draw of ``appearance`` (None when every option is off)."""
+        return self._appearance_sample
+
+    @property
     def needle_tip_pos(self) -> np.ndarray:
         centre, rotation = self.needle_pose()
         return centre + rotation @ self._tip_local
@@ -406,6 +462,7 @@ class SutureEnv(gym.Env):
         mujoco.mj_resetData(self.model, self.data)
         self.model.body_gravcomp[self._needle_body] = 1.0
         self._set_pad_collides_with_needle(False)
+        self._draw_appearance()
         self.set_endoscope_viewpoint()
 
         xy = PHANTOM_NOMINAL[:2] + rng.uniform(-PHANTOM_RANGE_XY, PHANTOM_RANGE_XY, size=2)
@@ -522,6 +579,22 @@ class SutureEnv(gym.Env):
         self._endoscope.close()
 
     # ------------------------------------------------------------------ internals
+    def _draw_appearance(self) -> None:
+        """This episode's look (see "Appearance randomization"); nothing is drawn or edited when off."""
+        if not self.appearance.enabled:
+            return
+        try:
+            # A spawned child leaves the parent's stream where it was: the task draws that follow are
+            # those of the same seed without appearance randomization.
+            rng = self.np_random.spawn(1)[0]
+        except (TypeError, ValueError):  # a generator set by hand without a seed sequence
+            rng = np.random.default_rng(self.np_random.integers(2**63))
+        sample = sample_appearance(self.appearance, rng)
+        self._appearance_sample, self._appearance_rng = sample, rng
+        if self._scene_appearance.apply(sample):
+            self._endoscope.upload_texture(self._scene_appearance.texture_id)
+        self._endoscope.set_jitter(sample.camera_offset, sample.camera_roll)
+
     def _set_pad_collides_with_needle(self, collides: bool) -> None:
         bit = _NEEDLE_CONTACT_BIT if collides else 0
         self.model.geom_conaffinity[self._pad_geom] = bit
@@ -622,7 +695,10 @@ class SutureEnv(gym.Env):
         closure = 1.0 - self.data.qpos[self._jaw_qpos] / _JAW_OPEN_ANGLE
         obs: dict = {"agent_pos": pose_vector(jaw_pos, jaw_rot, closure).astype(np.float32)}
         if "pixels" in self.obs_type:
-            obs["pixels"] = {"endoscope": self._endoscope.image(self.data)}
+            image = self._endoscope.image(self.data)
+            if self._appearance_sample is not None and self.appearance.image_effects:
+                image = degrade_image(image, self._appearance_sample, self._appearance_rng)
+            obs["pixels"] = {"endoscope": image}
         if self.obs_type in ("state", "pixels_agent_pos_state"):
             centre, rot = self.needle_pose()
             obs["environment_state"] = np.concatenate(
