@@ -1,6 +1,6 @@
 # lerobot-suture: `make demo` runs the main job on a small default; `make test` runs the tests.
 # Both set up first (`make install`): a .venv with Python >= 3.12, the three distributions in
-# editable mode with the test and viz (rerun) extras, and the system libraries headless rendering needs.
+# editable mode with the test, viz (rerun) and teleop (keyboard, gamepad) extras, and the system libraries headless rendering needs.
 
 SHELL := /bin/bash
 VENV := .venv
@@ -33,7 +33,7 @@ $(STAMP): pyproject.toml envs/pyproject.toml policies/pyproject.toml
 	  echo "warning: $${free:-?} GiB free here; the install needs about $(INSTALL_GIB) GiB (torch's CUDA build and its libraries). Free some space if pip fails with 'No space left on device'."; \
 	fi
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e ".[test,viz]" -e ./envs -e ./policies
+	$(BIN)/python -m pip install -q -e ".[test,viz,teleop]" -e ./envs -e ./policies
 	@touch $(STAMP)
 
 test: install
