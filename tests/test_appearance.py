@@ -279,3 +279,49 @@ def test_the_jitter_stays_when_a_scenario_moves_the_endoscope():
     camera = on.model.camera("endoscope").id
     np.testing.assert_allclose(on.model.cam_pos[camera], off.model.cam_pos[camera])
     assert not np.allclose(on.model.cam_quat[camera], off.model.cam_quat[camera])
+
+
+# ------------------------------------------------------------------------------------ record flags
+def test_record_flags_log_and_resume_check(tmp_path):
+    from lerobot_suture.datasets.record_config import parse_config
+    from lerobot_suture.datasets.resume import _check_resumable, new_episode_log
+
+    cfg = parse_config(
+        ["--repo_id=suture-tests/look", "--appearance.tissue_hue=0.05", "--appearance.haze=0.2"]
+    )
+    assert cfg.appearance == AppearanceConfig(tissue_hue=0.05, haze=0.2)
+    assert cfg.command().endswith("--appearance.tissue_hue=0.05 --appearance.haze=0.2")
+    assert parse_config(cfg.command().split()[2:]).appearance == cfg.appearance  # the command re-records it
+    log = new_episode_log(cfg)
+    assert log["env_kwargs"]["appearance"]["tissue_hue"] == 0.05
+    off = parse_config(["--repo_id=suture-tests/look"])
+    assert "appearance" not in new_episode_log(off)["env_kwargs"]  # logs without it read as before
+    with pytest.raises(ValueError, match=r"`appearance` differs .* --appearance\.tissue_hue=0\.05"):
+        _check_resumable(off, log, tmp_path)
+    _check_resumable(cfg, log, tmp_path)
+    from lerobot_suture.cli import flag_error
+
+    with pytest.raises(Exception) as err:  # the command line shows the config's own message
+        parse_config(["--repo_id=suture-tests/look", "--appearance.blur=0.5"])
+    assert flag_error(err.value) == (
+        "`appearance.blur` must be in [0, 0.05] (fraction of the image side). Got 0.5."
+    )
+
+
+def test_the_randomized_recipe_is_the_servo_recipe_with_moderate_ranges():
+    import dataclasses
+    from pathlib import Path
+
+    from lerobot_suture.datasets.record_config import parse_config
+
+    recipes = Path(__file__).parents[1] / "datasets"
+    servo = parse_config([f"--config_path={recipes / 'suture_expert_servo.yaml'}"])
+    randomized = parse_config([f"--config_path={recipes / 'suture_expert_randomized.yaml'}"])
+    same = dataclasses.replace(
+        randomized, appearance=AppearanceConfig(), repo_id=servo.repo_id, root=servo.root
+    )
+    assert same == servo
+    # Every option on, none past half its allowed range: larger shifts are left for held-out tests.
+    assert set(randomized.appearance.active()) == set(LIMITS)
+    for name, value in randomized.appearance.active().items():
+        assert value <= LIMITS[name][0] / 2, name

@@ -7,6 +7,7 @@ import pytest
 from lerobot_suture.datasets.card import render_description
 from lerobot_suture.datasets.record import record
 from lerobot_suture.datasets.record_config import RecordConfig
+from lerobot_suture.sim.appearance import AppearanceConfig
 
 
 @pytest.fixture(scope="module")
@@ -54,3 +55,28 @@ def test_card_says_the_scenario_the_grasp_and_the_limitations(servo_card):
         assert needle in servo_card, needle
     assert "and the true needle grasp" not in servo_card
     assert "{{" not in servo_card and "{%" not in servo_card
+
+
+def test_card_says_appearance_is_off_by_default(servo_card):
+    assert "### Appearance (per episode, uniform)" in servo_card
+    assert "Off: every episode has the scene's own light" in servo_card
+    assert "| `haze` | grey veil over the endoscope image | off |" in servo_card
+
+
+def test_card_lists_the_appearance_ranges_of_a_randomized_recording(tmp_path):
+    """One episode recorded with two options on: the card and the recorded command name their ranges."""
+    cfg = RecordConfig(
+        repo_id="suture-tests/randomized",
+        root=str(tmp_path / "randomized"),
+        num_episodes=1,
+        val_fraction=0.0,
+        image_size=32,
+        video=False,
+        appearance=AppearanceConfig(light_intensity=0.3, camera_position=0.003),
+    )
+    card = render_description(record(cfg).root)
+    assert "randomized once per episode within these ranges" in card
+    assert "| `light_intensity` | intensity of every light | x(1 ± 0.3) |" in card
+    assert "| `camera_position` | endoscope position along x, y, z | ±3 mm each |" in card
+    assert "| `noise` | Gaussian pixel noise per frame, std | off |" in card
+    assert "--appearance.light_intensity=0.3 --appearance.camera_position=0.003" in card

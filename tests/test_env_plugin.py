@@ -61,6 +61,10 @@ def test_cli_flags_parse_nested_cbf_and_scenario(suture_config_cls):
         ("--env.obs_type=pixels", "`obs_type` must be one of ('pixels_agent_pos', "),
         ("--env.fps=30", "`fps` must be 10 (the env's control rate). Got 30."),
         ("--env.episode_length=0", "`episode_length` must be >= 1. Got 0."),
+        (
+            "--env.appearance.noise=0.5",
+            "`appearance.noise` must be in [0, 0.25] (fraction of full scale). Got 0.5.",
+        ),
     ],
 )
 def test_bad_config_values_raise_naming_the_field(suture_config_cls, flag, message):
@@ -110,5 +114,27 @@ def test_cbf_enabled_from_the_env_config_wraps_every_env(suture_config_cls):
         assert "cbf_active" in info and "h" in info
         obs, _, _, _, info = vec.step(obs["agent_pos"].astype(np.float32))
         assert "v_safe" in info and not info["cbf_active"][0]  # the tip is far above the wound
+    finally:
+        vec.close()
+
+
+def test_appearance_flags_reach_the_env(suture_config_cls):
+    """``--env.appearance.<option>`` as lerobot-eval parses it; the default kwargs do not name it."""
+
+    @dataclass
+    class EvalLike:
+        env: EnvConfig
+
+    cfg = draccus.parse(
+        EvalLike,
+        args=["--env.type=suture", "--env.obs_type=state", "--env.appearance.camera_roll=0.2"],
+    ).env
+    assert cfg.gym_kwargs["appearance"]["camera_roll"] == 0.2
+    assert "appearance" not in suture_config_cls().gym_kwargs
+    vec = make_env(cfg, n_envs=1, use_async_envs=False)["suture"][0]
+    try:
+        vec.reset(seed=[0])
+        sample = vec.envs[0].unwrapped.appearance_sample
+        assert sample is not None and 0 < abs(sample.camera_roll) <= 0.2
     finally:
         vec.close()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 from lerobot.configs import FeatureType, PolicyFeature
@@ -9,6 +10,7 @@ from lerobot.envs.configs import EnvConfig
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 
 from lerobot_suture.safety.cbf_config import CBFConfig
+from lerobot_suture.sim.appearance import AppearanceConfig
 from lerobot_suture.sim.scenarios import SCENARIOS
 from lerobot_suture.sim.suture_env import OBS_TYPES
 
@@ -33,6 +35,9 @@ class SutureEnvConfig(EnvConfig):
         scenario_onset_step: onset (control steps); None takes the scenario's default.
         scenario_magnitude: magnitude (rad or m); None takes the scenario's default.
         cbf: the control barrier function safety filter (``--env.cbf.enabled=true``).
+        appearance: per-episode appearance randomization of the endoscope's view, every option off by
+            default (``--env.appearance.light_intensity=0.3``; ranges in
+            ``lerobot_suture.sim.appearance``).
     """
 
     task: str | None = "NeedleInsertion-v0"
@@ -45,6 +50,7 @@ class SutureEnvConfig(EnvConfig):
     scenario_onset_step: int | None = None
     scenario_magnitude: float | None = None
     cbf: CBFConfig = field(default_factory=CBFConfig)
+    appearance: AppearanceConfig = field(default_factory=AppearanceConfig)
     features: dict[str, PolicyFeature] = field(
         default_factory=lambda: {
             ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(10,)),
@@ -88,7 +94,7 @@ class SutureEnvConfig(EnvConfig):
 
     @property
     def gym_kwargs(self) -> dict:
-        return {
+        kwargs = {
             "obs_type": self.obs_type,
             "image_size": self.image_size,
             "render_mode": "rgb_array",
@@ -99,3 +105,8 @@ class SutureEnvConfig(EnvConfig):
             "max_episode_steps": self.episode_length,
             "cbf": self.cbf if self.cbf.enabled else None,
         }
+        if self.appearance.enabled:
+            # Only when on, so that the default kwargs suit an env without the argument (an EnvHub
+            # env.py run against an older lerobot_suture); a dict pickles to async workers as is.
+            kwargs["appearance"] = dataclasses.asdict(self.appearance)
+        return kwargs

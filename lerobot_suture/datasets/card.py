@@ -75,6 +75,7 @@ def render_description(root: str | Path, template_path: str | Path | None = None
     import mujoco
 
     from lerobot_suture.sim import geometry, task, tissue
+    from lerobot_suture.sim.appearance import AppearanceConfig, ranges_table
     from lerobot_suture.sim.scenarios import ScenarioConfig
     from lerobot_suture.sim.suture_env import SCENE_XML
 
@@ -105,6 +106,7 @@ def render_description(root: str | Path, template_path: str | Path | None = None
     grasp = env_kwargs.get("grasp", "narrow")  # absent in logs before it existed
     grasp_angle, grasp_offset, grasp_roll = task.GRASP_RANGES[grasp]
     scenario = ScenarioConfig(name=env_kwargs["scenario"])
+    appearance = AppearanceConfig.from_value(env_kwargs.get("appearance"))  # absent: all off
     model = mujoco.MjModel.from_xml_path(str(SCENE_XML))
     endoscope = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, "endoscope")
     context = {
@@ -131,6 +133,8 @@ def render_description(root: str | Path, template_path: str | Path | None = None
         "grasp_blind_expert": bool(log["expert"]["config"].get("assume_nominal_grasp", False)),
         "tissue_damping": f"{tissue.TISSUE_DAMPING:g}",
         "steps_after_success": log.get("steps_after_success", 0),
+        "appearance_on": appearance.enabled,
+        "appearance_rows": ranges_table(appearance),
         "num_episodes": len(log["episodes"]),
         "num_frames": info["total_frames"],
         "mean_length": sum(lengths) / len(lengths),

@@ -64,14 +64,18 @@ def _failure_reason(info: dict, steps: int) -> tuple[str, str]:
     return "time limit", f"not done within {steps} steps (protrusion {info['protrusion_m'] * 1e3:.2f} mm)"
 
 
-def make_env(obs_type: str, image_size: int, scenario: str, grasp: str = "narrow"):
-    """The env the dataset is recorded in (``gym.make`` of :data:`~lerobot_suture.ENV_ID`)."""
+def make_env(
+    obs_type: str, image_size: int, scenario: str, grasp: str = "narrow", appearance: dict | None = None
+):
+    """The env the dataset is recorded in (``gym.make`` of :data:`~lerobot_suture.ENV_ID`); ``appearance``
+    the fields of an :class:`~lerobot_suture.sim.appearance.AppearanceConfig` (None: all off)."""
     return gym.make(
         ENV_ID,
         obs_type=obs_type,
         image_size=image_size,
         scenario=scenario,
         grasp=grasp,
+        appearance=appearance,
         disable_env_checker=True,
     )
 

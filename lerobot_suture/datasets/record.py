@@ -181,7 +181,7 @@ def record(cfg: RecordConfig) -> RecordSummary:
     backend = resolve_video_backend() if cfg.video and cfg.has_images else None
     features = dataset_features(cfg.obs_type, cfg.image_size, cfg.video)
     expert = ScriptedExpert(ExpertConfig(**log["expert"]["config"]))
-    env = make_env(cfg.obs_type, cfg.image_size, cfg.scenario, cfg.grasp)
+    env = make_env(cfg.obs_type, cfg.image_size, cfg.scenario, cfg.grasp, log["env_kwargs"].get("appearance"))
     bars_were_enabled = hf_datasets.is_progress_bar_enabled()
     hf_datasets.disable_progress_bars()  # a "Map" bar per saved episode otherwise
 

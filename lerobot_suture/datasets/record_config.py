@@ -5,13 +5,14 @@ from __future__ import annotations
 
 import dataclasses
 import shlex
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from lerobot_suture.datasets.hub import validate_repo_id
 from lerobot_suture.datasets.split import split_episodes
 from lerobot_suture.expert import ExpertConfig
 from lerobot_suture.sim import suture_env, task
+from lerobot_suture.sim.appearance import AppearanceConfig
 from lerobot_suture.sim.scenarios import SCENARIOS
 
 COMMAND = "lerobot-suture record"
@@ -51,6 +52,12 @@ class RecordConfig:
             episode ends when the throw is over, so the action chunks it predicts there then reach into
             demonstrated motion instead of the padded stop at a demonstration's last frame. 0: episodes
             end at success (the paper's demonstrations).
+        appearance: per-episode appearance randomization of the endoscope's view (light, tissue and
+            instrument colour, tissue texture, haze, blur, noise, endoscope pose jitter), every option
+            off by default: ``--appearance.light_intensity=0.3`` etc. (ranges and units in
+            ``lerobot_suture.sim.appearance``). It changes no trajectory: an episode's seed gives the
+            same motion with and without it. Logged in ``meta/suture_episodes.json`` and listed in the
+            dataset card.
         video: store images as MP4 video (true) or as PNG frames in the parquet files (false).
         checkpoint_every: episodes between durable checkpoints (finalize + resume): a SIGKILL loses
             at most this many; each checkpoint starts new data/video files. >= 1.
@@ -74,6 +81,7 @@ class RecordConfig:
     grasp_blind_expert: bool = False  # the expert plans with the nominal grasp, not the true one
     seed: int = 0  # env seed of the first attempt; attempt k uses seed + k
     steps_after_success: int = 0  # control steps recorded past success, the expert driving on
+    appearance: AppearanceConfig = field(default_factory=AppearanceConfig)  # endoscope view randomization
     # Storage.
     video: bool = True  # images as MP4 video (true) or PNG frames (false)
     checkpoint_every: int = 10  # episodes between durable checkpoints (what a SIGKILL can lose)
@@ -134,6 +142,8 @@ class RecordConfig:
             flags.append("--grasp_blind_expert=true")
         if self.steps_after_success:
             flags.append(f"--steps_after_success={self.steps_after_success}")
+        for name, value in self.appearance.active().items():
+            flags.append(f"--appearance.{name}={value:g}")
         if self.checkpoint_every != 10:
             flags.append(f"--checkpoint_every={self.checkpoint_every}")
         return " ".join([COMMAND, *(shlex.quote(f) for f in flags)])

@@ -12,6 +12,7 @@ from lerobot_suture.datasets import metadata
 from lerobot_suture.datasets.features import FPS, TASK
 from lerobot_suture.datasets.record_config import COMMAND, RecordConfig, expert_config
 from lerobot_suture.registration import ENV_ID, MAX_EPISODE_STEPS
+from lerobot_suture.sim.appearance import AppearanceConfig
 
 # What a recording reports goes to one logger, the recorder's.
 logger = logging.getLogger("lerobot_suture.datasets.record")
@@ -30,6 +31,15 @@ def _versions() -> dict[str, str]:
 
 
 def new_episode_log(cfg: RecordConfig) -> dict:
+    env_kwargs = {
+        "obs_type": cfg.obs_type,
+        "image_size": cfg.image_size,
+        "scenario": cfg.scenario,
+        "grasp": cfg.grasp,
+    }
+    if cfg.appearance.enabled:
+        # Absent when off: the logs of datasets recorded without it read the same as before it existed.
+        env_kwargs["appearance"] = dataclasses.asdict(cfg.appearance)
     return {
         "format_version": metadata.FORMAT_VERSION,
         "repo_id": cfg.repo_id,
@@ -37,12 +47,7 @@ def new_episode_log(cfg: RecordConfig) -> dict:
         "fps": FPS,
         "gym_id": ENV_ID,
         "max_episode_steps": MAX_EPISODE_STEPS,
-        "env_kwargs": {
-            "obs_type": cfg.obs_type,
-            "image_size": cfg.image_size,
-            "scenario": cfg.scenario,
-            "grasp": cfg.grasp,
-        },
+        "env_kwargs": env_kwargs,
         "expert": {
             "class": "lerobot_suture.expert.ScriptedExpert",
             "config": dataclasses.asdict(expert_config(cfg.steps_after_success, cfg.grasp_blind_expert)),
@@ -67,7 +72,7 @@ _RESUME_FIELDS = ("obs_type", "image_size", "scenario", "grasp")
 def _check_resumable(cfg: RecordConfig, log: dict, root: Path) -> None:
     recorded = {
         "grasp": "narrow",  # absent in logs before it existed
-        **log["env_kwargs"],
+        **{k: v for k, v in log["env_kwargs"].items() if k != "appearance"},
         "video": log["video"],
         "seed": log["seed"],
         "steps_after_success": log.get("steps_after_success", 0),  # absent in logs before it existed
@@ -81,6 +86,14 @@ def _check_resumable(cfg: RecordConfig, log: dict, root: Path) -> None:
                 f"--{name}={getattr(cfg, name)}. Resume with --{name}={value}, or record a new dataset "
                 "with another --root."
             )
+    recorded_appearance = AppearanceConfig.from_value(log["env_kwargs"].get("appearance"))
+    if cfg.appearance != recorded_appearance:
+        flags = " ".join(f"--appearance.{k}={v:g}" for k, v in recorded_appearance.active().items())
+        raise ValueError(
+            f"`appearance` differs from the dataset at {root}: it was recorded with "
+            f"{flags or 'every appearance option off'}, got {cfg.appearance.active() or 'all off'}. Resume "
+            "with the recorded options, or record a new dataset with another --root."
+        )
     if log["repo_id"] != cfg.repo_id:
         logger.warning("Dataset at %s was recorded as %s; it is now %s.", root, log["repo_id"], cfg.repo_id)
         log["repo_id"] = cfg.repo_id
