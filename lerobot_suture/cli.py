@@ -13,7 +13,7 @@ import sys
 
 from draccus.utils import DecodingError, DraccusException, ParsingError
 
-# subcommand -> (module with `main(argv)`, one-line help)
+# subcommand -> (module with `main(argv)`, or "module:function", one-line help)
 SUBCOMMANDS = {
     "demo": ("lerobot_suture.demo", "run the main job at a small default and write figures"),
     "record": ("lerobot_suture.datasets.record", "record expert insertions as a LeRobotDataset"),
@@ -42,6 +42,14 @@ SUBCOMMANDS = {
     "cbf-replay": (
         "lerobot_suture.experiments.cbf_offline",
         "filter a recorded unsafe throw offline, plot it",
+    ),
+    "surgeon-run": (
+        "lerobot_suture.surgeon.commands:surgeon_run_main",
+        "run a policy with a surgeon (keyboard, gamepad, expert) taking over; record it, show it live",
+    ),
+    "teleop": (
+        "lerobot_suture.surgeon.commands:teleop_main",
+        "drive the env by hand with a keyboard or gamepad; record it, show it live",
     ),
 }
 
@@ -77,10 +85,11 @@ def main(argv: list[str] | None = None) -> None:
     if name not in SUBCOMMANDS:
         _fail("lerobot-suture", f"unknown subcommand {name!r}: choose {choices}.")
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    module = importlib.import_module(SUBCOMMANDS[name][0])
+    module_name, _, function = SUBCOMMANDS[name][0].partition(":")
+    run = getattr(importlib.import_module(module_name), function or "main")
     prefix = f"lerobot-suture {name}"
     try:
-        module.main(rest)
+        run(rest)
     except (DraccusException, argparse.ArgumentError) as exc:
         _fail(prefix, f"{flag_error(exc)} (`{prefix} --help` lists the flags)")
     except (FileNotFoundError, FileExistsError, NotADirectoryError, ValueError) as exc:

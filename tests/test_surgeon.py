@@ -197,3 +197,35 @@ def test_recorded_run_loads_in_lerobot_and_merges_with_demonstrations(tiny_polic
     assert merged.meta.total_frames == demo.meta.total_frames + 11
     tail = [int(merged[len(merged) - 11 + i][ACTOR_KEY]) for i in range(11)]
     assert tail == actors and int(merged[0][ACTOR_KEY]) == 1 and int(merged[0][GATE_DECISION_KEY]) == -1
+
+
+# ------------------------------------------------------------------ the commands
+
+
+def test_surgeon_run_command_records_and_writes_the_live_view(tiny_policy_dir, tmp_path, capsys):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from lerobot_suture.cli import main as cli_main
+
+    runner = _runner(tiny_policy_dir, tmp_path, threshold=1e-12)  # O.O.D. at once: the expert takes over
+    del runner
+    view = tmp_path / "view.rrd"
+    cli_main(
+        [
+            "surgeon-run",
+            f"--policy.path={tmp_path / 'policy'}",
+            "--surgeon=expert",
+            "--max_steps=3",
+            "--display=false",
+            f"--view_path={view}",
+            f"--record_root={tmp_path / 'run'}",
+            "--video=false",
+        ]
+    )
+    run = LeRobotDataset("local/suture_surgeon_run", root=tmp_path / "run")
+    assert [int(run[i][ACTOR_KEY]) for i in range(len(run))] == [1, 1, 1]
+    assert view.stat().st_size > 1000  # images, the trace and who is in control
+    with pytest.raises(SystemExit) as exit_info:
+        cli_main(["surgeon-run", f"--policy.path={tmp_path / 'policy'}", "--surgeon=robot"])
+    assert exit_info.value.code == 2
+    assert "`surgeon` must be one of" in capsys.readouterr().err
