@@ -325,3 +325,27 @@ def test_the_randomized_recipe_is_the_servo_recipe_with_moderate_ranges():
     assert set(randomized.appearance.active()) == set(LIMITS)
     for name, value in randomized.appearance.active().items():
         assert value <= LIMITS[name][0] / 2, name
+
+
+def test_the_strip_figure_shows_a_frame_per_option(tmp_path):
+    """benchmarks/appearance_strip.py (docs/appearance_strip.png) at a small size: written, not blank, and
+    every option's column differs from the column with every option off."""
+    import importlib.util
+    from pathlib import Path
+
+    from PIL import Image
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "appearance_strip.py"
+    spec = importlib.util.spec_from_file_location("appearance_strip", path)
+    strip = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(strip)
+    columns = strip.strip_columns(seed=7, image_size=32, steps=2)
+    assert [label.split("\n")[0] for label, _ in columns] == ["off", *LIMITS, "all"]
+    off = columns[0][1]
+    for label, frame in columns[1:]:
+        assert not np.array_equal(frame, off), label
+    png = strip.appearance_strip(tmp_path / "strip.png", seed=7, steps=2, columns=columns)
+    pixels = np.asarray(Image.open(png).convert("RGB"), dtype=np.float64)
+    assert pixels.shape[0] > 200 and pixels.std() > 20
+    committed = path.parents[1] / "docs" / "appearance_strip.png"
+    assert committed.is_file() and committed.stat().st_size < 200_000
