@@ -294,11 +294,13 @@ def blur_image(image: np.ndarray, sigma_px: float) -> np.ndarray:
     r = len(taps) // 2
     out = image
     for axis in (0, 1):
-        pad = [(0, 0)] * out.ndim
-        pad[axis] = (r, r)
-        padded = np.pad(out, pad, mode="reflect" if out.shape[axis] > r else "edge")
-        n = out.shape[axis]
-        out = sum(w * np.take(padded, np.arange(k, k + n), axis=axis) for k, w in enumerate(taps))
+        moved = np.moveaxis(out, axis, 0)  # filter along the first axis: slices are views, not copies
+        n = moved.shape[0]
+        padded = np.pad(moved, [(r, r)] + [(0, 0)] * (moved.ndim - 1), mode="reflect" if n > r else "edge")
+        acc = taps[0] * padded[:n]
+        for k in range(1, len(taps)):
+            acc += taps[k] * padded[k : k + n]
+        out = np.moveaxis(acc, 0, axis)
     return out
 
 
