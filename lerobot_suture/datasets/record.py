@@ -63,6 +63,7 @@ from lerobot_suture.datasets.features import FPS, ROBOT_TYPE, dataset_features
 from lerobot_suture.datasets.hub import HubPushError, check_hub_access, push_dataset
 from lerobot_suture.datasets.record_config import COMMAND, RecordConfig, parse_config
 from lerobot_suture.datasets.resume import prepare_root
+from lerobot_suture.datasets.scheduling import normal_scheduling
 from lerobot_suture.datasets.split import info_splits, split_episodes
 from lerobot_suture.datasets.stop_signals import RecordingInterrupted, StopSignals
 from lerobot_suture.datasets.video import resolve_video_backend
@@ -132,7 +133,8 @@ def _finish(dataset, root: Path, log: dict, cfg: RecordConfig) -> None:
 
     from lerobot_suture.datasets.card import write_dataset_card
 
-    dataset.finalize()
+    with normal_scheduling():
+        dataset.finalize()
     images = root / "images"  # LeRobot's frame staging area, left empty after video encoding
     if images.is_dir() and not any(p.is_file() for p in images.rglob("*")):
         shutil.rmtree(images)
@@ -254,7 +256,8 @@ def record(cfg: RecordConfig) -> RecordSummary:
                     dirty = True
                     for frame in result.frames:
                         dataset.add_frame(frame)
-                    dataset.save_episode()
+                    with normal_scheduling():  # the video encoder may leave the thread real-time
+                        dataset.save_episode()
                     info = result.info
                     log["episodes"].append(
                         {
@@ -270,7 +273,8 @@ def record(cfg: RecordConfig) -> RecordSummary:
                     dirty = False
                     since_checkpoint += 1
                     if since_checkpoint >= cfg.checkpoint_every and len(log["episodes"]) < cfg.num_episodes:
-                        dataset.finalize()
+                        with normal_scheduling():
+                            dataset.finalize()
                         metadata.write_checkpoint(root, log)
                         dataset = open_dataset(False)
                         since_checkpoint = 0

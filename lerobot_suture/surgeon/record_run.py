@@ -41,6 +41,7 @@ from lerobot_suture.datasets.features import (
     TASK,
     dataset_features,
 )
+from lerobot_suture.datasets.scheduling import normal_scheduling
 from lerobot_suture.surgeon.takeover import Actor
 
 IS_INTERVENTION_KEY = "complementary_info.is_intervention"
@@ -122,10 +123,12 @@ class RunRecorder:
         self._keypoints = np.asarray(env.unwrapped.needle_keypoints_in_image(), dtype=np.float32)
 
     def save_episode(self) -> None:
-        self.dataset.save_episode()
+        with normal_scheduling():  # the video encoder may leave the thread real-time
+            self.dataset.save_episode()
 
     def finalize(self) -> None:
-        self.dataset.finalize()
+        with normal_scheduling():
+            self.dataset.finalize()
 
 
 def label_demonstrations(dataset, output_dir: str | Path, repo_id: str):
