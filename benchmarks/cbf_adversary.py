@@ -44,32 +44,13 @@ def tiny_off_distribution_policy(directory: Path) -> Path:
     """An untrained tiny ensemble whose normalization comes from the expert's poses: its actions are in the
     right units and range, and it knows nothing of the task (off distribution everywhere)."""
     import torch
-    from lerobot_policy_ensemble_diffusion.testing import save_untrained_policy, tiny_config
+    from lerobot_policy_ensemble_diffusion.testing import (
+        expert_dataset_stats,
+        save_untrained_policy,
+        tiny_config,
+    )
 
-    from lerobot_suture.expert import ScriptedExpert
-    from lerobot_suture.rollout_expert import iter_expert_steps
-    from lerobot_suture.sim.suture_env import SutureEnv
-
-    env, expert, poses = SutureEnv(obs_type="state"), ScriptedExpert(), []
-    for seed in range(2):
-        obs, _ = env.reset(seed=seed)
-        poses += [step.obs["agent_pos"] for step in iter_expert_steps(env, expert, obs)]
-    env.close()
-    poses = np.asarray(poses, dtype=np.float64)
-    pose_stats = {
-        "min": poses.min(0) - 1e-3,
-        "max": poses.max(0) + 1e-3,
-        "mean": poses.mean(0),
-        "std": poses.std(0) + 1e-3,
-    }
-    image_stats = {
-        k: np.full((3, 1, 1), v) for k, v in {"min": 0.0, "max": 1.0, "mean": 0.5, "std": 0.25}.items()
-    }
-    stats = {
-        "observation.state": pose_stats,
-        "action": dict(pose_stats),
-        "observation.images.endoscope": image_stats,
-    }
+    stats = expert_dataset_stats(n_seeds=2)
     torch.manual_seed(0)
     config = tiny_config(n_members=2, num_inference_steps=3, noise_scheduler_type="DDIM")
     return save_untrained_policy(config, stats, directory / "pretrained_model")

@@ -124,6 +124,16 @@ def _extras(cfg: SessionConfig, env_kwargs: dict):
     return recorder, view
 
 
+def _close(recorder, view, surgeon, env) -> None:
+    """Finish what a session opened, the recording first: its finished episodes are kept."""
+    if recorder is not None:
+        recorder.finalize()
+    if view is not None:
+        view.close()
+    surgeon.close()
+    env.close()
+
+
 def surgeon_run(cfg: SurgeonRunConfig) -> list:
     from lerobot_suture.policy_runner import PolicyRunner, env_kwargs_for_policy
     from lerobot_suture.surgeon.session import run_surgeon_episode
@@ -146,12 +156,7 @@ def surgeon_run(cfg: SurgeonRunConfig) -> list:
                 "episode %d (seed %d): success %s; %s", k, log.seed, log.success, handovers or "no handover"
             )
     finally:
-        if recorder is not None:
-            recorder.finalize()
-        if view is not None:
-            view.close()
-        surgeon.close()
-        env.close()
+        _close(recorder, view, surgeon, env)
     return logs
 
 
@@ -185,12 +190,7 @@ def teleop(cfg: TeleopConfig) -> list[bool]:
                 recorder.save_episode()
             logger.info("episode %d (seed %d): success %s", k, cfg.seed + k, successes[-1])
     finally:
-        if recorder is not None:
-            recorder.finalize()
-        if view is not None:
-            view.close()
-        surgeon.close()
-        env.close()
+        _close(recorder, view, surgeon, env)
     return successes
 
 
