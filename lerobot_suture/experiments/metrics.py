@@ -135,6 +135,31 @@ def summarize(values: Sequence[float]) -> dict:
     }
 
 
+def failure_prediction_balanced_accuracy(
+    first_alarms: Sequence[int | None], failure_steps: Sequence[int | None]
+) -> float:
+    """Does an alarm come before a failure, and stay away from successes? Balanced accuracy over episodes.
+
+    Per episode, ``first_alarms`` is its first alarmed control step (None: none) and ``failure_steps`` the
+    step its failure is known (the episode's last step for a failed episode, None for a success). A failed
+    episode counts as predicted when its first alarm comes at or before its failure step; a successful
+    one as a false alarm when it alarms at all. Returns (TPR + TNR) / 2, 0.5 for a detector that alarms
+    at random, or at always or never; nan when either class is missing (one rate alone would be
+    reported as a balanced one).
+    """
+    if len(first_alarms) != len(failure_steps):
+        raise ValueError(
+            f"Need one first alarm per episode. Got {len(first_alarms)} for {len(failure_steps)} episodes."
+        )
+    hits = [
+        a is not None and a <= f for a, f in zip(first_alarms, failure_steps, strict=True) if f is not None
+    ]
+    quiet = [a is None for a, f in zip(first_alarms, failure_steps, strict=True) if f is None]
+    if not hits or not quiet:
+        return math.nan
+    return float(0.5 * (np.mean(hits) + np.mean(quiet)))
+
+
 def alarm_rates(alarm_sequences: Sequence[Sequence[bool]]) -> dict:
     """Per-step and per-episode false-alarm rates over in-distribution episodes."""
     steps = sum(len(a) for a in alarm_sequences)

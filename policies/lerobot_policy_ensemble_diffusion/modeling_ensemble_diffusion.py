@@ -122,6 +122,9 @@ class EnsembleDiffusionPolicy(PreTrainedPolicy):
         # moved by `.to()`); rebuilt when the members' tensors change.
         self._fused_cache: dict = {}
         self.last_prediction: EnsemblePrediction | None = None
+        # What failure detectors read besides the prediction (`enable_feature_capture`); off by default.
+        self._capture: tuple[int, torch.Generator] | None = None
+        self.last_features: dict[str, Tensor] | None = None
         self.reset()
 
     # ---- bookkeeping --------------------------------------------------------------------------------
@@ -285,18 +288,58 @@ class EnsembleDiffusionPolicy(PreTrainedPolicy):
         if self.config.batched_inference and not self.training:
             fused = self._fused_members()
             global_cond = fused.encode(batch)  # (B, N, G)
-            return fused.sample(global_cond, samples_per_member=k, noise=noise, generator=generator)
-        samples = []
+            out = fused.sample(global_cond, samples_per_member=k, noise=noise, generator=generator)
+            self._capture_features(global_cond)
+            return out
+        samples, conds = [], []
         for i, member in enumerate(self.members):
             model = member.diffusion
             global_cond = model._prepare_global_conditioning(batch)  # (B, G)
+            conds.append(global_cond)
             global_cond = global_cond.repeat_interleave(k, dim=0)  # (B*K, G)
             member_noise = None if noise is None else noise[:, i].reshape(batch_size * k, t_len, a)
             chunk = model.conditional_sample(
                 batch_size * k, global_cond=global_cond, generator=generator, noise=member_noise
             )  # (B*K, T, A)
             samples.append(chunk.view(batch_size, k, t_len, a))
+        self._capture_features(torch.stack(conds, dim=1))  # (B, N, G)
         return torch.stack(samples, dim=1)  # (B, N, K, T, A)
+
+    # ---- feature capture for failure detectors ------------------------------------------------------
+
+    def enable_feature_capture(self, single_member_samples: int = 0, seed: int = 0) -> None:
+        """Keep, at each prediction, what failure detectors read besides the action samples.
+
+        `self.last_features` then holds "embedding": (B, N, G) each member's observation embedding (its
+        global conditioning: state and image features over the observation steps) and, with
+        `single_member_samples` = K' > 0, "single_member_samples": (B, K', T, A) K' further chunks of
+        member 0 in normalized action space (one diffusion policy's own spread). The extra chunks draw from
+        a generator of their own, seeded with `seed`, after the ensemble has sampled: the actions and the
+        global random state are the same as without capture.
+        """
+        if single_member_samples < 0:
+            raise ValueError(f"`single_member_samples` must be >= 0. Got {single_member_samples}.")
+        device = next(self.parameters()).device
+        self._capture = (single_member_samples, torch.Generator(device=device).manual_seed(seed))
+        self.last_features = None
+
+    def disable_feature_capture(self) -> None:
+        self._capture = None
+        self.last_features = None
+
+    def _capture_features(self, global_cond: Tensor) -> None:
+        if self._capture is None:
+            return
+        k, generator = self._capture
+        features = {"embedding": global_cond.detach().clone()}  # (B, N, G)
+        if k > 0:
+            b = global_cond.shape[0]
+            t_len, a = self.config.horizon, self.config.action_feature.shape[0]
+            chunk = self.members[0].diffusion.conditional_sample(
+                b * k, global_cond=global_cond[:, 0].repeat_interleave(k, dim=0), generator=generator
+            )  # (B*K', T, A)
+            features["single_member_samples"] = chunk.view(b, k, t_len, a)
+        self.last_features = features
 
     @torch.no_grad()
     def predict_action_distribution(

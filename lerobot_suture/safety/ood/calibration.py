@@ -40,6 +40,7 @@ __all__ = [
     "CalibrationModel",
     "MIN_CALIBRATION_SAMPLES",
     "OODCalibration",
+    "conformal_episode_threshold",
     "default_model",
     "episode_labels",
     "fit_calibration",
@@ -154,6 +155,30 @@ def episode_labels(episode_ids: ArrayLike, scores: np.ndarray) -> tuple[np.ndarr
 def _quantile_rank(n: int, alpha: float) -> int:
     """k = ceil((n + 1)(1 - alpha)), guarded against float round-up at exact integers."""
     return math.ceil((n + 1) * (1.0 - alpha) - 1e-9)
+
+
+def conformal_episode_threshold(episode_maxima: ArrayLike, alpha: float) -> float:
+    """The ``per_episode`` threshold of :func:`fit_calibration` at h = 1, for any score: the
+    split-conformal quantile M_(k), k = ceil((n + 1)(1 - alpha)), of n I.D. episode maxima.
+
+    A fresh exchangeable I.D. episode's maximum exceeds it with probability <= alpha, whatever the score's
+    distribution, which is why detectors with unlike scores can share it.
+
+    Raises:
+        ValueError: On non-finite maxima, ``alpha`` out of (0, 0.5) or fewer than
+            :func:`min_calibration_episodes` episodes.
+    """
+    maxima = np.asarray(episode_maxima, dtype=np.float64)
+    _check_alpha(alpha)
+    if maxima.ndim != 1 or not np.all(np.isfinite(maxima)):
+        raise ValueError(f"`episode_maxima` must be a finite 1-D array, one per episode. Got {maxima!r}.")
+    n_min = min_calibration_episodes(alpha)
+    if maxima.size < n_min:
+        raise ValueError(
+            f"A per-episode threshold at `alpha`={alpha} needs at least {n_min} I.D. episodes. Got "
+            f"{maxima.size}; record more episodes (>= 100 recommended) or raise `alpha`."
+        )
+    return float(np.sort(maxima)[_quantile_rank(maxima.size, alpha) - 1])
 
 
 @dataclass(frozen=True)
