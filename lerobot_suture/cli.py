@@ -35,6 +35,10 @@ SUBCOMMANDS = {
         "lerobot_suture.experiments.score_study",
         "compare the gate's uncertainty scores on validation seeds",
     ),
+    "benchmark-ood": (
+        "lerobot_suture.experiments.benchmark_ood",
+        "compare failure detectors (the gate's score and the field's) on the same rollouts",
+    ),
     "reproduce": (
         "lerobot_suture.reproduce",
         "record, train, calibrate and run the experiments with the reference recipe; compare the table",

@@ -1,0 +1,89 @@
+"""``lerobot-suture benchmark-ood`` end to end at toy scale: every file it writes and what is in it, and
+a second run that reuses the saved rollout parts."""
+
+import json
+import math
+import shutil
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from lerobot_suture.calibrate import PolicyPathConfig
+from lerobot_suture.cli import main as cli_main
+from lerobot_suture.detectors import DETECTOR_NAMES
+from lerobot_suture.experiments.benchmark_ood import SCENARIOS, BenchmarkOODConfig
+
+
+def test_benchmark_config_names_the_field_and_range(tiny_policy_dir):
+    with pytest.raises(ValueError, match="`calibration_episodes` >= 19"):
+        BenchmarkOODConfig(policy=PolicyPathConfig(path=tiny_policy_dir), calibration_episodes=5)
+    with pytest.raises(ValueError, match="`detectors` must name some of"):
+        BenchmarkOODConfig(policy=PolicyPathConfig(path=tiny_policy_dir), detectors=["nope"])
+    with pytest.raises(ValueError, match="`single_member_samples` must be >= 2"):
+        BenchmarkOODConfig(policy=PolicyPathConfig(path=tiny_policy_dir), single_member_samples=1)
+
+
+def test_benchmark_ood_writes_table_numbers_figures_and_resumes(tiny_policy_dir, tmp_path, caplog):
+    policy = tmp_path / "policy"
+    shutil.copytree(tiny_policy_dir, policy)
+    out = tmp_path / "bench"
+    args = [
+        "benchmark-ood",
+        f"--policy.path={policy}",
+        f"--output_dir={out}",
+        "--fit_episodes=2",
+        "--calibration_episodes=2",
+        "--nominal_episodes=2",
+        "--runs_per_scenario=1",
+        "--alpha=0.4",
+        "--single_member_samples=2",
+        "--batch_envs=2",
+    ]
+    cli_main(args)
+    result = json.loads((out / "detectors.json").read_text())
+    assert list(result["detectors"]) == list(DETECTOR_NAMES)
+    assert result["episodes"] == {"fit": 2, "calibration": 2, "nominal": 2, **dict.fromkeys(SCENARIOS, 1)}
+    for name, r in result["detectors"].items():
+        assert "error" not in r, (name, r.get("error"))
+        assert math.isfinite(r["threshold"]) and r["cost"]["ms_per_prediction"] > 0
+        assert 0 < r["cost"]["ms_per_control_step"] < r["cost"]["ms_per_prediction"]
+        assert r["false_alarms"]["episodes"] == 2
+        assert set(r["scenarios"]) == set(SCENARIOS)
+        for m in r["scenarios"].values():
+            assert 0 <= m["auroc"] <= 1 and m["runs"] == 1
+            assert {
+                "tpr_at_threshold",
+                "detection_delay_steps",
+                "failure_prediction_balanced_accuracy",
+            } <= set(m)
+    # The table: the summary row of every detector, then one table per scenario with a row each.
+    table = (out / "detectors.md").read_text()
+    for scenario in SCENARIOS:
+        assert f"## {scenario}" in table
+    rows = [
+        line for line in table.splitlines() if line.startswith("| ") and not line.startswith("| detector")
+    ]
+    assert len(rows) == len(DETECTOR_NAMES) * (1 + len(SCENARIOS))
+    cost = float(rows[0].split(" | ")[4])
+    assert cost == pytest.approx(
+        result["detectors"][DETECTOR_NAMES[0]]["cost"]["ms_per_prediction"], abs=0.006
+    )
+    # One figure per detector, drawn (not one flat colour), with coloured traces.
+    assert result["figures"] == {n: f"detector_{n}.png" for n in DETECTOR_NAMES}
+    for name in DETECTOR_NAMES:
+        image = np.asarray(Image.open(out / f"detector_{name}.png").convert("RGB"), dtype=float)
+        assert image.mean(axis=2).std() > 5, f"detector_{name}.png is blank"
+        assert (image.max(axis=2) - image.min(axis=2) > 60).mean() > 0.001, f"no coloured trace in {name}"
+    parts = sorted(p.name for p in (out / "parts").iterdir())
+    assert parts == sorted(
+        f"{n}.{ext}" for n in ("fit", "calibration", "nominal", *SCENARIOS) for ext in ("json", "npz")
+    )
+    # A second run rolls nothing out again: every part is reused, and the numbers are the same.
+    caplog.set_level("INFO")
+    cli_main(args[:-1] + ["--batch_envs=2", "--detectors=[ensemble_covariance,stac]"])
+    assert sum("reusing" in r.getMessage() for r in caplog.records) == 7
+    again = json.loads((out / "detectors.json").read_text())
+    assert list(again["detectors"]) == ["ensemble_covariance", "stac"]
+    for name in again["detectors"]:
+        assert again["detectors"][name]["scenarios"] == result["detectors"][name]["scenarios"]
