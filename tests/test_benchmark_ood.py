@@ -20,7 +20,7 @@ def test_benchmark_config_names_the_field_and_range(tiny_policy_dir):
         BenchmarkOODConfig(policy=PolicyPathConfig(path=tiny_policy_dir), calibration_episodes=5)
     with pytest.raises(ValueError, match="`detectors` must name some of"):
         BenchmarkOODConfig(policy=PolicyPathConfig(path=tiny_policy_dir), detectors=["nope"])
-    with pytest.raises(ValueError, match="`single_member_samples` must be >= 2"):
+    with pytest.raises(ValueError, match="`single_member_samples` must be 0 .member 0's own chunks. or >= 2"):
         BenchmarkOODConfig(policy=PolicyPathConfig(path=tiny_policy_dir), single_member_samples=1)
 
 
@@ -87,3 +87,10 @@ def test_benchmark_ood_writes_table_numbers_figures_and_resumes(tiny_policy_dir,
     assert list(again["detectors"]) == ["ensemble_covariance", "stac"]
     for name in again["detectors"]:
         assert again["detectors"][name]["scenarios"] == result["detectors"][name]["scenarios"]
+
+
+def test_benchmark_asks_for_extra_chunks_when_members_draw_one(tiny_policy_dir, tmp_path, capsys):
+    with pytest.raises(SystemExit) as exc:
+        cli_main(["benchmark-ood", f"--policy.path={tiny_policy_dir}", f"--output_dir={tmp_path}"])
+    assert exc.value.code == 2 and "--single_member_samples=8" in capsys.readouterr().err
+    assert not (tmp_path / "parts").exists()  # refused before any rollout

@@ -57,7 +57,8 @@ class BenchmarkOODConfig:
     runs_per_scenario: runs of each of the four scenarios, >= 1.
     alpha: per-episode false-alarm rate each threshold is fitted for, in (0, 0.5).
     single_member_samples: chunks member 0 draws on its own per prediction for the aleatoric-only
-        detector, >= 2.
+        detector, >= 2; 0 reads member 0's own chunks of the ensemble prediction instead (no extra cost;
+        needs the policy's ``uncertainty_samples_per_member`` >= 2).
     detectors: which detectors to compare (all by default).
     batch_envs: envs run in lockstep with one batched policy call per step, >= 1.
     device: torch device of the policy.
@@ -72,7 +73,7 @@ class BenchmarkOODConfig:
     nominal_episodes: int = 40
     runs_per_scenario: int = 12
     alpha: float = 0.05
-    single_member_samples: int = 8
+    single_member_samples: int = 0
     detectors: list[str] = field(default_factory=lambda: list(DETECTOR_NAMES))
     batch_envs: int = 8
     device: str = "cpu"
@@ -83,8 +84,11 @@ class BenchmarkOODConfig:
         for key in ("fit_episodes", "nominal_episodes", "runs_per_scenario", "batch_envs"):
             if getattr(self, key) < 1:
                 raise ValueError(f"`{key}` must be >= 1. Got {getattr(self, key)}.")
-        if self.single_member_samples < 2:
-            raise ValueError(f"`single_member_samples` must be >= 2. Got {self.single_member_samples}.")
+        if self.single_member_samples < 0 or self.single_member_samples == 1:
+            raise ValueError(
+                f"`single_member_samples` must be 0 (member 0's own chunks) or >= 2. Got "
+                f"{self.single_member_samples}."
+            )
         unknown = [d for d in self.detectors if d not in DETECTOR_NAMES]
         if unknown or not self.detectors:
             raise ValueError(f"`detectors` must name some of {list(DETECTOR_NAMES)}. Got {self.detectors}.")
@@ -134,13 +138,15 @@ class CapturingRunner:
         actions = self.runner.act_batch(observations)
         if self.policy.ood_status(0)["new_prediction"]:
             features = self.policy.last_features
+            samples = self.policy.last_prediction.normalized.samples  # (B, N, K, T, A)
+            single = features.get("single_member_samples", samples[:, 0])  # (B, K', T, A)
             self._batch.append(
                 (
                     self._calls,
                     {
-                        "samples": _numpy(self.policy.last_prediction.normalized.samples),  # (B, N, K, T, A)
+                        "samples": _numpy(samples),
                         "embedding": _numpy(features["embedding"]),  # (B, N, G)
-                        "single_member_samples": _numpy(features["single_member_samples"]),  # (B, K', T, A)
+                        "single_member_samples": _numpy(single),
                     },
                 )
             )
@@ -341,6 +347,12 @@ def run_benchmark(cfg: BenchmarkOODConfig) -> dict:
             "ensemble_diffusion policy, whose members' samples and embeddings the detectors read."
         )
     base.policy.config.ood.enforce = False  # report, never stop a rollout
+    k = base.policy.config.uncertainty_samples_per_member
+    if cfg.single_member_samples == 0 and k < 2 and "single_member_spread" in cfg.detectors:
+        raise ValueError(
+            f"The policy draws {k} chunk per member, too few for one member's spread: pass "
+            "`--single_member_samples=8` (member 0 then draws 8 more) or leave out `single_member_spread`."
+        )
     runner = CapturingRunner(base, cfg.single_member_samples)
     env_kwargs = env_kwargs_for_policy(base.policy.config)
     parts_dir = cfg.output_dir / PARTS_DIR
