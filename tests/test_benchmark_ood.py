@@ -87,6 +87,11 @@ def test_benchmark_ood_writes_table_numbers_figures_and_resumes(tiny_policy_dir,
     assert list(again["detectors"]) == ["ensemble_covariance", "stac"]
     for name in again["detectors"]:
         assert again["detectors"][name]["scenarios"] == result["detectors"][name]["scenarios"]
+    # A policy retrained in place does not match the saved parts: they are run again.
+    (policy / "model.safetensors").touch()
+    caplog.clear()
+    cli_main(args + ["--detectors=[epistemic]"])
+    assert not any("reusing" in r.getMessage() for r in caplog.records)
 
 
 def test_benchmark_asks_for_extra_chunks_when_members_draw_one(tiny_policy_dir, tmp_path, capsys):

@@ -336,6 +336,14 @@ def _mean(values: list[float]) -> float:
 # ---- the command --------------------------------------------------------------------------------------
 
 
+def policy_fingerprint(directory: Path) -> dict[str, list[int]]:
+    """Size and modification time of each file of a policy directory: a policy retrained or recalibrated
+    in place no longer matches the saved parts, which are then run again."""
+    return {
+        f.name: [f.stat().st_size, f.stat().st_mtime_ns] for f in sorted(directory.iterdir()) if f.is_file()
+    }
+
+
 def run_benchmark(cfg: BenchmarkOODConfig) -> dict:
     from lerobot_suture.policy_runner import PolicyRunner, env_kwargs_for_policy
 
@@ -361,6 +369,7 @@ def run_benchmark(cfg: BenchmarkOODConfig) -> dict:
         # What the rollouts depend on; a part saved under other settings is run again.
         meta = {
             "policy_path": str(Path(cfg.policy.path).resolve()),
+            "policy_files": policy_fingerprint(Path(cfg.policy.path)),
             "scenario": scenario,
             "seeds": seeds,
             "batch_envs": cfg.batch_envs,
