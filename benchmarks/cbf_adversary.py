@@ -43,17 +43,11 @@ BAR_EPISODES = 1000
 def tiny_off_distribution_policy(directory: Path) -> Path:
     """An untrained tiny ensemble whose normalization comes from the expert's poses: its actions are in the
     right units and range, and it knows nothing of the task (off distribution everywhere)."""
-    import torch
-    from lerobot_policy_ensemble_diffusion.testing import (
-        expert_dataset_stats,
-        save_untrained_policy,
-        tiny_config,
-    )
+    from lerobot_policy_ensemble_diffusion.testing import save_untrained_expert_policy
 
-    stats = expert_dataset_stats(n_seeds=2)
-    torch.manual_seed(0)
-    config = tiny_config(n_members=2, num_inference_steps=3, noise_scheduler_type="DDIM")
-    return save_untrained_policy(config, stats, directory / "pretrained_model")
+    return save_untrained_expert_policy(
+        directory / "pretrained_model", n_members=2, num_inference_steps=3, noise_scheduler_type="DDIM"
+    )
 
 
 def quantiles_mm(values: list[float]) -> dict[str, float]:

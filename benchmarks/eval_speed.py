@@ -28,11 +28,7 @@ from pathlib import Path
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 import torch  # noqa: E402
-from lerobot_policy_ensemble_diffusion.testing import (  # noqa: E402
-    expert_dataset_stats,
-    save_untrained_policy,
-    tiny_config,
-)
+from lerobot_policy_ensemble_diffusion.testing import save_untrained_expert_policy  # noqa: E402
 
 # The demo's toy ensemble (lerobot_suture/demo.py): 2 members, 32 px, a two-level U-Net, DDIM with 5 steps.
 DEMO_POLICY = {
@@ -46,8 +42,7 @@ CONFIGURATIONS = [(1, False), (2, False), (2, True)]
 
 
 def demo_sized_policy(directory: Path) -> Path:
-    torch.manual_seed(0)
-    return save_untrained_policy(tiny_config(**DEMO_POLICY), expert_dataset_stats(n_seeds=2), directory)
+    return save_untrained_expert_policy(directory, **DEMO_POLICY)
 
 
 def run_eval(

@@ -23,14 +23,11 @@ def tiny_policy_dir(tmp_path_factory) -> Path:
 
     Its statistics come from the scripted expert, so its actions and hold poses are in the right units.
     """
-    import torch
-    from lerobot_policy_ensemble_diffusion.testing import (
-        expert_dataset_stats,
-        save_untrained_policy,
-        tiny_config,
-    )
+    from lerobot_policy_ensemble_diffusion.testing import save_untrained_expert_policy
 
-    stats = expert_dataset_stats(n_seeds=2)
-    torch.manual_seed(0)
-    config = tiny_config(n_members=2, num_inference_steps=3, noise_scheduler_type="DDIM")
-    return save_untrained_policy(config, stats, tmp_path_factory.mktemp("tiny_policy") / "pretrained_model")
+    return save_untrained_expert_policy(
+        tmp_path_factory.mktemp("tiny_policy") / "pretrained_model",
+        n_members=2,
+        num_inference_steps=3,
+        noise_scheduler_type="DDIM",
+    )

@@ -137,6 +137,15 @@ def expert_dataset_stats(n_seeds: int = 2) -> dict[str, dict[str, np.ndarray]]:
     return {OBS_STATE: pose_stats, ACTION: dict(pose_stats), IMAGE_KEY: image_stats}
 
 
+def save_untrained_expert_policy(directory: str | Path, seed: int = 0, **config_overrides) -> Path:
+    """An untrained tiny ensemble (`tiny_config(**config_overrides)`, torch seeded with `seed`) normalized
+    with the scripted expert's statistics, saved to `directory` as `lerobot-train` saves one: its actions
+    and hold poses are in metres, and it knows nothing of the task."""
+    stats = expert_dataset_stats(n_seeds=2)
+    torch.manual_seed(seed)
+    return save_untrained_policy(tiny_config(**config_overrides), stats, directory)
+
+
 def fake_dataset_stats(seed: int = 0) -> dict[str, dict[str, np.ndarray]]:
     """Dataset-like statistics for the suture features (enough for MIN_MAX / MEAN_STD normalization)."""
     rng = np.random.default_rng(seed)
