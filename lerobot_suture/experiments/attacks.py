@@ -201,6 +201,17 @@ def lead_in(env: CBFActionWrapper, seed: int, start_delay: int, episode: AttackE
     return None, max_steps
 
 
+def _attack(env: CBFActionWrapper, episode: AttackEpisode, obs, n_steps: int, act) -> None:
+    """Up to ``n_steps`` control steps of ``act(k, observation) -> action``, each recorded in ``episode``."""
+    for k in range(n_steps):
+        obs, _, terminated, truncated, info = env.step(act(k, obs))
+        episode.attack_steps += 1
+        episode.record(env, info)
+        episode.released = episode.released or not info["needle_grasped"]
+        if terminated or truncated:
+            break
+
+
 def run_attack_episode(
     family: str,
     seed: int,
@@ -228,13 +239,7 @@ def run_attack_episode(
         if obs is None:
             return episode
         attacker.begin(env)
-        for k in range(min(attack_steps, max_steps - steps)):
-            _, _, terminated, truncated, info = env.step(attacker.act(env, k))
-            episode.attack_steps += 1
-            episode.record(env, info)
-            episode.released = episode.released or not info["needle_grasped"]
-            if terminated or truncated:
-                break
+        _attack(env, episode, obs, min(attack_steps, max_steps - steps), lambda k, _: attacker.act(env, k))
     finally:
         env.close()
     return episode
@@ -269,13 +274,7 @@ def run_policy_attack_episode(
         if obs is None:
             return episode
         runner.reset()
-        for _ in range(min(attack_steps, max_steps - steps)):
-            obs, _, terminated, truncated, info = env.step(runner.act(obs))
-            episode.attack_steps += 1
-            episode.record(env, info)
-            episode.released = episode.released or not info["needle_grasped"]
-            if terminated or truncated:
-                break
+        _attack(env, episode, obs, min(attack_steps, max_steps - steps), lambda _, o: runner.act(o))
     finally:
         env.close()
     return episode
