@@ -148,13 +148,10 @@ def collect_scores(
 
 
 def run_calibration(cfg: CalibrateConfig) -> dict:
-    from lerobot_suture.policy_runner import PolicyRunner, env_kwargs_for_policy
+    from lerobot_suture.policy_runner import env_kwargs_for_policy, reporting_runner
 
-    runner = PolicyRunner.from_pretrained(cfg.policy.path, cfg.device)
+    runner = reporting_runner(cfg.policy.path, cfg.device)
     config = runner.policy.config
-    if config.ood.enforce:
-        # Calibrating needs the gate to report, not to stop the rollouts.
-        config.ood.enforce = False
     choice = cfg.score_choice()
     apply_score_choice(config, choice)
     env_kwargs = env_kwargs_for_policy(config)

@@ -114,6 +114,25 @@ class PolicyRunner:
         return action.to("cpu").numpy().astype(np.float32)
 
 
+def reporting_runner(
+    policy_path: str | Path, device: str = "cpu", needs: str | None = None, needed_for: str = ""
+) -> PolicyRunner:
+    """A runner whose O.O.D. gate reports and never stops a rollout: calibration, experiments and studies
+    read the gate's scores over whole episodes.
+
+    Args:
+        needs: an attribute the policy must have (a capability of ``ensemble_diffusion``), or None.
+        needed_for: the error's end when it lacks it: "the <command> needs an ensemble_diffusion policy, ...".
+    """
+    runner = PolicyRunner.from_pretrained(policy_path, device)
+    if needs is not None and not hasattr(runner.policy, needs):
+        raise ValueError(
+            f"The policy at {policy_path} is a {runner.policy.config.type!r} policy; {needed_for}"
+        )
+    runner.policy.config.ood.enforce = False
+    return runner
+
+
 def _stack(observations: list[dict]) -> dict:
     """Env observations (nested dicts of arrays) stacked along a new leading batch axis."""
     first = observations[0]

@@ -345,16 +345,16 @@ def policy_fingerprint(directory: Path) -> dict[str, list[int]]:
 
 
 def run_benchmark(cfg: BenchmarkOODConfig) -> dict:
-    from lerobot_suture.policy_runner import PolicyRunner, env_kwargs_for_policy
+    from lerobot_suture.policy_runner import env_kwargs_for_policy, reporting_runner
 
     cfg.output_dir.mkdir(parents=True, exist_ok=True)
-    base = PolicyRunner.from_pretrained(cfg.policy.path, cfg.device)
-    if not hasattr(base.policy, "enable_feature_capture"):
-        raise ValueError(
-            f"The policy at {cfg.policy.path} is a {base.policy.config.type!r} policy; the benchmark needs an "
-            "ensemble_diffusion policy, whose members' samples and embeddings the detectors read."
-        )
-    base.policy.config.ood.enforce = False  # report, never stop a rollout
+    base = reporting_runner(
+        cfg.policy.path,
+        cfg.device,
+        needs="enable_feature_capture",
+        needed_for="the benchmark needs an ensemble_diffusion policy, whose members' samples and embeddings "
+        "the detectors read.",
+    )
     k = base.policy.config.uncertainty_samples_per_member
     if cfg.single_member_samples == 0 and k < 2 and "single_member_spread" in cfg.detectors:
         raise ValueError(

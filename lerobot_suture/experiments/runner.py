@@ -245,18 +245,17 @@ def enforced(cfg: ExperimentsConfig, runner, env_kwargs: dict) -> dict:
 
 def run_experiments(cfg: ExperimentsConfig) -> dict:
     from lerobot_suture.experiments.cbf_offline import CBFReplayConfig, run_cbf_replay
-    from lerobot_suture.policy_runner import PolicyRunner, env_kwargs_for_policy
+    from lerobot_suture.policy_runner import env_kwargs_for_policy, reporting_runner
 
     started = time.perf_counter()
     cfg.output_dir.mkdir(parents=True, exist_ok=True)
-    runner = PolicyRunner.from_pretrained(cfg.policy.path, cfg.device)
+    runner = reporting_runner(cfg.policy.path, cfg.device)  # the paper's experiments report the gate
     policy = runner.policy
     if policy.ood_calibration is None:
         raise ValueError(
             f"The policy at {cfg.policy.path} has no O.O.D. calibration. Run `lerobot-suture calibrate "
             f"--policy.path={cfg.policy.path}` first."
         )
-    policy.config.ood.enforce = False  # the paper's experiments report the gate, they do not enforce it
     env_kwargs = env_kwargs_for_policy(policy.config)
     threshold = policy.ood_calibration.threshold
 

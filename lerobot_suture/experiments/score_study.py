@@ -206,16 +206,16 @@ def evaluate_choice(
 
 
 def run_score_study(cfg: ScoreStudyConfig) -> dict:
-    from lerobot_suture.policy_runner import PolicyRunner, env_kwargs_for_policy
+    from lerobot_suture.policy_runner import env_kwargs_for_policy, reporting_runner
 
     cfg.output_dir.mkdir(parents=True, exist_ok=True)
-    base = PolicyRunner.from_pretrained(cfg.policy.path, cfg.device)
-    if not hasattr(base.policy, "rescore"):
-        raise ValueError(
-            f"The policy at {cfg.policy.path} is a {base.policy.config.type!r} policy; the score study needs an "
-            "ensemble_diffusion policy, which can score a prediction in several ways."
-        )
-    base.policy.config.ood.enforce = False  # report, never stop a rollout
+    base = reporting_runner(
+        cfg.policy.path,
+        cfg.device,
+        needs="rescore",
+        needed_for="the score study needs an ensemble_diffusion policy, which can score a prediction in "
+        "several ways.",
+    )
     choices = choice_grid(base.policy)
     runner = RescoringRunner(base, choices)
     env_kwargs = env_kwargs_for_policy(base.policy.config)
