@@ -44,6 +44,7 @@ from .batched_members import FusedDiffusionEnsemble
 from .compatibility import check_checkpoint_matches, check_features_match, check_observation
 from .configuration_ensemble_diffusion import NEEDLE_KEYPOINTS_KEY, SCORE_CHOICES, EnsembleDiffusionConfig
 from .ensemble_stats import compute_ensemble_stats
+from .feature_capture import FeatureCapture
 from .members import bootstrap_batch, captured_outputs, image_encoders, make_member
 from .needle_keypoints import estimate_needle_keypoints, make_needle_heads, needle_keypoint_error
 from .normalization import action_affine_from_stats, saved_normalizer_stats
@@ -123,8 +124,7 @@ class EnsembleDiffusionPolicy(PreTrainedPolicy):
         self._fused_cache: dict = {}
         self.last_prediction: EnsemblePrediction | None = None
         # What failure detectors read besides the prediction (`enable_feature_capture`); off by default.
-        self._capture: tuple[int, torch.Generator] | None = None
-        self.last_features: dict[str, Tensor] | None = None
+        self._capture: FeatureCapture | None = None
         self.reset()
 
     # ---- bookkeeping --------------------------------------------------------------------------------
@@ -308,38 +308,23 @@ class EnsembleDiffusionPolicy(PreTrainedPolicy):
     # ---- feature capture for failure detectors ------------------------------------------------------
 
     def enable_feature_capture(self, single_member_samples: int = 0, seed: int = 0) -> None:
-        """Keep, at each prediction, what failure detectors read besides the action samples.
-
-        `self.last_features` then holds "embedding": (B, N, G) each member's observation embedding (its
-        global conditioning: state and image features over the observation steps) and, with
-        `single_member_samples` = K' > 0, "single_member_samples": (B, K', T, A) K' further chunks of
-        member 0 in normalized action space (one diffusion policy's own spread). The extra chunks draw from
-        a generator of their own, seeded with `seed`, after the ensemble has sampled: the actions and the
-        global random state are the same as without capture.
-        """
-        if single_member_samples < 0:
-            raise ValueError(f"`single_member_samples` must be >= 0. Got {single_member_samples}.")
-        device = next(self.parameters()).device
-        self._capture = (single_member_samples, torch.Generator(device=device).manual_seed(seed))
-        self.last_features = None
+        """Keep, at each prediction, what failure detectors read besides the action samples, in
+        `self.last_features` (see `feature_capture`); the actions stay as they are."""
+        self._capture = FeatureCapture(single_member_samples, seed, next(self.parameters()).device)
 
     def disable_feature_capture(self) -> None:
         self._capture = None
-        self.last_features = None
+
+    @property
+    def last_features(self) -> dict[str, Tensor] | None:
+        """The last prediction's captured features (None while capture is off or before a prediction)."""
+        return None if self._capture is None else self._capture.last
 
     def _capture_features(self, global_cond: Tensor) -> None:
-        if self._capture is None:
-            return
-        k, generator = self._capture
-        features = {"embedding": global_cond.detach().clone()}  # (B, N, G)
-        if k > 0:
-            b = global_cond.shape[0]
-            t_len, a = self.config.horizon, self.config.action_feature.shape[0]
-            chunk = self.members[0].diffusion.conditional_sample(
-                b * k, global_cond=global_cond[:, 0].repeat_interleave(k, dim=0), generator=generator
-            )  # (B*K', T, A)
-            features["single_member_samples"] = chunk.view(b, k, t_len, a)
-        self.last_features = features
+        if self._capture is not None:
+            self._capture.capture(
+                global_cond, self.members[0], self.config.horizon, self.config.action_feature.shape[0]
+            )
 
     @torch.no_grad()
     def predict_action_distribution(
