@@ -43,6 +43,10 @@ SUBCOMMANDS = {
         "lerobot_suture.reproduce",
         "record, train, calibrate and run the experiments with the reference recipe; compare the table",
     ),
+    "dagger": (
+        "lerobot_suture.dagger.loop",
+        "learn from the surgeon in rounds: uncertainty-gated DAgger beside ungated DAgger and plain BC",
+    ),
     "cbf-replay": (
         "lerobot_suture.experiments.cbf_offline",
         "filter a recorded unsafe throw offline, plot it",

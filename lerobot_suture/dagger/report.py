@@ -1,0 +1,169 @@
+"""The loop's table (``dagger.md``, ``dagger.json``: a row per arm and round) and figure (``dagger.png``:
+autonomy and success against the cumulative labelled frames, a panel per scenario, the arms side by side).
+
+Round 0 (the given policy) opens every arm's rows with no new frames. Rows of rounds not finished yet are
+left out, so the table can be written from a run still under way.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from lerobot_suture.dagger.config import ARMS, SCENARIOS
+from lerobot_suture.datasets.metadata import read_json, write_json_atomic
+
+SHORT = {
+    "nominal": "nominal",
+    "phantom_moved_after_insertion": "moved after insertion",
+    "camera_moved": "camera moved",
+    "phantom_servo": "phantom servo",
+}
+COLOURS = {"gated": "tab:red", "ungated": "tab:blue", "bc": "tab:green"}
+MARKERS = {"gated": "o", "ungated": "s", "bc": "^"}
+
+
+def table_rows(output_dir: Path, arms: list[str], rounds: int) -> list[dict]:
+    """One row per arm and finished round, from the rounds' ``eval.json`` and ``collect.json``."""
+    output_dir = Path(output_dir)
+    round0 = output_dir / "round_0" / "eval.json"
+    rows = []
+    for arm in arms:
+        cumulative = 0
+        for round_ in range(rounds + 1):
+            folder = output_dir / "round_0" if round_ == 0 else output_dir / arm / f"round_{round_}"
+            if not (folder / "eval.json").is_file() or not round0.is_file():
+                break
+            new = 0 if round_ == 0 else int(read_json(folder / "collect.json")["new_frames"])
+            cumulative += new
+            rows.append(_row(arm, round_, new, cumulative, read_json(folder / "eval.json")))
+    return rows
+
+
+def _row(arm: str, round_: int, new: int, cumulative: int, result: dict) -> dict:
+    scenarios = result["scenarios"]
+    overall = result["overall"]
+    return {
+        "arm": arm,
+        "round": round_,
+        "new_frames": new,
+        "cumulative_frames": cumulative,
+        "autonomous_success": {s: scenarios[s]["autonomous_success"] for s in scenarios},
+        "success": {s: scenarios[s]["success"] for s in scenarios},
+        "overall_autonomous_success": overall["autonomous_success"],
+        "overall_success": overall["success"],
+        "handovers_per_episode": overall["handovers_per_episode"],
+        "surgeon_steps_per_episode": overall["surgeon_steps_per_episode"],
+        "nominal_false_alarms_per_episode": result["nominal_false_alarms_per_episode"],
+        "auroc": dict(result["auroc"]),
+        "test_episodes_per_scenario": scenarios["nominal"]["episodes"],
+        "threshold": result.get("threshold"),
+    }
+
+
+def _fmt(value, digits: int = 2) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "n/a"
+    if isinstance(value, float):
+        return f"{value:.{digits}f}"
+    return str(value)
+
+
+def markdown(rows: list[dict], toy: bool = False) -> str:
+    perturbed = [s for s in SCENARIOS if s != "nominal"]
+    header = (
+        ["arm", "round", "new frames", "cumulative frames"]
+        + [f"autonomous, {SHORT[s]}" for s in SCENARIOS]
+        + [
+            "autonomous, all",
+            "success, all",
+            "handovers / ep",
+            "surgeon steps / ep",
+            "nominal false alarms / ep",
+        ]
+        + [f"AUROC, {SHORT[s]}" for s in perturbed]
+    )
+    lines = [
+        f"# Learning from the surgeon{' (toy scale)' if toy else ''}",
+        "",
+        "Gate enforced, scripted surgeon taking over, on the same test seeds for every arm and round "
+        f"({rows[0]['test_episodes_per_scenario'] if rows else 0} episodes per scenario). Autonomous: a "
+        "success with no handover. Frames: new labelled frames (surgeon effort) this round and so far.",
+        "",
+        "| " + " | ".join(header) + " |",
+        "|" + "---|" * len(header),
+    ]
+    for row in rows:
+        cells = [row["arm"], row["round"], row["new_frames"], row["cumulative_frames"]]
+        cells += [_fmt(row["autonomous_success"].get(s)) for s in SCENARIOS]
+        cells += [
+            _fmt(row["overall_autonomous_success"]),
+            _fmt(row["overall_success"]),
+            _fmt(row["handovers_per_episode"]),
+            _fmt(row["surgeon_steps_per_episode"], 1),
+            _fmt(row["nominal_false_alarms_per_episode"]),
+        ]
+        cells += [_fmt(row["auroc"].get(s)) for s in perturbed]
+        lines.append("| " + " | ".join(str(c) for c in cells) + " |")
+    lines += ["", "Success (the surgeon's rescues included) per scenario:", ""]
+    lines += ["| arm | round | " + " | ".join(SHORT[s] for s in SCENARIOS) + " |"]
+    lines += ["|" + "---|" * (2 + len(SCENARIOS))]
+    for row in rows:
+        cells = [row["arm"], str(row["round"])] + [_fmt(row["success"].get(s)) for s in SCENARIOS]
+        lines.append("| " + " | ".join(cells) + " |")
+    lines += ["", "![autonomy and success against surgeon effort](dagger.png)", ""]
+    return "\n".join(lines)
+
+
+def plot(rows: list[dict], out_path: Path) -> Path:
+    """Autonomous success (top) and success (bottom) per round against the cumulative labelled frames, a
+    column per scenario, each arm its own line, the arms nudged apart along x so equal budgets stay visible."""
+    fig = Figure(figsize=(4.0 * len(SCENARIOS), 6.4), dpi=100)
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(2, len(SCENARIOS), sharex=True, sharey=True, squeeze=False)
+    span = max([r["cumulative_frames"] for r in rows] + [1])
+    arms = [a for a in ARMS if any(r["arm"] == a for r in rows)]
+    for column, scenario in enumerate(SCENARIOS):
+        for line, key in enumerate(("autonomous_success", "success")):
+            ax = axes[line][column]
+            for k, arm in enumerate(arms):
+                arm_rows = [r for r in rows if r["arm"] == arm]
+                nudge = (k - (len(arms) - 1) / 2) * 0.015 * span
+                xs = [r["cumulative_frames"] + nudge for r in arm_rows]
+                ys = [r[key].get(scenario, math.nan) for r in arm_rows]
+                ax.plot(xs, ys, color=COLOURS[arm], marker=MARKERS[arm], lw=1.4, label=arm)
+                for x, y, r in zip(xs, ys, arm_rows, strict=True):
+                    if not math.isnan(y):
+                        ax.annotate(
+                            str(r["round"]), (x, y), fontsize=7, xytext=(3, 3), textcoords="offset points"
+                        )
+            ax.set_ylim(-0.05, 1.05)
+            ax.grid(alpha=0.3)
+            if line == 0:
+                ax.set_title(SHORT[scenario])
+            else:
+                ax.set_xlabel("cumulative labelled frames")
+            if column == 0:
+                ax.set_ylabel(
+                    "autonomous success" if key == "autonomous_success" else "success (with surgeon)"
+                )
+    axes[0][0].legend(loc="lower right", fontsize=8)
+    fig.suptitle("Autonomy and success per round against surgeon effort (numbers: round)")
+    fig.tight_layout()
+    out_path = Path(out_path)
+    fig.savefig(out_path)
+    return out_path
+
+
+def write_report(output_dir: Path, arms: list[str], rounds: int, toy: bool = False) -> str:
+    """``dagger.md``, ``dagger.json`` and ``dagger.png`` in ``output_dir``; returns the markdown."""
+    output_dir = Path(output_dir)
+    rows = table_rows(output_dir, arms, rounds)
+    text = markdown(rows, toy)
+    (output_dir / "dagger.md").write_text(text)
+    write_json_atomic(output_dir / "dagger.json", {"toy": toy, "scenarios": list(SCENARIOS), "rows": rows})
+    plot(rows, output_dir / "dagger.png")
+    return text
