@@ -27,6 +27,7 @@ from tqdm import tqdm
 
 from lerobot_suture.expert import ScriptedExpert
 from lerobot_suture.registration import ENV_ID, MAX_EPISODE_STEPS
+from lerobot_suture.sim.shifts import Shift, ShiftWrapper
 
 if TYPE_CHECKING:
     from lerobot_suture.safety.cbf_config import CBFConfig
@@ -82,11 +83,16 @@ class EpisodeLog:
 
 
 def make_scenario_env(
-    env_kwargs: dict, scenario: str, cbf: CBFConfig | None = None, trace: bool = False
+    env_kwargs: dict,
+    scenario: str,
+    cbf: CBFConfig | None = None,
+    trace: bool = False,
+    shift: Shift | None = None,
 ) -> gym.Env:
     """One suture env of ``scenario`` for policy rollouts: ``env_kwargs`` (what the policy reads, from
-    :func:`~lerobot_suture.policy_runner.env_kwargs_for_policy`), the CBF filter, the tip trace."""
-    return gym.make(
+    :func:`~lerobot_suture.policy_runner.env_kwargs_for_policy`), the CBF filter, the tip trace, and a
+    distribution shift (:mod:`lerobot_suture.sim.shifts`) over it all."""
+    env = gym.make(
         ENV_ID,
         disable_env_checker=True,
         scenario=scenario,
@@ -94,6 +100,7 @@ def make_scenario_env(
         record_tip_trace=trace,
         **env_kwargs,
     )
+    return env if shift is None else ShiftWrapper(env, shift)
 
 
 def rollout_episode(

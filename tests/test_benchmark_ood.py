@@ -38,12 +38,21 @@ def test_benchmark_ood_writes_table_numbers_figures_and_resumes(tiny_policy_dir,
         "--runs_per_scenario=1",
         "--alpha=0.4",
         "--single_member_samples=2",
+        "--shifts=[dim_light@0.6,action_delay@1]",
+        "--runs_per_shift=1",
         "--batch_envs=2",
     ]
     cli_main(args)
     result = json.loads((out / "detectors.json").read_text())
     assert list(result["detectors"]) == list(DETECTOR_NAMES)
-    assert result["episodes"] == {"fit": 2, "calibration": 2, "nominal": 2, **dict.fromkeys(SCENARIOS, 1)}
+    shifts = ["dim_light@0.6", "action_delay@1"]
+    assert result["episodes"] == {
+        "fit": 2,
+        "calibration": 2,
+        "nominal": 2,
+        **dict.fromkeys(SCENARIOS, 1),
+        **dict.fromkeys(shifts, 1),
+    }
     for name, r in result["detectors"].items():
         assert "error" not in r, (name, r.get("error"))
         assert math.isfinite(r["threshold"]) and r["cost"]["ms_per_prediction"] > 0
@@ -57,32 +66,45 @@ def test_benchmark_ood_writes_table_numbers_figures_and_resumes(tiny_policy_dir,
                 "detection_delay_steps",
                 "failure_prediction_balanced_accuracy",
             } <= set(m)
+        assert list(r["shifts"]) == shifts
+        for m in r["shifts"].values():
+            assert m["runs"] == 1 and 0 <= m["success_rate"] <= 1
+            flagged = [m["flagged_of_failures"], m["flagged_of_successes"]]
+            assert sum(math.isnan(f) for f in flagged) == 1  # one run: it failed or it succeeded
+        assert r["approach"]["in_approach"] <= r["approach"]["alarms"] <= 2
     # The table: the summary row of every detector, then one table per scenario with a row each.
     table = (out / "detectors.md").read_text()
     for scenario in SCENARIOS:
         assert f"## {scenario}" in table
+    assert "## Shifts" in table and "## Where nominal alarms fall" in table
     rows = [
-        line for line in table.splitlines() if line.startswith("| ") and not line.startswith("| detector")
+        line
+        for line in table.splitlines()
+        if line.startswith("| ") and not line.startswith(("| detector", "| shift"))
     ]
-    assert len(rows) == len(DETECTOR_NAMES) * (1 + len(SCENARIOS))
+    # Summary, scenarios, balanced accuracy over shifts and alarm placement: a row per detector each; then
+    # a row per shift.
+    assert len(rows) == len(DETECTOR_NAMES) * (1 + len(SCENARIOS) + 2) + len(shifts)
     cost = float(rows[0].split(" | ")[4])
     assert cost == pytest.approx(
         result["detectors"][DETECTOR_NAMES[0]]["cost"]["ms_per_prediction"], abs=0.006
     )
     # One figure per detector, drawn (not one flat colour), with coloured traces.
-    assert result["figures"] == {n: f"detector_{n}.png" for n in DETECTOR_NAMES}
-    for name in DETECTOR_NAMES:
-        image = np.asarray(Image.open(out / f"detector_{name}.png").convert("RGB"), dtype=float)
+    assert result["figures"] == {**{n: f"detector_{n}.png" for n in DETECTOR_NAMES}, "shifts": "shifts.png"}
+    for name in [*DETECTOR_NAMES, "shifts"]:
+        image = np.asarray(Image.open(out / result["figures"][name]).convert("RGB"), dtype=float)
         assert image.mean(axis=2).std() > 5, f"detector_{name}.png is blank"
         assert (image.max(axis=2) - image.min(axis=2) > 60).mean() > 0.001, f"no coloured trace in {name}"
     parts = sorted(p.name for p in (out / "parts").iterdir())
     assert parts == sorted(
-        f"{n}.{ext}" for n in ("fit", "calibration", "nominal", *SCENARIOS) for ext in ("json", "npz")
+        f"{n}.{ext}"
+        for n in ("fit", "calibration", "nominal", *SCENARIOS, *shifts)
+        for ext in ("json", "npz")
     )
     # A second run rolls nothing out again: every part is reused, and the numbers are the same.
     caplog.set_level("INFO")
     cli_main(args[:-1] + ["--batch_envs=2", "--detectors=[ensemble_covariance,stac]"])
-    assert sum("reusing" in r.getMessage() for r in caplog.records) == 7
+    assert sum("reusing" in r.getMessage() for r in caplog.records) == 9
     again = json.loads((out / "detectors.json").read_text())
     assert list(again["detectors"]) == ["ensemble_covariance", "stac"]
     for name in again["detectors"]:

@@ -8,13 +8,22 @@ samples, their observation embeddings, further chunks of member 0), without chan
     calibration       nominal, validation seeds     each detector's per-episode threshold at ``alpha``
     nominal           nominal, test seeds           the negatives: AUROC, false alarms
     <four scenarios>  the paper's, test seeds       the positives (the experiments' seeds)
+    <shifts>          nominal under a shift of      each at its magnitude (``lerobot_suture.sim.shifts``):
+                      appearance, sensing,          does the detector flag the runs that fail and spare
+                      geometry or dynamics          those that succeed?
 
 Each part is saved under ``parts/`` when it is done and reused on the next run with the same settings, so
 an interrupted benchmark resumes at the part it was in. The parts do not depend on the detectors: adding
 one rescores the saved rollouts. Every detector is then fitted on ``fit``, thresholded on
 ``calibration`` with the conformal per-episode quantile the gate uses, and scored on the test parts.
-Writes ``detectors.md`` (tables), ``detectors.json`` (every number) and ``detector_<name>.png`` (score
-traces per scenario against the nominal ones, with the threshold).
+Writes ``detectors.md`` (tables), ``detectors.json`` (every number), ``detector_<name>.png`` (score
+traces per scenario against the nominal ones, with the threshold) and ``shifts.png`` (the policy's success
+and each detector's flags per shift). With ``--dataset_root`` of a dataset recorded under appearance
+randomization, the fit and calibration parts are rolled out under its appearance ranges (the training
+distribution), as ``lerobot-suture calibrate`` does.
+
+Each detector also reports where its nominal alarms fall: before ``approach_steps`` (while the needle is
+carried to the throw, where a policy trained on two demonstrated approaches has to choose one) or after.
 """
 
 from __future__ import annotations
@@ -22,25 +31,26 @@ from __future__ import annotations
 import json
 import logging
 import math
-import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import draccus
 import numpy as np
 from tqdm import tqdm
 
-from lerobot_suture.calibrate import PolicyPathConfig
-from lerobot_suture.detectors import DETECTOR_NAMES, PredictionFeatures, make_detector, timed_scores
-from lerobot_suture.experiments import metrics
-from lerobot_suture.experiments.runner import EXPERIMENTS, episode_seeds, json_default, ood_metrics
+from lerobot_suture.calibrate import PolicyPathConfig, dataset_appearance
+from lerobot_suture.detectors import DETECTOR_NAMES
+from lerobot_suture.experiments.benchmark_ood_report import fmt, plot_detector, plot_shifts, render_tables
+from lerobot_suture.experiments.benchmark_ood_scoring import SCENARIOS, evaluate_detector
+from lerobot_suture.experiments.runner import episode_seeds, json_default
 from lerobot_suture.rollout import EpisodeLog, StepLog, make_scenario_env, rollout_seeds
-from lerobot_suture.safety.ood.calibration import conformal_episode_threshold, min_calibration_episodes
+from lerobot_suture.safety.ood.calibration import min_calibration_episodes
+from lerobot_suture.sim.shifts import Shift, default_shifts
 
 logger = logging.getLogger(__name__)
 
 PARTS_DIR = "parts"
-SCENARIOS = tuple(scenario for _, scenario, _ in EXPERIMENTS)
+SHIFT_GROUP = 100  # test-seed group of the first shift part, apart from the scenarios' groups
 
 
 @dataclass
@@ -55,6 +65,13 @@ class BenchmarkOODConfig:
     calibration_episodes: nominal episodes each threshold is fitted on (>= (1 - alpha) / alpha).
     nominal_episodes: nominal test episodes (negatives), >= 1.
     runs_per_scenario: runs of each of the four scenarios, >= 1.
+    shifts: shifts run in the nominal scenario, each ``NAME@MAGNITUDE`` (``lerobot_suture.sim.shifts``;
+        default: every shift at two magnitudes); ``[]`` for the paper's scenarios only.
+    runs_per_shift: runs under each shift, >= 1.
+    dataset_root: the policy's training dataset; when it was recorded with appearance randomization, the
+        fit and calibration parts use its appearance ranges.
+    approach_steps: control steps from the start counted as the approach, where two demonstrated
+        strategies split (the two-sided recipe's detour and approach take about this long).
     alpha: per-episode false-alarm rate each threshold is fitted for, in (0, 0.5).
     single_member_samples: chunks member 0 draws on its own per prediction for the aleatoric-only
         detector, >= 2; 0 reads member 0's own chunks of the ensemble prediction instead (no extra cost;
@@ -72,6 +89,10 @@ class BenchmarkOODConfig:
     calibration_episodes: int = 40
     nominal_episodes: int = 40
     runs_per_scenario: int = 12
+    shifts: list[str] = field(default_factory=lambda: [s.label for s in default_shifts()])
+    runs_per_shift: int = 10
+    dataset_root: Path | None = None
+    approach_steps: int = 20
     alpha: float = 0.05
     single_member_samples: int = 0
     detectors: list[str] = field(default_factory=lambda: list(DETECTOR_NAMES))
@@ -81,7 +102,7 @@ class BenchmarkOODConfig:
     def __post_init__(self):
         if self.policy.path is None:
             raise ValueError("`--policy.path` is required: a trained ensemble's pretrained_model directory.")
-        for key in ("fit_episodes", "nominal_episodes", "runs_per_scenario", "batch_envs"):
+        for key in ("fit_episodes", "nominal_episodes", "runs_per_scenario", "runs_per_shift", "batch_envs"):
             if getattr(self, key) < 1:
                 raise ValueError(f"`{key}` must be >= 1. Got {getattr(self, key)}.")
         if self.single_member_samples < 0 or self.single_member_samples == 1:
@@ -92,6 +113,13 @@ class BenchmarkOODConfig:
         unknown = [d for d in self.detectors if d not in DETECTOR_NAMES]
         if unknown or not self.detectors:
             raise ValueError(f"`detectors` must name some of {list(DETECTOR_NAMES)}. Got {self.detectors}.")
+        parsed = [Shift.parse(s) for s in self.shifts]  # raises on an unknown name or magnitude
+        labels = [s.label for s in parsed]
+        if len(set(labels)) != len(labels):
+            raise ValueError(f"`shifts` lists a shift twice: {labels}.")
+        self.shifts = labels
+        if self.approach_steps < 1:
+            raise ValueError(f"`approach_steps` must be >= 1. Got {self.approach_steps}.")
         needed = min_calibration_episodes(self.alpha)
         if self.calibration_episodes < needed:
             raise ValueError(
@@ -99,18 +127,36 @@ class BenchmarkOODConfig:
                 f"Got {self.calibration_episodes}; raise it or raise `--alpha`."
             )
 
-    def parts(self) -> list[tuple[str, str, list[int]]]:
-        """(part name, scenario, seeds) of every rollout part, in the order they run."""
+    def parts(self) -> list[tuple[str, str, list[int], Shift | None]]:
+        """(part name, scenario, seeds, shift) of every rollout part, in the order they run."""
         parts = [
-            ("fit", "nominal", episode_seeds(self.validation_seed, 0, self.fit_episodes)),
-            ("calibration", "nominal", episode_seeds(self.validation_seed, 1, self.calibration_episodes)),
-            ("nominal", "nominal", episode_seeds(self.test_seed, 0, self.nominal_episodes)),
+            ("fit", "nominal", episode_seeds(self.validation_seed, 0, self.fit_episodes), None),
+            (
+                "calibration",
+                "nominal",
+                episode_seeds(self.validation_seed, 1, self.calibration_episodes),
+                None,
+            ),
+            ("nominal", "nominal", episode_seeds(self.test_seed, 0, self.nominal_episodes), None),
         ]
         # The experiments' groups: the same test seeds as `lerobot-suture experiments`.
-        return parts + [
-            (scenario, scenario, episode_seeds(self.test_seed, group, self.runs_per_scenario))
+        parts += [
+            (scenario, scenario, episode_seeds(self.test_seed, group, self.runs_per_scenario), None)
             for group, scenario in enumerate(SCENARIOS, start=2)
         ]
+        # Every magnitude of a shift on the same seeds: the magnitudes differ, not the scenes.
+        families = list(dict.fromkeys(Shift.parse(s).name for s in self.shifts))
+        for label in self.shifts:
+            shift = Shift.parse(label)
+            seeds = episode_seeds(
+                self.test_seed, SHIFT_GROUP + families.index(shift.name), self.runs_per_shift
+            )
+            parts.append((label, "nominal", seeds, shift))
+        return parts
+
+
+def _numpy(tensor) -> np.ndarray:
+    return tensor.detach().float().cpu().numpy()
 
 
 # ---- capture ------------------------------------------------------------------------------------------
@@ -180,37 +226,6 @@ class CapturingRunner:
         return {k: np.asarray(v) for k, v in out.items()}
 
 
-def _numpy(tensor) -> np.ndarray:
-    return tensor.detach().float().cpu().numpy()
-
-
-def prediction_features(captured: dict[str, np.ndarray], action_start: int) -> list[PredictionFeatures]:
-    """One :class:`PredictionFeatures` per captured prediction, each linked to its episode's previous one."""
-    out = []
-    for i in range(len(captured["episode"])):
-        first = i == 0 or captured["episode"][i - 1] != captured["episode"][i]
-        out.append(
-            PredictionFeatures(
-                samples=captured["samples"][i],
-                action_start=action_start,
-                embedding=captured["embedding"][i],
-                single_member_samples=captured["single"][i],
-                previous_samples=None if first else captured["samples"][i - 1],
-                shift=None if first else int(captured["step"][i] - captured["step"][i - 1]),
-            )
-        )
-    return out
-
-
-def hold_scores(pred_steps: np.ndarray, pred_scores: np.ndarray, n_steps: int) -> np.ndarray:
-    """Per control step, the score of the latest prediction at or before it (as the gate holds it):
-    (n_steps,) from predictions made at ``pred_steps`` (P,), ascending, the first at step 0."""
-    if len(pred_steps) == 0 or pred_steps[0] != 0:
-        raise ValueError("An episode's first prediction is made at its first control step.")
-    index = np.searchsorted(pred_steps, np.arange(n_steps), side="right") - 1  # (n_steps,)
-    return np.asarray(pred_scores, dtype=np.float64)[index]
-
-
 # ---- parts --------------------------------------------------------------------------------------------
 
 
@@ -239,98 +254,6 @@ def save_part(directory: Path, name: str, meta: dict, logs: list[EpisodeLog], ca
     tmp = directory / f"{name}.json.tmp"
     tmp.write_text(json.dumps({"meta": meta, "logs": [asdict(log) for log in logs]}, default=json_default))
     tmp.replace(directory / f"{name}.json")
-
-
-# ---- scoring and metrics ------------------------------------------------------------------------------
-
-
-def score_part(detector, logs: list[EpisodeLog], captured: dict, action_start: int) -> tuple[list, float]:
-    """Per episode of a part, its held per-step scores; and the detector's seconds per prediction."""
-    scores, seconds = timed_scores(detector, prediction_features(captured, action_start))
-    out = []
-    for e, log in enumerate(logs):
-        mine = captured["episode"] == e
-        out.append(hold_scores(captured["step"][mine], scores[mine], len(log.steps)))
-    return out, seconds
-
-
-def with_detector(log: EpisodeLog, scores: np.ndarray, threshold: float) -> EpisodeLog:
-    """``log`` with the detector's scores and its latched per-episode alarms (running max > threshold)."""
-    alarms = np.fmax.accumulate(scores) > threshold
-    steps = [
-        replace(s, score=float(x), ood=bool(a), threshold=threshold)
-        for s, x, a in zip(log.steps, scores, alarms, strict=True)
-    ]
-    return replace(log, steps=steps)
-
-
-def _failure_step(log: EpisodeLog) -> int | None:
-    return None if log.success else len(log.steps) - 1
-
-
-def scenario_metrics(nominal: list[EpisodeLog], runs: list[EpisodeLog]) -> dict:
-    """The experiments' O.O.D. metrics plus false alarms before the onset and failure prediction."""
-    m = ood_metrics(nominal, runs)
-    early = [
-        log.first_alarm_step is not None and (log.onset_step is None or log.first_alarm_step < log.onset_step)
-        for log in runs
-    ]
-    m["false_alarm_before_onset_per_episode"] = float(np.mean(early)) if runs else math.nan
-    episodes = nominal + runs
-    m["failure_prediction_balanced_accuracy"] = metrics.failure_prediction_balanced_accuracy(
-        [log.first_alarm_step for log in episodes], [_failure_step(log) for log in episodes]
-    )
-    m["failed_runs"] = sum(not log.success for log in runs)
-    return m
-
-
-def evaluate_detector(
-    name: str, parts: dict[str, tuple[list[EpisodeLog], dict]], action_start: int, alpha: float
-) -> dict:
-    """One detector: fitted on ``fit``, thresholded on ``calibration`` at per-episode level ``alpha``,
-    measured on the test parts."""
-    detector = make_detector(name)
-    fit_logs, fit_captured = parts["fit"]
-    start = time.perf_counter()
-    detector.fit(prediction_features(fit_captured, action_start))
-    fit_seconds = time.perf_counter() - start
-    calibration, _ = score_part(detector, *parts["calibration"], action_start)
-    threshold = conformal_episode_threshold([s.max() for s in calibration], alpha)
-    seconds, predictions, control_steps = 0.0, 0, 0
-    scored: dict[str, list[EpisodeLog]] = {}
-    for part in ("nominal", *SCENARIOS):
-        logs, captured = parts[part]
-        per_episode, per_call = score_part(detector, logs, captured, action_start)
-        seconds += per_call * len(captured["episode"])
-        predictions += len(captured["episode"])
-        control_steps += sum(len(log.steps) for log in logs)
-        scored[part] = [with_detector(log, s, threshold) for log, s in zip(logs, per_episode, strict=True)]
-    nominal = scored["nominal"]
-    result = {
-        "threshold": threshold,
-        "false_alarms": metrics.alarm_rates([[s.ood for s in log.steps] for log in nominal]),
-        "cost": {
-            "ms_per_prediction": 1e3 * seconds / max(predictions, 1),
-            # The score is computed at new predictions only and held in between.
-            "ms_per_control_step": 1e3 * seconds / max(control_steps, 1),
-            "fit_s": fit_seconds,
-        },
-        "scenarios": {s: scenario_metrics(nominal, scored[s]) for s in SCENARIOS},
-    }
-    result["mean_auroc"] = _mean([m["auroc"] for m in result["scenarios"].values()])
-    result["mean_auroc_common_steps"] = _mean([m["auroc_common_steps"] for m in result["scenarios"].values()])
-    result["traces"] = {
-        part: [
-            {"scores": log.scores.tolist(), "onset": log.onset_step, "success": log.success} for log in logs
-        ]
-        for part, logs in scored.items()
-    }
-    return result
-
-
-def _mean(values: list[float]) -> float:
-    finite = [v for v in values if v is not None and not math.isnan(v)]
-    return float(np.mean(finite)) if finite else math.nan
 
 
 # ---- the command --------------------------------------------------------------------------------------
@@ -363,9 +286,11 @@ def run_benchmark(cfg: BenchmarkOODConfig) -> dict:
         )
     runner = CapturingRunner(base, cfg.single_member_samples)
     env_kwargs = env_kwargs_for_policy(base.policy.config)
+    training_look = dataset_appearance(cfg.dataset_root)
     parts_dir = cfg.output_dir / PARTS_DIR
     parts = {}
-    for name, scenario, seeds in cfg.parts():
+    for name, scenario, seeds, shift in cfg.parts():
+        kwargs = {**env_kwargs, **training_look} if name in ("fit", "calibration") else env_kwargs
         # What the rollouts depend on; a part saved under other settings is run again.
         meta = {
             "policy_path": str(Path(cfg.policy.path).resolve()),
@@ -376,10 +301,16 @@ def run_benchmark(cfg: BenchmarkOODConfig) -> dict:
             "single_member_samples": cfg.single_member_samples,
             "device": cfg.device,
         }
+        if "appearance" in kwargs:  # absent otherwise: parts saved before appearance existed still match
+            meta["appearance"] = kwargs["appearance"]
+        if shift is not None:
+            meta["shift"] = shift.label
         loaded = load_part(parts_dir, name, meta)
         if loaded is None:
             logs = rollout_seeds(
-                lambda scenario=scenario: make_scenario_env(env_kwargs, scenario),
+                lambda scenario=scenario, kwargs=kwargs, shift=shift: make_scenario_env(
+                    kwargs, scenario, shift=shift
+                ),
                 runner,
                 seeds,
                 cfg.batch_envs,
@@ -395,7 +326,9 @@ def run_benchmark(cfg: BenchmarkOODConfig) -> dict:
     per_detector = {}
     for name in tqdm(cfg.detectors, desc="detectors", unit="detector"):
         try:
-            per_detector[name] = evaluate_detector(name, parts, action_start, cfg.alpha)
+            per_detector[name] = evaluate_detector(
+                name, parts, action_start, cfg.alpha, cfg.shifts, cfg.approach_steps
+            )
         except ValueError as exc:  # one detector failing costs its row, not the rollouts
             logger.warning("Detector %s: %s", name, exc)
             per_detector[name] = {"error": str(exc)}
@@ -403,9 +336,15 @@ def run_benchmark(cfg: BenchmarkOODConfig) -> dict:
     for name, result in per_detector.items():
         if "error" not in result:
             figures[name] = plot_detector(name, result, cfg.output_dir / f"detector_{name}.png").name
+    if cfg.shifts and any("error" not in r for r in per_detector.values()):
+        figures["shifts"] = plot_shifts(per_detector, cfg.shifts, cfg.output_dir / "shifts.png").name
     result = {
         "policy_path": str(cfg.policy.path),
         "alpha": cfg.alpha,
+        "dataset_root": None if cfg.dataset_root is None else str(cfg.dataset_root),
+        "training_appearance": training_look.get("appearance"),
+        "shifts": cfg.shifts,
+        "approach_steps": cfg.approach_steps,
         "validation_seed": cfg.validation_seed,
         "test_seed": cfg.test_seed,
         "episodes": {name: len(logs) for name, (logs, _) in parts.items()},
@@ -422,100 +361,6 @@ def run_benchmark(cfg: BenchmarkOODConfig) -> dict:
     return result
 
 
-def _fmt(x, digits: int = 3) -> str:
-    return "n/a" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.{digits}f}"
-
-
-def _delay(summary: dict) -> str:
-    return "none" if not summary["n"] else f"{summary['median']:.0f} ({summary['n']})"
-
-
-def render_tables(result: dict) -> str:
-    """``detectors.md``: a summary row per detector, then one detectors x metrics table per scenario."""
-    episodes = result["episodes"]
-    lines = [
-        f"# Failure detectors: {result['policy_path']}",
-        "",
-        f"Fitted on {episodes['fit']} nominal episodes and thresholded on {episodes['calibration']} more "
-        f"(validation seeds from {result['validation_seed']}; per-episode conformal threshold at alpha = "
-        f"{result['alpha']}); measured on {episodes['nominal']} nominal episodes and the paper's four "
-        f"scenarios (test seeds from {result['test_seed']}). Cost: the detector's own scoring time, on top of "
-        "the policy's inference (the score is computed at each new prediction and held in between).",
-        "",
-        "| detector | false alarms / nominal episode | mean AUROC | mean AUROC (common steps) "
-        "| ms / prediction | ms / control step | fit (s) |",
-        "|---|---|---|---|---|---|---|",
-    ]
-    detectors = result["detectors"]
-    for name, r in detectors.items():
-        if "error" in r:
-            lines.append(f"| {name} | failed: {r['error']} | | | | | |")
-            continue
-        c = r["cost"]
-        lines.append(
-            f"| {name} | {_fmt(r['false_alarms']['per_episode'], 2)} | {_fmt(r['mean_auroc'])} | "
-            f"{_fmt(r['mean_auroc_common_steps'])} | {_fmt(c['ms_per_prediction'], 2)} | "
-            f"{_fmt(c['ms_per_control_step'], 3)} | {_fmt(c['fit_s'], 2)} |"
-        )
-    for scenario in SCENARIOS:
-        lines += [
-            "",
-            f"## {scenario} ({episodes[scenario]} runs, policy success "
-            f"{_fmt(result['policy_success_rate'][scenario], 2)})",
-            "",
-            "| detector | AUROC | AUROC (common steps) | TPR at threshold | false alarms before onset / episode "
-            "| median delay, steps (detected) | failure-prediction balanced accuracy |",
-            "|---|---|---|---|---|---|---|",
-        ]
-        for name, r in detectors.items():
-            if "error" in r:
-                continue
-            m = r["scenarios"][scenario]
-            lines.append(
-                f"| {name} | {_fmt(m['auroc'])} | {_fmt(m['auroc_common_steps'])} | "
-                f"{_fmt(m['tpr_at_threshold'], 2)} | {_fmt(m['false_alarm_before_onset_per_episode'], 2)} | "
-                f"{_delay(m['detection_delay_steps'])} | {_fmt(m['failure_prediction_balanced_accuracy'])} |"
-            )
-    return "\n".join(lines) + "\n"
-
-
-def plot_detector(name: str, result: dict, path: Path) -> Path:
-    """One panel per scenario: the detector's held scores over control steps, nominal test episodes in
-    grey, scenario runs in colour (red: failed, blue: succeeded), onsets as dots, the threshold dashed."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    traces = result["traces"]
-    fig, axes = plt.subplots(2, 2, figsize=(10, 6.5), sharey=True)
-    for ax, scenario in zip(axes.flat, SCENARIOS, strict=True):
-        for run in traces["nominal"]:
-            ax.plot(run["scores"], color="0.6", lw=0.8, alpha=0.6)
-        for run in traces[scenario]:
-            colour = "tab:blue" if run["success"] else "tab:red"
-            ax.plot(run["scores"], color=colour, lw=1.0)
-            if run["onset"] is not None:
-                ax.plot(run["onset"], run["scores"][run["onset"]], "o", color=colour, ms=4)
-        ax.axhline(result["threshold"], color="k", ls="--", lw=1.0, label="threshold")
-        m = result["scenarios"][scenario]
-        ax.set_title(
-            f"{scenario}: AUROC {_fmt(m['auroc'], 2)}, TPR {_fmt(m['tpr_at_threshold'], 2)}", fontsize=9
-        )
-        ax.set_xlabel("control step", fontsize=8)
-    axes[0, 0].set_ylabel(f"{name} score")
-    axes[1, 0].set_ylabel(f"{name} score")
-    axes[0, 0].legend(fontsize=7, loc="upper left")
-    fig.suptitle(
-        f"{name}: grey nominal (test seeds), red failed and blue successful runs, dots at the onset",
-        fontsize=10,
-    )
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
-
-
 def main(argv: list[str] | None = None) -> None:
     cfg = draccus.parse(config_class=BenchmarkOODConfig, args=argv, exit_on_error=False)
     result = run_benchmark(cfg)
@@ -523,6 +368,6 @@ def main(argv: list[str] | None = None) -> None:
     ranked = sorted(aurocs, key=lambda n: -math.inf if math.isnan(aurocs[n]) else aurocs[n], reverse=True)
     print(
         "Mean AUROC over common steps: "
-        + ", ".join(f"{n} {_fmt(aurocs[n])}" for n in ranked)
+        + ", ".join(f"{n} {fmt(aurocs[n])}" for n in ranked)
         + f". Table: {cfg.output_dir / 'detectors.md'}"
     )

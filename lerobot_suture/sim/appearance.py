@@ -178,6 +178,11 @@ class AppearanceSample:
     camera_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)  # m, world
     camera_roll: float = 0.0  # rad
 
+    @property
+    def image_effects(self) -> bool:
+        """Haze, blur or noise is on: the endoscope image is post-processed."""
+        return self.haze > 0 or self.blur_sigma > 0 or self.noise_std > 0
+
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
 

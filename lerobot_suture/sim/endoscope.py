@@ -35,6 +35,12 @@ class Endoscope:
         self._video_renderer = None
         self._jitter_offset = np.zeros(3)
         self._jitter_roll = 0.0
+        self._viewpoint = (0.0, 0.0)
+
+    @property
+    def viewpoint(self) -> tuple[float, float]:
+        """(azimuth, elevation) offsets (rad) of the current viewpoint from the training view."""
+        return self._viewpoint
 
     def set_jitter(self, position_offset: np.ndarray = (0.0, 0.0, 0.0), roll: float = 0.0) -> None:
         """Hold the camera ``position_offset`` (3,) m from, and rolled ``roll`` rad about its optical axis
@@ -45,6 +51,7 @@ class Endoscope:
 
     def set_viewpoint(self, azimuth_offset: float = 0.0, elevation_offset: float = 0.0) -> None:
         """Place the camera on its sphere about the work site, offset from the training view (rad)."""
+        self._viewpoint = (float(azimuth_offset), float(elevation_offset))
         az = ENDOSCOPE_AZIMUTH + azimuth_offset
         el = ENDOSCOPE_ELEVATION + elevation_offset
         pos = ENDOSCOPE_TARGET + ENDOSCOPE_DISTANCE * np.array(

@@ -433,6 +433,14 @@ class SutureEnv(gym.Env):
         """Clip a phantom (x, y) position (m) into the training range."""
         return np.clip(xy, PHANTOM_NOMINAL[:2] - PHANTOM_RANGE_XY, PHANTOM_NOMINAL[:2] + PHANTOM_RANGE_XY)
 
+    def set_appearance(self, sample: AppearanceSample) -> None:
+        """Show ``sample``'s look for the rest of the episode, in place of the one ``reset`` drew: a fixed
+        shift of appearance (``lerobot_suture.sim.shifts``). The next ``reset`` draws (or restores) the
+        configured look again. A mottled tissue needs ``appearance.tissue_texture`` > 0 at construction
+        (the texture is part of the model); without it the contrast is ignored."""
+        self._show_appearance(sample, self._appearance_generator())
+        self._endoscope.set_viewpoint(*self._endoscope.viewpoint)
+
     def set_endoscope_viewpoint(self, azimuth_offset: float = 0.0, elevation_offset: float = 0.0) -> None:
         """Place the endoscope on its sphere about the work site, offset from the training view (rad)."""
         self._endoscope.set_viewpoint(azimuth_offset, elevation_offset)
@@ -579,17 +587,26 @@ class SutureEnv(gym.Env):
         self._endoscope.close()
 
     # ------------------------------------------------------------------ internals
-    def _draw_appearance(self) -> None:
-        """This episode's look (see "Appearance randomization"); nothing is drawn or edited when off."""
-        if not self.appearance.enabled:
-            return
+    def _appearance_generator(self) -> np.random.Generator:
         try:
             # A spawned child leaves the parent's stream where it was: the task draws that follow are
             # those of the same seed without appearance randomization.
-            rng = self.np_random.spawn(1)[0]
+            return self.np_random.spawn(1)[0]
         except (TypeError, ValueError):  # a generator set by hand without a seed sequence
-            rng = np.random.default_rng(self.np_random.integers(2**63))
-        sample = sample_appearance(self.appearance, rng)
+            return np.random.default_rng(self.np_random.integers(2**63))
+
+    def _draw_appearance(self) -> None:
+        """This episode's look (see "Appearance randomization"); nothing is drawn or edited when off, but a
+        look set by :meth:`set_appearance` in the last episode is undone."""
+        if not self.appearance.enabled:
+            if self._appearance_sample is not None:
+                self._show_appearance(AppearanceSample(), None)
+                self._appearance_sample = None
+            return
+        rng = self._appearance_generator()
+        self._show_appearance(sample_appearance(self.appearance, rng), rng)
+
+    def _show_appearance(self, sample: AppearanceSample, rng: np.random.Generator | None) -> None:
         self._appearance_sample, self._appearance_rng = sample, rng
         if self._scene_appearance.apply(sample):
             self._endoscope.upload_texture(self._scene_appearance.texture_id)
@@ -696,7 +713,7 @@ class SutureEnv(gym.Env):
         obs: dict = {"agent_pos": pose_vector(jaw_pos, jaw_rot, closure).astype(np.float32)}
         if "pixels" in self.obs_type:
             image = self._endoscope.image(self.data)
-            if self._appearance_sample is not None and self.appearance.image_effects:
+            if self._appearance_sample is not None and self._appearance_sample.image_effects:
                 image = degrade_image(image, self._appearance_sample, self._appearance_rng)
             obs["pixels"] = {"endoscope": image}
         if self.obs_type in ("state", "pixels_agent_pos_state"):
