@@ -5,6 +5,10 @@ seeds when ``--dataset_root`` is given, else fresh seeds), records the uncertain
 prediction, fits the in-distribution model on the first ``calibration_episodes`` episodes, measures
 the false-alarm rate on the remaining held-out episodes, and writes the calibration into the policy
 directory, where ``from_pretrained`` finds it.
+
+A dataset recorded with appearance randomization (``--appearance.*``) lends its ranges too, so the gate is
+calibrated on the look the policy was trained on: what the randomization made in-distribution is not
+flagged, and what lies beyond its ranges still is.
 """
 
 from __future__ import annotations
@@ -18,7 +22,7 @@ from pathlib import Path
 import draccus
 import numpy as np
 
-from lerobot_suture.datasets.metadata import write_json_atomic
+from lerobot_suture.datasets.metadata import read_episode_log, write_json_atomic
 from lerobot_suture.safety.ood.calibration import default_model, fit_calibration, min_calibration_episodes
 from lerobot_suture.safety.ood.calibration_file import save_calibration
 from lerobot_suture.safety.ood.likelihood_ratio import false_alarm_rates
@@ -129,6 +133,15 @@ def calibration_seeds(cfg: CalibrateConfig) -> list[int]:
     return seeds
 
 
+def dataset_appearance(dataset_root: Path | None) -> dict:
+    """``{"appearance": ranges}`` when the dataset at ``dataset_root`` was recorded with appearance
+    randomization, else ``{}`` (no dataset, or a dataset of the scene's own look)."""
+    if dataset_root is None:
+        return {}
+    appearance = read_episode_log(dataset_root)["env_kwargs"].get("appearance")
+    return {"appearance": appearance} if appearance else {}
+
+
 def collect_scores(
     runner, env_kwargs: dict, seeds: list[int], desc: str, batch_envs: int = 8
 ) -> tuple[np.ndarray, np.ndarray, list]:
@@ -154,7 +167,7 @@ def run_calibration(cfg: CalibrateConfig) -> dict:
     config = runner.policy.config
     choice = cfg.score_choice()
     apply_score_choice(config, choice)
-    env_kwargs = env_kwargs_for_policy(config)
+    env_kwargs = {**env_kwargs_for_policy(config), **dataset_appearance(cfg.dataset_root)}
     seeds = calibration_seeds(cfg)
     fit_seeds, holdout_seeds = seeds[: cfg.calibration_episodes], seeds[cfg.calibration_episodes :]
     scores, ids, fit_logs = collect_scores(
@@ -178,6 +191,7 @@ def run_calibration(cfg: CalibrateConfig) -> dict:
         "score_choice_written": choice,
         "calibration": calibration.to_dict(),
         "calibration_seeds": fit_seeds,
+        "calibration_appearance": env_kwargs.get("appearance"),
         "calibration_success_rate": float(np.mean([log.success for log in fit_logs])),
     }
     if holdout_seeds:

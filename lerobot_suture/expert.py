@@ -3,6 +3,9 @@
 It reads the true needle grasp, the entry and exit points and the needle's pose from the env (as the
 paper's demonstrator reads AMBF's state) and emits the same 10-dim pose actions a policy emits:
 
+0. ``detour`` (only with ``approach_detour`` > 0): carry the needle first to a waypoint ``approach_detour``
+   to one side of the entry-exit line, at ``approach_height``; the side is drawn per episode from the env's
+   seed, so the demonstrations hold two equally valid ways into the same throw (a bimodal approach);
 1. ``approach``: carry the needle to ``approach_height`` above its throw pose, its plane through the
    entry-exit line (tilted towards the arm's port), the tip above the entry point;
 2. ``descend``: lower it until the tip rests on the entry point;
@@ -31,7 +34,8 @@ from lerobot_suture.sim.geometry import (
     rotvec_from_matrix,
 )
 
-PHASES = ("approach", "descend", "drive", "hold")
+PHASES = ("detour", "approach", "descend", "drive", "hold")
+_SIDE_STREAM = 0x51DE  # mixed with the env's seed: the detour side's own stream, apart from the env's draws
 
 
 @dataclass
@@ -47,6 +51,8 @@ class ExpertConfig:
         protrusion_angle: how far past the exit point the needle is driven (rad of arc).
         position_tolerance: distance to a waypoint that counts as reached (m).
         angle_tolerance: angle to a waypoint orientation that counts as reached (rad).
+        approach_detour: lateral offset of the detour waypoint from the throw's approach pose (m); 0 (the
+            default) approaches straight, > 0 via either side, drawn per episode.
         assume_nominal_grasp: plan with the env's nominal grasp of the needle instead of the true one, as a
             policy that cannot see how the needle sits in the jaw must: an upper bound on such a policy's
             success, a lower bound on its entry error (``benchmarks/expert_quality.py
@@ -61,6 +67,7 @@ class ExpertConfig:
     protrusion_angle: float = 0.5
     position_tolerance: float = 0.0005
     angle_tolerance: float = 0.03
+    approach_detour: float = 0.0
     assume_nominal_grasp: bool = False
 
     def __post_init__(self):
@@ -77,6 +84,10 @@ class ExpertConfig:
             value = getattr(self, name)
             if not (value > 0 and math.isfinite(value)):
                 raise ValueError(f"`{name}` must be a finite number > 0. Got {value}.")
+        if not (0.0 <= self.approach_detour <= 0.03 and math.isfinite(self.approach_detour)):
+            raise ValueError(
+                f"`approach_detour` must be in [0, 0.03] m (0: a straight approach). Got {self.approach_detour}."
+            )
 
 
 def _step_towards(position, rotation, goal_position, goal_rotation, max_distance, max_angle):
@@ -99,11 +110,18 @@ class ScriptedExpert:
         self.config = config or ExpertConfig()
         self.phase: str | None = None
         self.drive_angle = 0.0
+        self.detour_side = 1.0
 
     def reset(self, env=None) -> None:
-        """Start over; the phase is worked out from the env's state at the next ``act``."""
+        """Start over; the phase is worked out from the env's state at the next ``act``. With
+        ``approach_detour`` on, the detour's side (+1 or -1 along the throw's lateral axis) is drawn from the
+        seed of ``env``'s last reset: the same seed takes the same side, and the side says nothing of the
+        scene the seed draws."""
         self.phase = None
         self.drive_angle = 0.0
+        seed = getattr(env.unwrapped, "np_random_seed", None) if env is not None else None
+        rng = np.random.default_rng(None if seed is None or seed < 0 else [_SIDE_STREAM, seed])
+        self.detour_side = 1.0 if rng.integers(2) else -1.0
 
     def act(self, env) -> np.ndarray:
         u = env.unwrapped
@@ -121,6 +139,18 @@ class ScriptedExpert:
         if self.phase is None:
             self._infer_phase(u, frame, rotation)
 
+        if self.phase == "detour":
+            lateral = np.cross(normal, u.exit_point - u.entry_point)
+            lateral /= np.linalg.norm(lateral)
+            goal = (
+                frame.centre + cfg.approach_height * normal + self.detour_side * cfg.approach_detour * lateral
+            )
+            if np.linalg.norm(goal - centre) < 4 * cfg.position_tolerance:  # a waypoint, passed loosely
+                self.phase = "approach"
+            else:
+                target = _step_towards(
+                    centre, rotation, goal, rotation, cfg.approach_speed * dt, cfg.approach_turn_rate * dt
+                )
         if self.phase == "approach":
             goal = frame.centre + cfg.approach_height * normal
             error = np.linalg.norm(goal - centre)
@@ -167,4 +197,4 @@ class ScriptedExpert:
             self.drive_angle = max(0.0, -math.atan2(relative[1, 0], relative[0, 0]))
             self.phase = "drive"
         else:
-            self.phase = "approach"
+            self.phase = "detour" if self.config.approach_detour > 0 else "approach"

@@ -32,9 +32,38 @@ logger = logging.getLogger(__name__)
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 REFERENCE_RESULTS = REPO_ROOT / "docs" / "results" / "prior_servo_5500"
-DATASET_RECIPE = REPO_ROOT / "datasets" / "suture_expert_servo.yaml"
-TRAIN_PRESET = REPO_ROOT / "policies" / "presets" / "reference.json"
 CALIBRATE_CONFIG = REPO_ROOT / "policies" / "presets" / "reference_calibrate.yaml"
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """The files one trained policy is made from, and the committed results a new run is compared with."""
+
+    dataset: Path
+    train_preset: Path
+    results: Path
+
+
+RECIPES = {
+    # The paper's reference: moving-phantom demonstrations.
+    "reference": Recipe(
+        REPO_ROOT / "datasets" / "suture_expert_servo.yaml",
+        REPO_ROOT / "policies" / "presets" / "reference.json",
+        REFERENCE_RESULTS,
+    ),
+    # The same motions under randomized appearance, trained with LeRobot's image transforms.
+    "robust": Recipe(
+        REPO_ROOT / "datasets" / "suture_expert_randomized.yaml",
+        REPO_ROOT / "policies" / "presets" / "robust.json",
+        REPO_ROOT / "docs" / "results" / "robust_5500",
+    ),
+    # The reference's recipe with two equally valid approaches (the detectors' multimodality test).
+    "two_sided": Recipe(
+        REPO_ROOT / "datasets" / "suture_expert_two_sided.yaml",
+        REPO_ROOT / "policies" / "presets" / "two_sided.json",
+        REPO_ROOT / "docs" / "results" / "two_sided_5500",
+    ),
+}
 STAGES = ("record", "train", "calibrate", "experiments")
 
 _TOY_EXPERIMENTS = {
@@ -53,25 +82,35 @@ _TOY_EXPERIMENTS = {
 @dataclass
 class ReproduceConfig:
     """Args:
+    recipe: which policy to make, one of :data:`RECIPES`: ``reference`` (the paper's scenarios),
+        ``robust`` (randomized appearance and image augmentation) or ``two_sided`` (two demonstrated
+        approaches).
     output_dir: where the dataset, the training run, the experiments, the comparison and the timings go.
-    reference: a committed results folder whose ``metrics.json`` the new run is compared with.
+    reference: a committed results folder whose ``metrics.json`` the new run is compared with (default:
+        the recipe's own).
     toy: the same pipeline at toy scale (a smoke test; its table is not expected to match).
     device: torch device for calibration and experiments (training takes the preset's).
     """
 
+    recipe: str = "reference"
     output_dir: Path = Path("outputs/reproduce")
-    reference: Path = REFERENCE_RESULTS
+    reference: Path | None = None
     toy: bool = False
     device: str = "cpu"
 
     def __post_init__(self):
-        missing = [p for p in (DATASET_RECIPE, TRAIN_PRESET, CALIBRATE_CONFIG) if not p.is_file()]
+        if self.recipe not in RECIPES:
+            raise ValueError(f"`recipe` must be one of {list(RECIPES)}. Got {self.recipe!r}.")
+        if self.reference is None:
+            self.reference = RECIPES[self.recipe].results
+        recipe = RECIPES[self.recipe]
+        missing = [p for p in (recipe.dataset, recipe.train_preset, CALIBRATE_CONFIG) if not p.is_file()]
         if missing:
             raise ValueError(
                 f"The recipe files {[str(p) for p in missing]} are missing: `reproduce` runs from a clone of "
                 "the lerobot-suture repository (git clone, then `make reproduce`)."
             )
-        if not (Path(self.reference) / "metrics.json").is_file():
+        if not (Path(self.reference) / "metrics.json").is_file() and self.reference != recipe.results:
             raise ValueError(
                 f"`reference` must be a results folder holding metrics.json. Got {self.reference}."
             )
@@ -98,7 +137,11 @@ def record_stage(cfg: ReproduceConfig) -> Path:
     from lerobot_suture.datasets.record_config import parse_config
 
     root = cfg.output_dir / "data"
-    args = [f"--config_path={DATASET_RECIPE}", f"--root={root}", f"--resume={str(root.exists()).lower()}"]
+    args = [
+        f"--config_path={RECIPES[cfg.recipe].dataset}",
+        f"--root={root}",
+        f"--resume={str(root.exists()).lower()}",
+    ]
     if cfg.toy:
         args += ["--num_episodes=4", "--checkpoint_every=2"]
     record(parse_config(args))
@@ -110,9 +153,10 @@ def train_stage(cfg: ReproduceConfig, dataset_root: Path) -> Path:
     from lerobot_suture.datasets.video import resolve_video_backend
     from lerobot_suture.training import run_lerobot_train
 
-    preset = json.loads(TRAIN_PRESET.read_text())
+    train_preset = RECIPES[cfg.recipe].train_preset
+    preset = json.loads(train_preset.read_text())
     steps = 4 if cfg.toy else int(preset["steps"])
-    fresh = [f"--config_path={TRAIN_PRESET}"]
+    fresh = [f"--config_path={train_preset}"]
     if cfg.toy:
         episodes = ",".join(str(i) for i in train_episodes(dataset_root))
         fresh += [f"--dataset.episodes=[{episodes}]", "--batch_size=4", "--num_workers=0", "--log_freq=1"]
@@ -169,9 +213,13 @@ def experiments_stage(cfg: ReproduceConfig, policy_dir: Path, calibration_file: 
 def write_comparison(cfg: ReproduceConfig, metrics: dict, timings: _Timings) -> str:
     from lerobot_suture.experiments.compare import compare_metrics, comparison_json, comparison_markdown
 
-    committed = json.loads((Path(cfg.reference) / "metrics.json").read_text())
-    rows = compare_metrics(committed, metrics)
-    table = comparison_markdown(rows, f"committed ({Path(cfg.reference).name})", "this run")
+    committed_file = Path(cfg.reference) / "metrics.json"
+    if committed_file.is_file():
+        rows = compare_metrics(json.loads(committed_file.read_text()), metrics)
+        table = comparison_markdown(rows, f"committed ({Path(cfg.reference).name})", "this run")
+    else:  # a recipe whose results are not committed yet: the new run's figures alone
+        rows = compare_metrics(metrics, metrics)
+        table = comparison_markdown(rows, "this run", "this run")
     stage_times = ", ".join(f"{s} {timings.seconds.get(s, 0.0) / 60:.1f} min" for s in STAGES)
     text = (
         f"# Reproduction{' (toy scale)' if cfg.toy else ''}\n\n{table}\n\n"

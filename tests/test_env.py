@@ -282,6 +282,33 @@ def test_expert_assuming_the_nominal_grasp_misses_by_the_grasp_error():
     assert info["needle_in_tissue"] and info["is_success"]
 
 
+def test_the_two_sided_expert_takes_either_side_by_seed_and_still_inserts():
+    env = make()
+    sides = set()
+    for seed in range(8):
+        expert = ScriptedExpert(ExpertConfig(approach_detour=0.008))
+        history = run_expert(env, seed, expert=expert)
+        assert history[-1][1]["is_success"], seed
+        straight = run_expert(env, seed)
+        chord = env.unwrapped.exit_point - env.unwrapped.entry_point
+        lateral = np.cross(env.unwrapped.phantom_rotation[:, 2], chord)
+        lateral /= np.linalg.norm(lateral)
+        # Against the straight approach of the same seed, the jaw swings out to the drawn side.
+        n = min(len(history), len(straight))
+        jaw = np.array([obs["agent_pos"][:3] for obs, _ in history[:n]])
+        jaw_straight = np.array([obs["agent_pos"][:3] for obs, _ in straight[:n]])
+        apart = (jaw - jaw_straight) @ lateral
+        assert expert.detour_side * apart[np.argmax(np.abs(apart))] > 0.004, seed
+        sides.add(expert.detour_side)
+        again = ScriptedExpert(ExpertConfig(approach_detour=0.008))
+        env.reset(seed=seed)
+        again.reset(env)
+        assert again.detour_side == expert.detour_side  # the side is the seed's
+    assert sides == {-1.0, 1.0}
+    with pytest.raises(ValueError, match="approach_detour"):
+        ExpertConfig(approach_detour=0.1)
+
+
 def test_a_throw_off_the_marks_ends_the_episode_as_a_failure():
     """The needle sits 3 mm off along the jaw from where the expert believes (it plans with the nominal
     grasp): the tip enters and emerges off the marks, and the episode ends when the throw is over, as

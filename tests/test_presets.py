@@ -14,6 +14,7 @@ from pathlib import Path
 
 import draccus
 import pytest
+import yaml
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 PRESETS = REPO_ROOT / "policies" / "presets"
@@ -107,3 +108,22 @@ def test_reference_dataset_recipe_parses_as_record_parses_it():
     for name in ("num_episodes", "val_fraction", "obs_type", "image_size", "seed", "grasp", "video"):
         assert getattr(reference, name) == getattr(paper, name), name
     assert reference.num_episodes - math.ceil(reference.num_episodes * reference.val_fraction) == 99
+
+
+@pytest.mark.parametrize("preset, dataset", [("robust", "randomized"), ("two_sided", "two_sided")])
+def test_variant_presets_are_the_reference_on_other_data(preset, dataset, tmp_path):
+    """The robust and two-sided recipes change the data (and the robust one LeRobot's image transforms),
+    nothing else: their tables differ from the reference's by what the data teaches."""
+    reference = _parse_train_config(PRESETS / "reference.json", tmp_path / "a")
+    variant = _parse_train_config(PRESETS / f"{preset}.json", tmp_path / "b")
+    assert variant.policy == reference.policy
+    for name in PIPELINE_FIELDS:
+        assert getattr(variant, name) == getattr(reference, name), name
+    assert variant.dataset.repo_id == f"local/suture_expert_{dataset}"
+    assert variant.dataset.episodes == reference.dataset.episodes
+    recipe = yaml.safe_load((DATASETS / f"suture_expert_{dataset}.yaml").read_text())
+    assert recipe["repo_id"] == variant.dataset.repo_id
+    transforms = variant.dataset.image_transforms
+    assert transforms.enable is (preset == "robust")
+    if transforms.enable:
+        assert set(transforms.tfs) == {"brightness", "contrast", "saturation", "hue", "sharpness", "affine"}

@@ -47,6 +47,9 @@ class RecordConfig:
             that does not read the needle must (``ExpertConfig.assume_nominal_grasp``). Its motion then
             does not depend on the grasp, so where the needle is in the image cannot be told from the
             jaw and the phantom: only from the needle (the target of ``needle_keypoints_weight``).
+        approach_detour: m, [0, 0.03]; > 0: the expert approaches via a waypoint this far to one side of
+            the entry-exit line, the side drawn per episode (``ExpertConfig.approach_detour``): a dataset
+            of two equally valid strategies, for testing whether a detector mistakes them for uncertainty.
         steps_after_success: control steps recorded after the insertion succeeds, the expert driving on
             (its planned protrusion raised by the arc it turns in them, :func:`expert_config`). A policy's
             episode ends when the throw is over, so the action chunks it predicts there then reach into
@@ -79,6 +82,7 @@ class RecordConfig:
     scenario: str = "nominal"  # perturbation scenario the expert is recorded in
     grasp: str = "narrow"  # grasp randomization: narrow (the test scenes) | wide
     grasp_blind_expert: bool = False  # the expert plans with the nominal grasp, not the true one
+    approach_detour: float = 0.0  # m; > 0: the expert approaches via either side, drawn per episode
     seed: int = 0  # env seed of the first attempt; attempt k uses seed + k
     steps_after_success: int = 0  # control steps recorded past success, the expert driving on
     appearance: AppearanceConfig = field(default_factory=AppearanceConfig)  # endoscope view randomization
@@ -107,6 +111,10 @@ class RecordConfig:
             raise ValueError(f"`grasp` must be one of {list(task.GRASP_RANGES)}. Got {self.grasp!r}.")
         if not 0 <= self.seed < 2**32 - 1_000_000:
             raise ValueError(f"`seed` must be in [0, 2**32 - 1e6). Got {self.seed}.")
+        if not 0.0 <= self.approach_detour <= 0.03:
+            raise ValueError(
+                f"`approach_detour` must be in [0, 0.03] m (0: a straight approach). Got {self.approach_detour}."
+            )
         if self.checkpoint_every < 1:
             raise ValueError(f"`checkpoint_every` must be >= 1. Got {self.checkpoint_every}.")
         if not 0 <= self.steps_after_success <= MAX_STEPS_AFTER_SUCCESS:
@@ -140,6 +148,8 @@ class RecordConfig:
             flags.append(f"--grasp={self.grasp}")
         if self.grasp_blind_expert:
             flags.append("--grasp_blind_expert=true")
+        if self.approach_detour:
+            flags.append(f"--approach_detour={self.approach_detour:g}")
         if self.steps_after_success:
             flags.append(f"--steps_after_success={self.steps_after_success}")
         for name, value in self.appearance.active().items():
@@ -149,16 +159,20 @@ class RecordConfig:
         return " ".join([COMMAND, *(shlex.quote(f) for f in flags)])
 
 
-def expert_config(steps_after_success: int, grasp_blind_expert: bool = False) -> ExpertConfig:
+def expert_config(
+    steps_after_success: int, grasp_blind_expert: bool = False, approach_detour: float = 0.0
+) -> ExpertConfig:
     """The recording expert: the default one, driving on through ``steps_after_success`` control steps
     past its usual protrusion (at ``drive_rate``), so it still turns the needle in them; with
-    ``grasp_blind_expert`` it plans with the nominal grasp instead of the true one."""
+    ``grasp_blind_expert`` it plans with the nominal grasp instead of the true one; with
+    ``approach_detour`` it approaches via either side of the entry-exit line (two strategies)."""
     default = ExpertConfig()
     extra = steps_after_success * default.drive_rate * task.CONTROL_DT  # rad of arc
     return dataclasses.replace(
         default,
         protrusion_angle=default.protrusion_angle + extra,
         assume_nominal_grasp=grasp_blind_expert,
+        approach_detour=approach_detour,
     )
 
 

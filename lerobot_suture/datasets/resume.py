@@ -50,7 +50,9 @@ def new_episode_log(cfg: RecordConfig) -> dict:
         "env_kwargs": env_kwargs,
         "expert": {
             "class": "lerobot_suture.expert.ScriptedExpert",
-            "config": dataclasses.asdict(expert_config(cfg.steps_after_success, cfg.grasp_blind_expert)),
+            "config": dataclasses.asdict(
+                expert_config(cfg.steps_after_success, cfg.grasp_blind_expert, cfg.approach_detour)
+            ),
         },
         "steps_after_success": cfg.steps_after_success,
         "seed": cfg.seed,
@@ -77,8 +79,16 @@ def _check_resumable(cfg: RecordConfig, log: dict, root: Path) -> None:
         "seed": log["seed"],
         "steps_after_success": log.get("steps_after_success", 0),  # absent in logs before it existed
         "grasp_blind_expert": log["expert"]["config"].get("assume_nominal_grasp", False),
+        "approach_detour": log["expert"]["config"].get("approach_detour", 0.0),
     }
-    for name in (*_RESUME_FIELDS, "video", "seed", "steps_after_success", "grasp_blind_expert"):
+    for name in (
+        *_RESUME_FIELDS,
+        "video",
+        "seed",
+        "steps_after_success",
+        "grasp_blind_expert",
+        "approach_detour",
+    ):
         if getattr(cfg, name) != recorded[name]:
             value = str(recorded[name]).lower() if isinstance(recorded[name], bool) else recorded[name]
             raise ValueError(
