@@ -39,9 +39,13 @@ SUBCOMMANDS = {
         "lerobot_suture.experiments.benchmark_ood",
         "compare failure detectors (the gate's score and the field's) on the same rollouts",
     ),
+    "robustness-report": (
+        "lerobot_suture.experiments.robustness",
+        "policies side by side under the shifts, inside and beyond their training ranges, with the gate",
+    ),
     "reproduce": (
         "lerobot_suture.reproduce",
-        "record, train, calibrate and run the experiments with the reference recipe; compare the table",
+        "record, train, calibrate and run the experiments of a recipe (reference, robust, two_sided)",
     ),
     "dagger": (
         "lerobot_suture.dagger.loop",

@@ -101,6 +101,19 @@ def test_benchmark_ood_writes_table_numbers_figures_and_resumes(tiny_policy_dir,
         for n in ("fit", "calibration", "nominal", *SCENARIOS, *shifts)
         for ext in ("json", "npz")
     )
+    # The robustness report reads the benchmark: a row per shift, the gate's flags, the range status.
+    cli_main(["robustness-report", f"--runs=[toy={out}]", f"--output_dir={tmp_path / 'robustness'}"])
+    report = json.loads((tmp_path / "robustness" / "robustness.json").read_text())
+    rows = report["policies"]["toy"]["shifts"]
+    assert [r["shift"] for r in rows] == shifts and {r["range"] for r in rows} == {"untrained"}
+    gate = result["detectors"]["ensemble_covariance"]["shifts"]
+    for r in rows:
+        assert r["success_rate"] == gate[r["shift"]]["success_rate"]
+    assert (
+        "| dim_light@0.6 | appearance | untrained |"
+        in (tmp_path / "robustness" / "robustness.md").read_text()
+    )
+    assert (tmp_path / "robustness" / "robustness.png").stat().st_size > 10_000
     # A second run rolls nothing out again: every part is reused, and the numbers are the same.
     caplog.set_level("INFO")
     cli_main(args[:-1] + ["--batch_envs=2", "--detectors=[ensemble_covariance,stac]"])

@@ -5,9 +5,18 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
+from lerobot_suture.experiments.robustness import bars
 from lerobot_suture.registration import ENV_ID
 from lerobot_suture.sim.appearance import AppearanceSample
-from lerobot_suture.sim.shifts import MAGNITUDES, SHIFT_SPECS, SHIFTS, Shift, ShiftWrapper, default_shifts
+from lerobot_suture.sim.shifts import (
+    MAGNITUDES,
+    SHIFT_SPECS,
+    SHIFTS,
+    Shift,
+    ShiftWrapper,
+    default_shifts,
+    within_training_range,
+)
 
 
 def _env(shift: Shift | None = None, **kwargs):
@@ -105,3 +114,28 @@ def test_a_set_look_is_undone_at_the_next_reset():
     assert _image(dimmed).mean() != pytest.approx(_image(fresh).mean(), abs=1)
     again, _ = env.reset(seed=4)
     np.testing.assert_array_equal(again["pixels"]["endoscope"], fresh["pixels"]["endoscope"])
+
+
+def test_the_range_status_follows_the_dataset_appearance():
+    recipe = {"light_intensity": 0.3, "haze": 0.3, "noise": 0.0}
+    assert within_training_range(Shift("dim_light", 0.2), recipe) is True
+    assert within_training_range(Shift("dim_light", 0.6), recipe) is False
+    assert within_training_range(Shift("image_noise", 0.02), recipe) is None  # the recipe leaves noise off
+    assert within_training_range(Shift("action_delay", 1), recipe) is None
+    assert within_training_range(Shift("dim_light", 0.2), None) is None
+
+
+def test_bars_pool_the_flags_over_runs_beyond_the_range():
+    rows = [
+        {"range": "inside", "runs": 10, "failures": 1, "success_rate": 0.9,
+         "flagged_of_failures": 1.0, "flagged_of_successes": 0.0},
+        {"range": "beyond", "runs": 10, "failures": 8, "success_rate": 0.2,
+         "flagged_of_failures": 1.0, "flagged_of_successes": 0.5},
+        {"range": "untrained", "runs": 10, "failures": 2, "success_rate": 0.8,
+         "flagged_of_failures": 0.5, "flagged_of_successes": 0.0},
+    ]  # fmt: skip
+    b = bars(rows, None)
+    assert b["min_success_inside_range"] == 0.9
+    assert b["beyond_failed_runs"] == 10
+    assert b["beyond_flagged_of_failures"] == pytest.approx((8 * 1.0 + 2 * 0.5) / 10)
+    assert b["beyond_flagged_of_successes"] == pytest.approx((2 * 0.5 + 8 * 0.0) / 10)

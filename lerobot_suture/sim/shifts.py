@@ -84,6 +84,17 @@ MAGNITUDES: dict[str, tuple[float, float]] = {
 """Two magnitudes of each shift, the benchmark's default: (inside the randomized recipe's range where it
 has one, beyond it)."""
 
+RANDOMIZED_BY = {
+    "dim_light": "light_intensity",
+    "smoke_haze": "haze",
+    "instrument_colour": "instrument_tint",
+    "tissue_colour": "tissue_hue",
+    "camera_roll": "camera_roll",
+    "image_noise": "noise",
+}
+"""The appearance option (``AppearanceConfig``) whose range covers each shift; geometry, dynamics and the
+state's noise are covered by none."""
+
 _BLUE = 0.62  # hue (turns) the instrument is tinted towards: far from the grey and from the red tissue
 
 
@@ -139,6 +150,16 @@ class Shift:
             "image_noise": AppearanceSample(noise_std=m),
         }
         return looks.get(self.name)
+
+
+def within_training_range(shift: Shift, appearance: dict | None) -> bool | None:
+    """Whether ``shift``'s magnitude lies inside the range a dataset's appearance randomization
+    (``appearance``, the fields of an ``AppearanceConfig``; None: none) drew from: True inside, False
+    beyond, None when no option of it covers this shift at all."""
+    option = RANDOMIZED_BY.get(shift.name)
+    if option is None or not appearance or not appearance.get(option):
+        return None
+    return float(shift.magnitude) <= float(appearance[option])
 
 
 def default_shifts() -> list[Shift]:

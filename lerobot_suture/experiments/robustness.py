@@ -1,0 +1,258 @@
+"""``lerobot-suture robustness-report``: policies side by side under the shifts, inside and beyond what
+their training data varied, with the gate's flags and the paper's bars.
+
+Reads the ``detectors.json`` that ``lerobot-suture benchmark-ood`` wrote for each policy (and, optionally,
+the ``metrics.json`` of ``lerobot-suture experiments``), and writes ``robustness.md``, ``robustness.json``
+and ``robustness.png`` into ``output_dir``:
+
+- per shift x magnitude and policy: success, flagged of the failed runs, flagged of the successful runs,
+  and whether the magnitude lies inside the policy's training range (its dataset's appearance
+  randomization), beyond it, or varies something no recipe randomizes (``untrained``);
+- per policy, the bars: the smallest success inside the training ranges; beyond them, the share of failed
+  runs the gate flags and of successful runs it flags (pooled over shifts); and, from the experiments, the
+  paper-scenario figures (nominal success, AUROC of the drop and of the phantom moved after insertion,
+  servo runs flagged, drop delay, false alarms).
+
+The gate is the ``detector`` row of the benchmark (the ensemble's covariance by default), calibrated as
+the benchmark calibrates it: per-episode threshold at alpha on nominal validation runs of the training
+distribution.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import draccus
+
+from lerobot_suture.experiments.benchmark_ood_report import fmt
+from lerobot_suture.sim.shifts import Shift, within_training_range
+
+RANGE_LABELS = {True: "inside", False: "beyond", None: "untrained"}
+
+
+def _named_dirs(values: list[str], what: str) -> dict[str, Path]:
+    out = {}
+    for value in values:
+        name, sep, path = value.partition("=")
+        if not sep or not name or not path:
+            raise ValueError(
+                f"`{what}` entries are NAME=DIR (e.g. robust=outputs/bench_robust). Got {value!r}."
+            )
+        out[name] = Path(path)
+    return out
+
+
+@dataclass
+class RobustnessReportConfig:
+    """Args:
+    runs: ``NAME=DIR`` of each policy's benchmark-ood output (holding ``detectors.json``), baseline first.
+    experiments: ``NAME=DIR`` of the same policies' experiments outputs (holding ``metrics.json``); optional.
+    detector: the benchmark row that plays the gate.
+    output_dir: where ``robustness.md``, ``robustness.json`` and ``robustness.png`` go.
+    """
+
+    runs: list[str] = field(default_factory=list)
+    experiments: list[str] = field(default_factory=list)
+    detector: str = "ensemble_covariance"
+    output_dir: Path = Path("outputs/robustness")
+
+    def __post_init__(self):
+        if not self.runs:
+            raise ValueError("`runs` must name at least one benchmark-ood output: --runs='[reference=DIR]'.")
+        for name, path in _named_dirs(self.runs, "runs").items():
+            if not (path / "detectors.json").is_file():
+                raise ValueError(
+                    f"{path} (run {name}) holds no detectors.json: run `lerobot-suture benchmark-ood "
+                    f"--output_dir={path}` first."
+                )
+        for name, path in _named_dirs(self.experiments, "experiments").items():
+            if not (path / "metrics.json").is_file():
+                raise ValueError(f"{path} (experiments {name}) holds no metrics.json.")
+
+
+def shift_rows(benchmark: dict, detector: str) -> list[dict]:
+    """One row per shift of a benchmark: success, the gate's flags, the range status."""
+    if detector not in benchmark["detectors"] or "error" in benchmark["detectors"][detector]:
+        raise ValueError(f"The benchmark has no result for detector {detector!r}.")
+    gate = benchmark["detectors"][detector]["shifts"]
+    rows = []
+    for label in benchmark.get("shifts", []):
+        m = gate[label]
+        shift = Shift.parse(label)
+        rows.append(
+            {
+                "shift": label,
+                "family": shift.family,
+                "range": RANGE_LABELS[within_training_range(shift, benchmark.get("training_appearance"))],
+                "runs": m["runs"],
+                "failures": m["failures"],
+                "success_rate": m["success_rate"],
+                "flagged_of_failures": m["flagged_of_failures"],
+                "flagged_of_successes": m["flagged_of_successes"],
+            }
+        )
+    return rows
+
+
+def _pooled(rows: list[dict], key: str, count) -> float:
+    n = sum(count(r) for r in rows)
+    flagged = sum(r[key] * count(r) for r in rows if count(r))
+    return flagged / n if n else math.nan
+
+
+def bars(rows: list[dict], metrics: dict | None) -> dict:
+    """The issue's bars for one policy: inside the ranges, beyond them (pooled), and the paper's."""
+    inside = [r for r in rows if r["range"] == "inside"]
+    beyond = [r for r in rows if r["range"] != "inside"]
+    out = {
+        "min_success_inside_range": min((r["success_rate"] for r in inside), default=math.nan),
+        "beyond_failed_runs": sum(r["failures"] for r in beyond),
+        "beyond_flagged_of_failures": _pooled(beyond, "flagged_of_failures", lambda r: r["failures"]),
+        "beyond_flagged_of_successes": _pooled(
+            beyond, "flagged_of_successes", lambda r: r["runs"] - r["failures"]
+        ),
+    }
+    if metrics:
+        e = metrics["experiments"]
+        out.update(
+            {
+                "nominal_success": metrics["nominal"]["success_rate"],
+                "nominal_false_alarms_per_episode": metrics["nominal"]["false_alarms"]["per_episode"],
+                "needle_drop_auroc": e["1"]["auroc"],
+                "after_insertion_auroc": e["3.2"]["auroc"],
+                "servo_flagged": e["3.1"]["tpr_at_threshold"],
+                "needle_drop_delay_steps": e["1"]["detection_delay_steps"]["median"],
+                "camera_moved_success": e["2"]["policy_success_rate"],
+                "camera_moved_flagged": e["2"]["tpr_at_threshold"],
+            }
+        )
+    return out
+
+
+def render(result: dict) -> str:
+    names = list(result["policies"])
+    lines = [
+        "# Robustness under shifts",
+        "",
+        f"Gate: the `{result['detector']}` detector of `lerobot-suture benchmark-ood`, thresholded per episode "
+        "on nominal validation runs of each policy's training distribution. Each cell: success; flagged of "
+        "the failed runs / flagged of the successful runs. Range: inside or beyond the appearance range "
+        "the policy's data was randomized over, or untrained (no recipe varies it).",
+        "",
+        "| shift | family | "
+        + " | ".join(f"{n}: range | {n}: success | {n}: flagged F / S" for n in names)
+        + " |",
+        "|---|---|" + "---|---|---|" * len(names),
+    ]
+    by_policy = {n: {r["shift"]: r for r in result["policies"][n]["shifts"]} for n in names}
+    for label in result["shifts"]:
+        cells = []
+        for n in names:
+            r = by_policy[n].get(label)
+            if r is None:
+                cells += ["", "", ""]
+                continue
+            cells += [
+                r["range"],
+                fmt(r["success_rate"], 2),
+                f"{fmt(r['flagged_of_failures'], 2)} / {fmt(r['flagged_of_successes'], 2)}",
+            ]
+        lines.append(f"| {label} | {Shift.parse(label).family} | " + " | ".join(cells) + " |")
+    keys = [
+        ("min_success_inside_range", "smallest success inside the training ranges (bar >= 0.80)"),
+        ("beyond_flagged_of_failures", "beyond: failed runs flagged (bar >= 0.90)"),
+        ("beyond_flagged_of_successes", "beyond: successful runs flagged (bar <= 0.15)"),
+        ("beyond_failed_runs", "beyond: failed runs"),
+        ("nominal_success", "nominal success (bar >= 0.90)"),
+        ("needle_drop_auroc", "needle drop AUROC (bar >= 0.95)"),
+        ("after_insertion_auroc", "phantom moved after insertion AUROC (bar >= 0.95)"),
+        ("servo_flagged", "phantom servo flagged (bar <= 0.20)"),
+        ("needle_drop_delay_steps", "needle drop median delay, steps (bar <= 10)"),
+        ("nominal_false_alarms_per_episode", "nominal false alarms per episode (bar <= 0.05)"),
+        ("camera_moved_success", "camera moved: success"),
+        ("camera_moved_flagged", "camera moved: flagged"),
+    ]
+    lines += ["", "| figure | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
+    for key, what in keys:
+        values = [result["policies"][n]["bars"].get(key) for n in names]
+        if all(v is None for v in values):
+            continue
+        digits = 0 if key in ("beyond_failed_runs", "needle_drop_delay_steps") else 2
+        lines.append(f"| {what} | " + " | ".join(fmt(v, digits) for v in values) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def plot(result: dict, path: Path) -> Path:
+    """Success per shift, a bar per policy; the gate's flags of failed (filled) and successful (open) runs."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    names, shifts = list(result["policies"]), result["shifts"]
+    x = np.arange(len(shifts))
+    width = 0.8 / len(names)
+    fig, ax = plt.subplots(figsize=(max(9.0, 0.6 * len(shifts) + 3), 5.0))
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for k, name in enumerate(names):
+        rows = {r["shift"]: r for r in result["policies"][name]["shifts"]}
+        xs = x - 0.4 + width * (k + 0.5)
+        colour = colours[k % len(colours)]
+
+        def get(key, rows=rows):
+            return [rows[s][key] if s in rows else math.nan for s in shifts]
+
+        ax.bar(xs, get("success_rate"), width * 0.9, color=colour, alpha=0.35, label=f"{name}: success")
+        ax.plot(xs, get("flagged_of_failures"), "v", color=colour, ms=6, label=f"{name}: failed runs flagged")
+        ax.plot(xs, get("flagged_of_successes"), "o", mfc="none", color=colour, ms=6,
+                label=f"{name}: successful runs flagged")  # fmt: skip
+        for xi, s in zip(xs, shifts, strict=True):
+            if s in rows and rows[s]["range"] == "inside":
+                ax.text(xi, 1.04, "in", ha="center", fontsize=6, color=colour)
+    ax.set_xticks(x, shifts, rotation=60, ha="right", fontsize=8)
+    ax.set_ylim(0, 1.1)
+    ax.set_ylabel("share of runs")
+    ax.set_title(
+        "Success under each shift (bars) and the gate's flags; 'in': inside the training range", fontsize=9
+    )
+    ax.legend(fontsize=7, ncol=len(names), loc="upper center", bbox_to_anchor=(0.5, -0.3))
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def build_report(cfg: RobustnessReportConfig) -> dict:
+    runs = _named_dirs(cfg.runs, "runs")
+    experiments = _named_dirs(cfg.experiments, "experiments")
+    policies, shifts = {}, []
+    for name, path in runs.items():
+        benchmark = json.loads((path / "detectors.json").read_text())
+        rows = shift_rows(benchmark, cfg.detector)
+        metrics = None
+        if name in experiments:
+            metrics = json.loads((experiments[name] / "metrics.json").read_text())
+        policies[name] = {
+            "benchmark": str(path),
+            "policy_success_rate": benchmark["policy_success_rate"],
+            "training_appearance": benchmark.get("training_appearance"),
+            "shifts": rows,
+            "bars": bars(rows, metrics),
+        }
+        shifts += [r["shift"] for r in rows if r["shift"] not in shifts]
+    result = {"detector": cfg.detector, "shifts": shifts, "policies": policies}
+    cfg.output_dir.mkdir(parents=True, exist_ok=True)
+    (cfg.output_dir / "robustness.json").write_text(json.dumps(result, indent=2))
+    (cfg.output_dir / "robustness.md").write_text(render(result))
+    plot(result, cfg.output_dir / "robustness.png")
+    return result
+
+
+def main(argv: list[str] | None = None) -> None:
+    cfg = draccus.parse(config_class=RobustnessReportConfig, args=argv, exit_on_error=False)
+    build_report(cfg)
+    print((cfg.output_dir / "robustness.md").read_text())
