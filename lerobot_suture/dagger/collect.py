@@ -14,10 +14,10 @@ gated      the policy with its gate enforced; once the gate     only the surgeon
            privileged expert) finishes from where it is         of them an episode; ``action``: the
                                                                 surgeon's executed action
 ungated    the policy drives every step (the gate reports);     every visited state (``actor`` 0,
-           beside it an expert, started with the episode and    ``is_intervention`` 0, the gate's score and
-           following its phases on the true state, is asked     decision), then a contiguous window per
-           for its action at each visited state                 episode, the budget spread evenly over the
-                                                                episodes; ``action``: the expert's label,
+           beside it the expert, its phase placed on the state  ``is_intervention`` 0, the gate's score and
+           the policy reached (:mod:`~lerobot_suture.dagger.    decision), then a contiguous window per
+           labelling`), is asked for its action at each         episode, the budget spread evenly over the
+           visited state                                        episodes; ``action``: the expert's label,
                                                                 not the executed action
 bc         the expert alone from the start, as ``lerobot-suture successful episodes whole, in order with the
            record`` records (failed attempts discarded)         scenarios interleaved, the last one cut;
@@ -40,6 +40,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from lerobot_suture.dagger.labelling import StateLabeller
 from lerobot_suture.expert import ExpertConfig, ScriptedExpert
 from lerobot_suture.surgeon.record_run import (
     ACTOR_KEY,
@@ -105,25 +106,21 @@ class BufferedRecorder(RunRecorder):
 
 
 class LabellingRecorder(BufferedRecorder):
-    """Records, at every step, the expert's action at the visited state in place of the executed one.
-
-    The expert starts with the episode (``reset`` at its first state) and keeps its phase from step to
-    step, advancing it on the true state, so it labels each state as the expert watching the whole
-    episode would act there.
-    """
+    """Records, at every step, the expert's action at the visited state in place of the executed one
+    (:class:`~lerobot_suture.dagger.labelling.StateLabeller`, reset at each episode's first state)."""
 
     def __init__(self, expert_config: ExpertConfig):
         super().__init__()
-        self.expert = ScriptedExpert(expert_config)
+        self.labeller = StateLabeller(expert_config)
         self._label: np.ndarray | None = None
         self._new_episode = True
 
     def observe(self, env) -> None:
         super().observe(env)
         if self._new_episode:
-            self.expert.reset(env)
+            self.labeller.reset(env)
             self._new_episode = False
-        self._label = self.expert.act(env)  # reads the state, moves nothing
+        self._label = self.labeller.label(env)
 
     def add(self, env, observation, action, reward, info, done, actor, score, decision) -> None:
         super().add(env, observation, self._label, reward, info, done, actor, score, decision)

@@ -56,7 +56,7 @@ class DaggerConfig:
         holdout_episodes: further nominal episodes on which the gate's false-alarm rate is measured, >= 0.
         calibration_mode: ``per_episode`` (needs at least ``(1 - alpha) / alpha`` calibration episodes) or
             ``per_prediction``.
-        alpha: significance of the gate's test, in (0, 1).
+        alpha: significance of the gate's one-sided test, in (0, 0.5).
         seed: base of the collection seeds (fresh every round; the same scenes for every arm in a round).
         test_seed: base of the test seeds (disjoint from recording, calibration and collection seeds).
         batch_envs: envs run in lockstep in calibration and evaluation, >= 1.
@@ -126,8 +126,8 @@ class DaggerConfig:
             raise ValueError(f"`warmup_steps` must be >= 0. Got {self.warmup_steps}.")
         if not (self.lr > 0 and math.isfinite(self.lr)):
             raise ValueError(f"`lr` must be a finite number > 0. Got {self.lr}.")
-        if not 0.0 < self.alpha < 1.0:
-            raise ValueError(f"`alpha` must be in (0, 1). Got {self.alpha}.")
+        if not 0.0 < self.alpha < 0.5:
+            raise ValueError(f"`alpha` must be in (0, 0.5) (a one-sided test). Got {self.alpha}.")
         if self.calibration_mode not in CALIBRATION_MODES:
             raise ValueError(
                 f"`calibration_mode` must be one of {CALIBRATION_MODES}. Got {self.calibration_mode!r}."

@@ -5,6 +5,8 @@ count), handovers and surgeon control steps (10 Hz) per episode, episodes with a
 the false alarms), and, for each perturbed scenario, the episode-level AUROC of its uncertainty scores
 against the nominal ones (:func:`~lerobot_suture.experiments.runner.ood_metrics`; once the gate has
 released control the policy is not asked again, so an episode's score is its largest before the handover).
+The surgeon here is :func:`~lerobot_suture.rollout.rollout_episodes`' (the default scripted expert), as in
+``lerobot-suture experiments``; it only finishes what the policy handed over.
 """
 
 from __future__ import annotations

@@ -136,7 +136,7 @@ def plot(rows: list[dict], out_path: Path) -> Path:
                 ys = [r[key].get(scenario, math.nan) for r in arm_rows]
                 ax.plot(xs, ys, color=COLOURS[arm], marker=MARKERS[arm], lw=1.4, label=arm)
                 for x, y, r in zip(xs, ys, arm_rows, strict=True):
-                    if not math.isnan(y):
+                    if k == 0 and not math.isnan(y):  # the rounds, once: every arm's lie in the same order
                         ax.annotate(
                             str(r["round"]), (x, y), fontsize=7, xytext=(3, 3), textcoords="offset points"
                         )
