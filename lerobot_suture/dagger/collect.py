@@ -252,6 +252,8 @@ def collect_ungated(runner, spec: CollectSpec, budget: int, seed: int) -> tuple[
     """The ungated arm: the policy drives, the expert labels every visited state; ``budget`` frames kept."""
     from lerobot_suture.surgeon.surgeons import NoSurgeon
 
+    if budget == 0:  # nothing to label this round
+        return [], []
     runner.policy.config.ood.enforce = False
     recorder = LabellingRecorder(spec.expert_config)
     runs = _policy_runs(runner, spec, NoSurgeon(), recorder, "ungated")
