@@ -6,6 +6,7 @@ import shutil
 import gymnasium as gym
 import numpy as np
 import pytest
+import torch
 
 import lerobot_suture
 from lerobot_suture.datasets.video import resolve_video_backend
@@ -13,6 +14,7 @@ from lerobot_suture.policy_runner import PolicyRunner, env_kwargs_for_policy
 from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.safety.ood.calibration import fit_calibration
 from lerobot_suture.safety.ood.calibration_file import save_calibration
+from lerobot_suture.surgeon.merge import merge_runs
 from lerobot_suture.surgeon.record_run import (
     ACTOR_KEY,
     GATE_DECISION_KEY,
@@ -156,7 +158,6 @@ def _record_demo(root, image_size: int):
 
 
 def test_recorded_run_loads_in_lerobot_and_merges_with_demonstrations(tiny_policy_dir, tmp_path):
-    from lerobot.datasets.dataset_tools import merge_datasets
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     runner = _runner(tiny_policy_dir, tmp_path, threshold=1e6)  # in distribution
@@ -189,14 +190,19 @@ def test_recorded_run_loads_in_lerobot_and_merges_with_demonstrations(tiny_polic
     _record_demo(tmp_path / "demo", kwargs["image_size"])  # features must agree: the same image size
     demo = LeRobotDataset("suture-tests/demo", root=tmp_path / "demo", video_backend=resolve_video_backend())
     labelled = label_demonstrations(demo, tmp_path / "demo_labelled", "suture-tests/demo_labelled")
-    merged = merge_datasets([labelled, run], "suture-tests/merged", tmp_path / "merged")
+    merge_runs([labelled, run], "suture-tests/merged", tmp_path / "merged")
     merged = LeRobotDataset(
         "suture-tests/merged", root=tmp_path / "merged", video_backend=resolve_video_backend()
     )
     assert merged.meta.total_episodes == demo.meta.total_episodes + 3
     assert merged.meta.total_frames == demo.meta.total_frames + 11
-    tail = [int(merged[len(merged) - 11 + i][ACTOR_KEY]) for i in range(11)]
-    assert tail == actors and int(merged[0][ACTOR_KEY]) == 1 and int(merged[0][GATE_DECISION_KEY]) == -1
+    tail = [merged[len(merged) - 11 + i] for i in range(11)]
+    assert [int(f[ACTOR_KEY]) for f in tail] == actors
+    assert int(merged[0][ACTOR_KEY]) == 1 and int(merged[0][GATE_DECISION_KEY]) == -1
+    # The scores the policy was not asked for stay NaN, and lerobot-train's collate batches them.
+    batch = torch.utils.data.default_collate(tail)
+    merged_scores = batch[UNCERTAINTY_KEY].numpy().ravel()
+    np.testing.assert_array_equal(np.isnan(merged_scores), np.isnan(scores))
 
 
 # ------------------------------------------------------------------ the commands

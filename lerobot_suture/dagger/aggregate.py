@@ -8,9 +8,8 @@ lose their meaning. So the merged dataset's ``meta/stats.json`` carries, for eve
 normalizes, the statistics saved in the policy's preprocessor (those of the original demonstrations); the
 other features keep the merged statistics.
 
-LeRobot's ``merge_datasets`` rewrites the data files through pandas, which stores a NaN float as a null (the
-run labels' "not consulted" uncertainty score is NaN); a null reads back as None, which ``lerobot-train``'s
-collate refuses. :func:`restore_nan` writes them back as NaN.
+The merge is :func:`~lerobot_suture.surgeon.merge.merge_runs` (LeRobot's ``merge_datasets``, with the run
+labels' NaN scores kept NaN).
 
 Each dataset is built in a ``.partial`` sibling and renamed when complete, so a killed run leaves either
 nothing or a finished dataset.
@@ -96,63 +95,17 @@ def keep_normalization(root: Path, stats: dict) -> None:
     write_stats(merged, root)
 
 
-def restore_nan(root: Path) -> int:
-    """Null floats in the data files at ``root`` written back as NaN, row groups and schema kept; returns how
-    many values were restored."""
-    import pyarrow as pa
-    import pyarrow.compute as pc
-    import pyarrow.parquet as pq
-
-    restored = 0
-    for path in sorted((Path(root) / "data").rglob("*.parquet")):
-        source = pq.ParquetFile(path)
-        floats = [
-            f.name
-            for f in source.schema_arrow
-            if pa.types.is_floating(f.type) and f.name in _null_columns(source)
-        ]
-        if not floats:
-            continue
-        tmp = path.with_name(f".{path.name}.tmp")
-        with pq.ParquetWriter(tmp, source.schema_arrow) as writer:
-            for group in range(source.num_row_groups):
-                table = source.read_row_group(group)
-                for name in floats:
-                    index = table.schema.get_field_index(name)
-                    column = table.column(index)
-                    restored += column.null_count
-                    nan = pa.scalar(float("nan"), type=column.type)
-                    table = table.set_column(index, table.schema.field(index), pc.fill_null(column, nan))
-                writer.write_table(table)
-        os.replace(tmp, path)
-    return restored
-
-
-def _null_columns(source) -> set[str]:
-    """Columns with a null in some row group (from the file's statistics, or by reading them when absent)."""
-    names = set()
-    metadata = source.metadata
-    for group in range(metadata.num_row_groups):
-        for column in range(metadata.num_columns):
-            chunk = metadata.row_group(group).column(column)
-            stats = chunk.statistics
-            if stats is None or not stats.has_null_count or stats.null_count:
-                names.add(chunk.path_in_schema)
-    return names
-
-
 def aggregate(
     demonstrations: Path, new_roots: list[Path], out: Path, repo_id: str, normalizer_stats: dict
 ) -> Path:
     """The labelled demonstrations and the new datasets merged (LeRobot's ``merge_datasets``) at ``out``,
     with ``normalizer_stats`` kept (see the module docstring)."""
-    from lerobot.datasets.dataset_tools import merge_datasets
+    from lerobot_suture.surgeon.merge import merge_runs
 
     partial = _partial(out)
     sources = [load_dataset(demonstrations, "local/demonstrations")]
     sources += [load_dataset(root, f"local/{root.parent.name}_{root.name}") for root in new_roots]
-    merge_datasets(sources, repo_id, partial / "merged")
-    restore_nan(partial / "merged")
+    merge_runs(sources, repo_id, partial / "merged")
     keep_normalization(partial / "merged", normalizer_stats)
     os.replace(partial / "merged", out)
     shutil.rmtree(partial)
