@@ -61,6 +61,7 @@ def appearance_strip(
     image_size: int = 96,
     steps: int = 20,
     columns: list[tuple[str, np.ndarray]] | None = None,
+    title: str = "across the appearance options",
 ) -> Path:
     """Write the strip (``columns``, or :func:`strip_columns` of the other arguments) as a PNG of two
     labelled rows of frames; returns its path."""
@@ -76,7 +77,7 @@ def appearance_strip(
         ax.imshow(image, interpolation="nearest")
         ax.set_title(label, fontsize=7)
     fig.suptitle(
-        f"Endoscope frames, one episode (seed {seed}, step {steps}), across the appearance options",
+        f"Endoscope frames, one episode (seed {seed}, step {steps}), {title}",
         fontsize=8,
     )
     fig.subplots_adjust(left=0.01, right=0.99, bottom=0.01, top=0.84, wspace=0.05, hspace=0.35)
