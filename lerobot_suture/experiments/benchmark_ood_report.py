@@ -179,7 +179,7 @@ def plot_shifts(per_detector: dict, shifts: list[str], path: Path) -> Path:
     names = [n for n, r in per_detector.items() if _ok(r)]
     first = per_detector[names[0]]["shifts"]
     x = np.arange(len(shifts))
-    fig, ax = plt.subplots(figsize=(max(8.0, 0.55 * len(shifts) + 3), 4.8))
+    fig, ax = plt.subplots(figsize=(max(8.0, 0.55 * len(shifts) + 5), 4.8))
     ax.bar(x, [first[s]["success_rate"] for s in shifts], color="0.85", label="policy success")
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     width = 0.7 / max(len(names), 1)
@@ -195,7 +195,7 @@ def plot_shifts(per_detector: dict, shifts: list[str], path: Path) -> Path:
     ax.set_title(
         "Grey: policy success. Filled: failed runs flagged. Open: successful runs flagged.", fontsize=9
     )
-    ax.legend(fontsize=7, ncol=3, loc="upper center", bbox_to_anchor=(0.5, -0.32))
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)

@@ -196,7 +196,7 @@ def plot(result: dict, path: Path) -> Path:
     names, shifts = list(result["policies"]), result["shifts"]
     x = np.arange(len(shifts))
     width = 0.8 / len(names)
-    fig, ax = plt.subplots(figsize=(max(9.0, 0.6 * len(shifts) + 3), 5.0))
+    fig, ax = plt.subplots(figsize=(max(9.0, 0.6 * len(shifts) + 6), 5.0))
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for k, name in enumerate(names):
         rows = {r["shift"]: r for r in result["policies"][name]["shifts"]}
@@ -219,7 +219,7 @@ def plot(result: dict, path: Path) -> Path:
     ax.set_title(
         "Success under each shift (bars) and the gate's flags; 'in': inside the training range", fontsize=9
     )
-    ax.legend(fontsize=7, ncol=len(names), loc="upper center", bbox_to_anchor=(0.5, -0.3))
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
