@@ -35,3 +35,24 @@ def test_recording_a_video_dataset_keeps_the_priority(tmp_path):
         )
     )
     assert (os.sched_getscheduler(0), os.sched_getparam(0)) == before
+
+
+def test_the_training_child_starts_at_ordinary_priority_whatever_the_parent_was_left_at():
+    import subprocess
+    import sys
+
+    from lerobot_suture.training import _ordinary_priority
+
+    before = os.sched_getscheduler(0), os.sched_getparam(0)
+    os.sched_setscheduler(0, os.SCHED_BATCH, os.sched_param(0))  # as an encoder might leave the parent
+    try:
+        out = subprocess.run(
+            [sys.executable, "-c", "import os; print(os.sched_getscheduler(0))"],
+            check=True,
+            capture_output=True,
+            text=True,
+            preexec_fn=_ordinary_priority,
+        )
+    finally:
+        os.sched_setscheduler(0, *before)
+    assert int(out.stdout) == os.SCHED_OTHER

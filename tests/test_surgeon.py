@@ -1,6 +1,7 @@
 """The surgeon in the loop: LeRobot's teleoperators driven by scripts, takeover, recorded runs and merging."""
 
 import json
+import os
 import shutil
 
 import gymnasium as gym
@@ -190,7 +191,9 @@ def test_recorded_run_loads_in_lerobot_and_merges_with_demonstrations(tiny_polic
     _record_demo(tmp_path / "demo", kwargs["image_size"])  # features must agree: the same image size
     demo = LeRobotDataset("suture-tests/demo", root=tmp_path / "demo", video_backend=resolve_video_backend())
     labelled = label_demonstrations(demo, tmp_path / "demo_labelled", "suture-tests/demo_labelled")
+    scheduling = os.sched_getscheduler(0)
     merge_runs([labelled, run], "suture-tests/merged", tmp_path / "merged")
+    assert os.sched_getscheduler(0) == scheduling  # the video encoder did not leave the thread real-time
     merged = LeRobotDataset(
         "suture-tests/merged", root=tmp_path / "merged", video_backend=resolve_video_backend()
     )

@@ -11,6 +11,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from lerobot_suture.datasets.scheduling import normal_scheduling
+
 
 def merge_runs(datasets: list, repo_id: str, output_dir: str | Path):
     """``datasets`` (``LeRobotDataset``s with equal features: runs, and demonstrations labelled by
@@ -21,7 +23,8 @@ def merge_runs(datasets: list, repo_id: str, output_dir: str | Path):
 
     from lerobot_suture.datasets.video import resolve_video_backend
 
-    merged = merge_datasets(datasets, repo_id, Path(output_dir))
+    with normal_scheduling():  # joining the videos may start the encoder, which leaves the thread real-time
+        merged = merge_datasets(datasets, repo_id, Path(output_dir))
     if restore_nan(output_dir):  # the loaded dataset read the files before the repair: load them again
         merged = LeRobotDataset(repo_id, root=output_dir, video_backend=resolve_video_backend())
     return merged

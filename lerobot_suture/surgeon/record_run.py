@@ -146,9 +146,10 @@ def label_demonstrations(dataset, output_dir: str | Path, repo_id: str):
         UNCERTAINTY_KEY: np.full((n, 1), np.nan, dtype=np.float32),
         GATE_DECISION_KEY: np.full((n, 1), NOT_CONSULTED, dtype=np.int64),
     }
-    return add_features(
-        dataset,
-        {key: (values, LABEL_FEATURES[key]) for key, values in columns.items()},
-        output_dir=output_dir,
-        repo_id=repo_id,
-    )
+    with normal_scheduling():  # copying the videos may start the encoder, which leaves the thread real-time
+        return add_features(
+            dataset,
+            {key: (values, LABEL_FEATURES[key]) for key, values in columns.items()},
+            output_dir=output_dir,
+            repo_id=repo_id,
+        )
