@@ -195,7 +195,7 @@ class ShiftWrapper(gym.Wrapper):
         if look is not None or self.shift.name.startswith("phantom_"):
             obs = u.observe()
         # The noise of the state is the episode's own: a seed gives the same noise.
-        self._noise_rng = np.random.default_rng([0x5E5, 0 if seed is None else int(seed)])
+        self._noise_rng = np.random.default_rng(None if seed is None else [0x5E5, int(seed)])
         # The commands before the first delayed one hold the jaw where it is.
         hold = np.asarray(obs["agent_pos"], dtype=np.float32).copy()
         self._delayed = (
