@@ -51,7 +51,7 @@ def main() -> None:
         for shift in [None, *shifts]:
             label = "nominal" if shift is None else shift.label
             logs = rollout_seeds(
-                lambda shift=shift: make_scenario_env(env_kwargs, "nominal", shift=shift),
+                lambda shift=shift, kw=env_kwargs: make_scenario_env(kw, "nominal", shift=shift),
                 runner,
                 seeds,
                 args.batch_envs,
