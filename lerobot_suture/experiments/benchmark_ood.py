@@ -45,7 +45,7 @@ from lerobot_suture.experiments.benchmark_ood_scoring import SCENARIOS, evaluate
 from lerobot_suture.experiments.runner import episode_seeds, json_default
 from lerobot_suture.rollout import EpisodeLog, StepLog, make_scenario_env, rollout_seeds
 from lerobot_suture.safety.ood.calibration import min_calibration_episodes
-from lerobot_suture.sim.shifts import Shift, default_shifts
+from lerobot_suture.sim.shifts import SHIFTS, Shift, default_shifts
 
 logger = logging.getLogger(__name__)
 
@@ -144,13 +144,11 @@ class BenchmarkOODConfig:
             (scenario, scenario, episode_seeds(self.test_seed, group, self.runs_per_scenario), None)
             for group, scenario in enumerate(SCENARIOS, start=2)
         ]
-        # Every magnitude of a shift on the same seeds: the magnitudes differ, not the scenes.
-        families = list(dict.fromkeys(Shift.parse(s).name for s in self.shifts))
+        # Every magnitude of a shift on the same seeds (the magnitudes differ, not the scenes), and a
+        # family's seeds the same whichever shifts are listed.
         for label in self.shifts:
             shift = Shift.parse(label)
-            seeds = episode_seeds(
-                self.test_seed, SHIFT_GROUP + families.index(shift.name), self.runs_per_shift
-            )
+            seeds = episode_seeds(self.test_seed, SHIFT_GROUP + SHIFTS.index(shift.name), self.runs_per_shift)
             parts.append((label, "nominal", seeds, shift))
         return parts
 
