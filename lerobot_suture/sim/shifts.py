@@ -170,6 +170,11 @@ def default_shifts() -> list[Shift]:
 class ShiftWrapper(gym.Wrapper):
     """A suture env under one :class:`Shift`, from the first observation of every episode on.
 
+    A shift that changes the first image or the phantom re-reads the observation from the env itself
+    (``SutureEnv.observe``), so the wrappers under this one must leave observations as the env makes them
+    (gym's own, the CBF's). An appearance shift shows its look in place of the one the env's appearance
+    randomization drew.
+
     Args:
         env: a suture env (``gym.make`` of ``lerobot_suture/NeedleInsertion-v0``, possibly wrapped).
         shift: the shift and its magnitude.
