@@ -35,6 +35,7 @@ import torch  # noqa: E402
 
 import lerobot_suture  # noqa: E402
 from lerobot_suture.expert import ExpertConfig, ScriptedExpert  # noqa: E402
+from lerobot_suture.sim import task  # noqa: E402
 
 SEED_BASE = 4_000_000
 IMAGE_SIZE = 96
@@ -58,10 +59,10 @@ def collect(episodes: int) -> dict[str, np.ndarray]:
             rows["shown"].append(obs["pixels"]["endoscope"])
             rows["hidden"].append(sim.observe(needle_visible=False)["pixels"]["endoscope"])
             rows["keypoints"].append(sim.needle_keypoints_in_image())
-            true_grasp = sim.grasp_in_jaw
-            sim._grasp_pos, sim._grasp_rot = sim.nominal_grasp_in_jaw
+            true_grasp = sim.grasp_parameters
+            sim.set_grasp(task.GRASP_ANGLE, 0.0, 0.0)  # where the jaw alone says the needle is
             rows["jaw_only"].append(sim.needle_keypoints_in_image())
-            sim._grasp_pos, sim._grasp_rot = true_grasp
+            sim.set_grasp(*true_grasp)
             rows["episode"].append(k)
             obs, _, terminated, truncated, _ = env.step(expert.act(env))
             done = terminated or truncated

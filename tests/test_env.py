@@ -17,7 +17,7 @@ import lerobot_suture
 from lerobot_suture.expert import ExpertConfig, ScriptedExpert
 from lerobot_suture.rollout_expert import iter_expert_steps
 from lerobot_suture.sim import suture_env, task
-from lerobot_suture.sim.geometry import grasp_transform, pose_vector
+from lerobot_suture.sim.geometry import pose_vector
 from lerobot_suture.sim.scenarios import SCENARIOS, ScenarioConfig
 from lerobot_suture.sim.suture_env import SCENE_XML, SutureEnv
 
@@ -108,25 +108,16 @@ def test_the_jaw_reading_shows_whether_the_jaw_holds_the_needle():
     env.close()
 
 
-def test_the_wide_grasp_widens_every_range_of_the_grasp(monkeypatch):
+def test_the_wide_grasp_widens_every_range_of_the_grasp():
     """The same seed draws the same uniforms; "wide" scales each of them to its own half-range."""
-    from lerobot_suture.sim import suture_env
-
     drawn = {}
-
-    def spy(angle, offset, roll, *args, **kwargs):
-        deviation = (angle - task.GRASP_ANGLE, offset, roll)
-        if any(deviation):  # not the nominal grasp
-            drawn.setdefault(grasp, []).append(deviation)
-        return grasp_transform(angle, offset, roll, *args, **kwargs)
-
-    monkeypatch.setattr(suture_env, "grasp_transform", spy)
     for grasp in ("narrow", "wide"):
         env = SutureEnv(obs_type="state", grasp=grasp)
         env.reset(seed=4)
+        angle, offset, roll = env.grasp_parameters
+        drawn[grasp] = np.array([angle - task.GRASP_ANGLE, offset, roll])
         env.close()
-    assert [len(d) for d in drawn.values()] == [1, 1]
-    narrow, wide = (np.array(drawn[g][0]) / task.GRASP_RANGES[g] for g in ("narrow", "wide"))
+    narrow, wide = (drawn[g] / task.GRASP_RANGES[g] for g in ("narrow", "wide"))
     np.testing.assert_allclose(wide, narrow, atol=1e-12)
     assert np.all(np.abs(narrow) <= 1) and np.any(np.abs(narrow) > 0.05)
     assert np.all(np.array(task.GRASP_RANGES["wide"]) > task.GRASP_RANGES["narrow"])
@@ -316,8 +307,7 @@ def test_a_throw_off_the_marks_ends_the_episode_as_a_failure():
     env = make()
     env.reset(seed=0)
     u = env.unwrapped
-    u._grasp_pos, u._grasp_rot = grasp_transform(task.GRASP_ANGLE, -0.003, 0.0)
-    u._snap_needle_to_jaw()
+    u.set_grasp(task.GRASP_ANGLE, -0.003, 0.0)
     expert = ScriptedExpert(ExpertConfig(assume_nominal_grasp=True))
     expert.reset(env)
     for _ in range(100):

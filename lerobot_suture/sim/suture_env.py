@@ -147,19 +147,17 @@ from lerobot_suture.sim.appearance import (
 from lerobot_suture.sim.endoscope import Endoscope
 from lerobot_suture.sim.geometry import (
     InsertionFrame,
-    cross3,
     grasp_transform,
     insertion_frame,
-    jaw_angle_on_wire,
     jaw_holding,
     matrix_from_rot6,
     needle_arc_points,
-    needle_in_world,
     pose_vector,
     quat_from_matrix,
     rot6_from_matrix,
     rotation_about_z,
 )
+from lerobot_suture.sim.grasp import NeedleGrasp
 from lerobot_suture.sim.insertion import InsertionProgress
 from lerobot_suture.sim.psm import (
     ARM_JOINTS,
@@ -192,11 +190,9 @@ SCENE_XML = Path(__file__).parent / "assets" / "scene.xml"
 
 OBS_TYPES = ("pixels_agent_pos", "state", "pixels_agent_pos_state")
 
-_JAW_OPEN_ANGLE = 0.6  # rad, the jaw joint's range
 _N_ARC_POINTS = 13
 NEEDLE_KEYPOINTS = 3
 """Points of the needle located in the image by ``needle_keypoints_in_image``: tip, middle, tail."""
-_NEEDLE_CONTACT_BIT = 2  # the needle geoms' contype in scene.xml
 
 
 class SutureEnv(gym.Env):
@@ -250,27 +246,12 @@ class SutureEnv(gym.Env):
 
         m = self.model
         self._arm = PSM(m)
-        self._jaw_ctrl = m.actuator("jaw").id
-        self._jaw_qpos = m.joint("jaw").qposadr[0]
-        self._jaw_dof = m.joint("jaw").dofadr[0]
-        self._jaw_pivot_to_tip = float(m.site("jaw_tip").pos[2])
-        # Inner faces of the closed jaws are this far apart (m): the jaw geoms' offsets less their half-thickness.
-        self._jaw_closed_gap = float(
-            m.geom("jaw_upper").pos[1]
-            - m.geom("jaw_lower").pos[1]
-            - m.geom_size[m.geom("jaw_upper").id][1] * 2
-        )
-        self._needle_body = m.body("needle").id
-        self._needle_qpos = m.joint("needle").qposadr[0]
-        self._needle_dof = m.joint("needle").dofadr[0]
-        needle_geom = int(np.flatnonzero(m.geom_bodyid == self._needle_body)[0])
-        self._needle_wire_diameter = 2.0 * float(m.geom_size[needle_geom][0])
+        self._grasp = NeedleGrasp(m, self._arm)
         self._phantom_mocap = m.body("phantom").mocapid[0]
         self._endoscope = Endoscope(m, self.image_size, self.render_size)
         self._scene_appearance = SceneAppearance(m)
         self._appearance_sample: AppearanceSample | None = None
         self._appearance_rng: np.random.Generator | None = None
-        self._pad_geom = m.geom("tissue_pad").id
         self._entry_local = m.site("entry_point").pos.copy()
         self._exit_local = m.site("exit_point").pos.copy()
         self._arc_local = needle_arc_points(_N_ARC_POINTS)
@@ -340,7 +321,7 @@ class SutureEnv(gym.Env):
 
     @property
     def needle_grasped(self) -> bool:
-        return self._grasped
+        return self._grasp.held
 
     @property
     def needle_in_tissue(self) -> bool:
@@ -357,7 +338,13 @@ class SutureEnv(gym.Env):
     @property
     def grasp_in_jaw(self) -> tuple[np.ndarray, np.ndarray]:
         """The needle's pose in the jaw-tip frame: (position (3,) m, rotation (3, 3))."""
-        return self._grasp_pos, self._grasp_rot
+        return self._grasp.position, self._grasp.rotation
+
+    @property
+    def grasp_parameters(self) -> tuple[float, float, float]:
+        """This episode's grasp: (arc angle rad, offset along the jaw m, roll rad); see
+        ``geometry.grasp_transform``."""
+        return self._grasp.parameters
 
     @property
     def nominal_grasp_in_jaw(self) -> tuple[np.ndarray, np.ndarray]:
@@ -391,10 +378,7 @@ class SutureEnv(gym.Env):
 
     def needle_pose(self) -> tuple[np.ndarray, np.ndarray]:
         """Needle centre and orientation, world: (position (3,) m, rotation (3, 3))."""
-        if self._grasped:
-            return needle_in_world(*self.jaw_pose(), self._grasp_pos, self._grasp_rot)
-        d = self.data
-        return d.xpos[self._needle_body].copy(), d.xmat[self._needle_body].reshape(3, 3).copy()
+        return self._grasp.needle_pose(self.data)
 
     def insertion_frame(self) -> InsertionFrame:
         """Where the needle must be to pass from the current entry point to the exit point."""
@@ -403,23 +387,13 @@ class SutureEnv(gym.Env):
     # ------------------------------------------------------------------ scenario hooks
     def release_needle(self) -> None:
         """The jaw loses the needle: it keeps its current velocity and falls under gravity."""
-        if not self._grasped:
-            return
-        centre, rot = self.needle_pose()
-        self._set_needle_free_pose(centre, rot)
-        # Carry the jaw's velocity into the needle's free joint.
-        vel = np.zeros(6)
-        jaw_body = self._arm.jaw_body
-        mujoco.mj_objectVelocity(self.model, self.data, mujoco.mjtObj.mjOBJ_BODY, jaw_body, vel, 0)
-        self.data.qvel[self._needle_dof : self._needle_dof + 3] = vel[3:] + cross3(
-            vel[:3], centre - self.data.xpos[jaw_body]
-        )
-        self.data.qvel[self._needle_dof + 3 : self._needle_dof + 6] = rot.T @ vel[:3]
-        self.model.body_gravcomp[self._needle_body] = 0.0
-        if not self._progress.in_tissue:
-            # A needle lost above the phantom lands on it (one inside tissue would be expelled).
-            self._set_pad_collides_with_needle(True)
-        self._grasped = False
+        self._grasp.release(self.data, in_tissue=self._progress.in_tissue)
+
+    def set_grasp(self, angle: float, offset_along_jaw: float, roll: float) -> None:
+        """Hold the needle with another grasp than this episode's draw (arc angle rad, offset along the
+        jaw m, roll rad; ``geometry.grasp_transform``), the needle moved into it at once."""
+        self._grasp.set(angle, offset_along_jaw, roll)
+        self._grasp.snap_needle(self.data)
 
     def set_phantom_pose(self, position: np.ndarray, yaw: float) -> None:
         """Move the phantom (mocap) to ``position`` (3,) m with ``yaw`` rad about the world z axis."""
@@ -454,7 +428,7 @@ class SutureEnv(gym.Env):
         """
         if needle_visible:
             return self._observation()
-        needle_geoms = np.flatnonzero(self.model.geom_bodyid == self._needle_body)
+        needle_geoms = np.flatnonzero(self.model.geom_bodyid == self._grasp.needle_body)
         alpha = self.model.geom_rgba[needle_geoms, 3].copy()
         self.model.geom_rgba[needle_geoms, 3] = 0.0
         try:
@@ -468,8 +442,7 @@ class SutureEnv(gym.Env):
         rng = self.np_random
         self._reset_state()
         mujoco.mj_resetData(self.model, self.data)
-        self.model.body_gravcomp[self._needle_body] = 1.0
-        self._set_pad_collides_with_needle(False)
+        self._grasp.reset()
         self._draw_appearance()
         self.set_endoscope_viewpoint()
 
@@ -479,15 +452,13 @@ class SutureEnv(gym.Env):
         )
         angle_range, offset_range, roll_range = GRASP_RANGES[self.grasp]
         angle = GRASP_ANGLE + rng.uniform(-1, 1) * angle_range
-        self._grasp_offset = rng.uniform(-1, 1) * offset_range
-        self._grasp_pos, self._grasp_rot = grasp_transform(
-            angle, self._grasp_offset, rng.uniform(-1, 1) * roll_range
-        )
+        offset = rng.uniform(-1, 1) * offset_range
+        self._grasp.set(angle, offset, rng.uniform(-1, 1) * roll_range)
         qpos = self._home_qpos + rng.uniform(-1, 1, size=len(ARM_JOINTS)) * ARM_START_NOISE
         self.data.qpos[self._arm.qpos] = qpos
-        self.data.qpos[self._jaw_qpos] = self._held_jaw_angle()
+        self.data.qpos[self._grasp.jaw_qpos] = self._grasp.held_jaw_angle()
         mujoco.mj_forward(self.model, self.data)
-        self._snap_needle_to_jaw()
+        self._grasp.snap_needle(self.data)
         self.scenario.reset(self)
         self._update_tissue_state(first=True)
         return self._observation(), self._info(success=False, v_nominal=np.zeros(3), v_command=np.zeros(3))
@@ -497,13 +468,10 @@ class SutureEnv(gym.Env):
         self.scenario.before_step(self)
         d, m = self.data, self.model
 
-        jaw_closure = float(target[9])
-        if jaw_closure < 0.5 and self._grasped:
-            self.release_needle()
-        jaw_target = (1.0 - jaw_closure) * _JAW_OPEN_ANGLE
-        d.ctrl[self._jaw_ctrl] = max(jaw_target, self._held_jaw_angle()) if self._grasped else jaw_target
+        grasp = self._grasp
+        grasp.command_jaw(d, float(target[9]), in_tissue=self._progress.in_tissue)
 
-        filtered = self._grasped and self.tip_velocity_filter is not None
+        filtered = grasp.held and self.tip_velocity_filter is not None
         if filtered:
             # MuJoCo's stored kinematics are one physics step old after mj_step; the filter must see
             # where the tip is, since its segment starts there.
@@ -519,8 +487,8 @@ class SutureEnv(gym.Env):
             MAX_LINEAR_SPEED,
             MAX_ANGULAR_SPEED,
         )
-        if self._grasped:
-            point = jaw_pos + jaw_rot @ (self._grasp_pos + self._grasp_rot @ self._tip_local)
+        if grasp.held:
+            point = jaw_pos + jaw_rot @ (grasp.position + grasp.rotation @ self._tip_local)
             v_nominal = controller.point_velocity(linear, angular, jaw_pos, point)
             v_command = v_nominal
             if self.tip_velocity_filter is not None:
@@ -548,7 +516,7 @@ class SutureEnv(gym.Env):
                 mujoco.mj_kinematics(m, d)
                 mujoco.mj_comPos(m, d)
                 jaw_pos, jaw_rot = self.jaw_pose()
-                point = jaw_pos + jaw_rot @ (self._grasp_pos + self._grasp_rot @ self._tip_local)
+                point = jaw_pos + jaw_rot @ (grasp.position + grasp.rotation @ self._tip_local)
             if filtered:
                 elapsed = block * substeps * self.physics_dt
                 v_track = v_command + SEGMENT_TRACKING_GAIN * (segment_start + v_command * elapsed - point)
@@ -564,9 +532,9 @@ class SutureEnv(gym.Env):
                 mujoco.mj_step(m, d, nstep=substeps)
         if filtered:
             mujoco.mj_kinematics(m, d)  # the tissue state and info read the tip where the step left it
-        if self._grasped:
-            self._snap_needle_to_jaw()
-            self._hold_jaw_on_needle()
+        if grasp.held:
+            grasp.snap_needle(d)
+            grasp.hold_jaw_on_needle(d)
 
         self._step_index += 1
         self._update_tissue_state()
@@ -612,21 +580,14 @@ class SutureEnv(gym.Env):
             self._endoscope.upload_texture(self._scene_appearance.texture_id)
         self._endoscope.set_jitter(sample.camera_offset, sample.camera_roll)
 
-    def _set_pad_collides_with_needle(self, collides: bool) -> None:
-        bit = _NEEDLE_CONTACT_BIT if collides else 0
-        self.model.geom_conaffinity[self._pad_geom] = bit
-        # MuJoCo's broad phase filters on the per-body union of the geoms' bits too.
-        self.model.body_conaffinity[self.model.geom_bodyid[self._pad_geom]] = bit
-
     def _reset_state(self) -> None:
         self._step_index = 0
-        self._grasped = True
+        self._grasp.held = True
         self._progress = InsertionProgress(self._arc_local, self._entry_local, self._exit_local)
         self._phantom_pos = PHANTOM_NOMINAL.copy()
         self._phantom_yaw = 0.0
         self._phantom_rot = np.eye(3)
-        self._grasp_pos, self._grasp_rot = self.nominal_grasp_in_jaw
-        self._grasp_offset = 0.0
+        self._grasp.set(GRASP_ANGLE, 0.0, 0.0)
 
     def _validated_action(self, action) -> np.ndarray:
         a = np.asarray(action, dtype=np.float64)
@@ -644,7 +605,7 @@ class SutureEnv(gym.Env):
         self._reset_state()
         frame = self.insertion_frame()
         centre = frame.centre + np.array([0.0, 0.0, 0.025])
-        target_pos, target_rot = jaw_holding(centre, frame.start_rotation, self._grasp_pos, self._grasp_rot)
+        target_pos, target_rot = jaw_holding(centre, frame.start_rotation, *self.grasp_in_jaw)
         mujoco.mj_resetData(self.model, self.data)
         return self._arm.solve_jaw_pose(self.data, target_pos, target_rot)
 
@@ -660,37 +621,12 @@ class SutureEnv(gym.Env):
             qdot, jac_linear, jac_angular = self._arm.velocity_ik(d, point, v_point, angular)
         d.ctrl[self._arm.ctrl] = qdot
         d.qfrc_applied[:] = 0.0
-        if self._grasped and self._progress.in_tissue:
-            centre = jaw_pos + jaw_rot @ self._grasp_pos
-            axis = jaw_rot @ self._grasp_rot[:, 2]
+        if self._grasp.held and self._progress.in_tissue:
+            centre = jaw_pos + jaw_rot @ self._grasp.position
+            axis = jaw_rot @ self._grasp.rotation[:, 2]
             d.qfrc_applied[self._arm.dofs] = tissue.resistance_joint_forces(
                 centre, axis, point, v_point, angular, jac_linear, jac_angular
             )
-
-    def _set_needle_free_pose(self, centre: np.ndarray, rotation: np.ndarray) -> None:
-        q = self._needle_qpos
-        self.data.qpos[q : q + 3] = centre
-        self.data.qpos[q + 3 : q + 7] = quat_from_matrix(rotation)
-
-    def _held_jaw_angle(self) -> float:
-        """Jaw opening (rad) while it holds the needle: the wire keeps the jaws apart, so a real
-        needle driver's jaw reading shows whether it holds the needle."""
-        return jaw_angle_on_wire(
-            self._needle_wire_diameter, self._jaw_closed_gap, self._jaw_pivot_to_tip + self._grasp_offset
-        )
-
-    def _hold_jaw_on_needle(self) -> None:
-        """Kinematic grasp: the needle stops the closing jaw at the wire (an opening command still opens it)."""
-        held = self._held_jaw_angle()
-        if self.data.qpos[self._jaw_qpos] < held:
-            self.data.qpos[self._jaw_qpos] = held
-            self.data.qvel[self._jaw_dof] = 0.0
-
-    def _snap_needle_to_jaw(self) -> None:
-        """Kinematic grasp: the held needle moves rigidly with the jaw."""
-        centre, rot = self.needle_pose()
-        self._set_needle_free_pose(centre, rot)
-        self.data.qvel[self._needle_dof : self._needle_dof + 6] = 0.0
 
     def _update_tissue_state(self, first: bool = False) -> None:
         self._progress.update(
@@ -709,8 +645,9 @@ class SutureEnv(gym.Env):
 
     def _observation(self) -> dict:
         jaw_pos, jaw_rot = self.jaw_pose()
-        closure = 1.0 - self.data.qpos[self._jaw_qpos] / _JAW_OPEN_ANGLE
-        obs: dict = {"agent_pos": pose_vector(jaw_pos, jaw_rot, closure).astype(np.float32)}
+        obs: dict = {
+            "agent_pos": pose_vector(jaw_pos, jaw_rot, self._grasp.jaw_closure(self.data)).astype(np.float32)
+        }
         if "pixels" in self.obs_type:
             image = self._endoscope.image(self.data)
             if self._appearance_sample is not None and self._appearance_sample.image_effects:
@@ -733,7 +670,7 @@ class SutureEnv(gym.Env):
             "tissue_strain": self._progress.strain,
             "needle_tip_pos": self._progress.tip_world.copy(),
             "needle_in_tissue": self._progress.in_tissue,
-            "needle_grasped": self._grasped,
+            "needle_grasped": self._grasp.held,
             "perturbed": self.scenario.perturbed,
             "tip_velocity_nominal": np.asarray(v_nominal, dtype=np.float64).copy(),
             "tip_velocity_command": np.asarray(v_command, dtype=np.float64).copy(),

@@ -1,0 +1,138 @@
+"""The needle in the instrument's jaw: a kinematic grasp, the jaw reading it leaves, and its loss.
+
+While held, the needle moves rigidly with the jaw tip, at a pose in the jaw frame drawn per episode, and
+the wire stops the closing jaw a little open, so the jaw reading shows whether it holds the needle, as a
+real needle driver's does. Released, the needle is a free body under gravity.
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+
+from lerobot_suture.sim.geometry import (
+    cross3,
+    grasp_transform,
+    jaw_angle_on_wire,
+    needle_in_world,
+    quat_from_matrix,
+)
+from lerobot_suture.sim.psm import PSM
+from lerobot_suture.sim.task import GRASP_ANGLE
+
+JAW_OPEN_ANGLE = 0.6
+"""The jaw joint's range (rad): a closure command of 0 opens it this far."""
+_NEEDLE_CONTACT_BIT = 2  # the needle geoms' contype in scene.xml
+
+
+class NeedleGrasp:
+    """The grasp between the jaw and the needle of one compiled scene (``assets/scene.xml``).
+
+    Attributes:
+        held: Whether the jaw holds the needle.
+        position, rotation: The needle's pose in the jaw-tip frame ((3,) m, (3, 3)).
+        offset_along_jaw: Where along the jaw the wire sits, from the nominal grasp point (m).
+    """
+
+    def __init__(self, model: mujoco.MjModel, arm: PSM):
+        m = model
+        self._model = m
+        self._arm = arm
+        self.jaw_ctrl = m.actuator("jaw").id
+        self.jaw_qpos = m.joint("jaw").qposadr[0]
+        self._jaw_dof = m.joint("jaw").dofadr[0]
+        self._jaw_pivot_to_tip = float(m.site("jaw_tip").pos[2])
+        # Inner faces of the closed jaws are this far apart (m): the jaw geoms' offsets less their half-thickness.
+        self._jaw_closed_gap = float(
+            m.geom("jaw_upper").pos[1]
+            - m.geom("jaw_lower").pos[1]
+            - m.geom_size[m.geom("jaw_upper").id][1] * 2
+        )
+        self.needle_body = m.body("needle").id
+        self._needle_qpos = m.joint("needle").qposadr[0]
+        self._needle_dof = m.joint("needle").dofadr[0]
+        needle_geom = int(np.flatnonzero(m.geom_bodyid == self.needle_body)[0])
+        self._wire_diameter = 2.0 * float(m.geom_size[needle_geom][0])
+        self._pad_geom = m.geom("tissue_pad").id
+        self.held = True
+        self.set(GRASP_ANGLE, 0.0, 0.0)
+
+    def set(self, angle: float, offset_along_jaw: float, roll: float) -> None:
+        """Hold the needle at arc angle ``angle`` (rad), ``offset_along_jaw`` (m) and ``roll`` (rad); see
+        :func:`geometry.grasp_transform`. Moves nothing: :meth:`snap_needle` puts the needle there."""
+        self.parameters = (float(angle), float(offset_along_jaw), float(roll))
+        self.offset_along_jaw = float(offset_along_jaw)
+        self.position, self.rotation = grasp_transform(angle, offset_along_jaw, roll)
+
+    def needle_pose(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
+        """Needle centre and orientation, world: (position (3,) m, rotation (3, 3))."""
+        if self.held:
+            return needle_in_world(*self._arm.jaw_pose(data), self.position, self.rotation)
+        return data.xpos[self.needle_body].copy(), data.xmat[self.needle_body].reshape(3, 3).copy()
+
+    def held_jaw_angle(self) -> float:
+        """Jaw opening (rad) while it holds the needle: the wire keeps the jaws apart."""
+        return jaw_angle_on_wire(
+            self._wire_diameter, self._jaw_closed_gap, self._jaw_pivot_to_tip + self.offset_along_jaw
+        )
+
+    def command_jaw(self, data: mujoco.MjData, closure: float, in_tissue: bool) -> None:
+        """The jaw's position command for ``closure`` in [0, 1] (1 closed); below 0.5 the needle is let go."""
+        if closure < 0.5 and self.held:
+            self.release(data, in_tissue)
+        target = (1.0 - closure) * JAW_OPEN_ANGLE
+        data.ctrl[self.jaw_ctrl] = max(target, self.held_jaw_angle()) if self.held else target
+
+    def jaw_closure(self, data: mujoco.MjData) -> float:
+        """The jaw reading as a closure: 1 closed, 0 fully open."""
+        return 1.0 - float(data.qpos[self.jaw_qpos]) / JAW_OPEN_ANGLE
+
+    def hold_jaw_on_needle(self, data: mujoco.MjData) -> None:
+        """The needle stops the closing jaw at the wire (an opening command still opens it)."""
+        held = self.held_jaw_angle()
+        if data.qpos[self.jaw_qpos] < held:
+            data.qpos[self.jaw_qpos] = held
+            data.qvel[self._jaw_dof] = 0.0
+
+    def snap_needle(self, data: mujoco.MjData) -> None:
+        """The held needle moves rigidly with the jaw: put its free body where the grasp says."""
+        self._set_needle_free_pose(data, *self.needle_pose(data))
+        data.qvel[self._needle_dof : self._needle_dof + 6] = 0.0
+
+    def release(self, data: mujoco.MjData, in_tissue: bool) -> None:
+        """The jaw loses the needle: it keeps its current velocity and falls under gravity."""
+        if not self.held:
+            return
+        centre, rot = self.needle_pose(data)
+        self._set_needle_free_pose(data, centre, rot)
+        # Carry the jaw's velocity into the needle's free joint.
+        vel = np.zeros(6)
+        jaw_body = self._arm.jaw_body
+        mujoco.mj_objectVelocity(self._model, data, mujoco.mjtObj.mjOBJ_BODY, jaw_body, vel, 0)
+        data.qvel[self._needle_dof : self._needle_dof + 3] = vel[3:] + cross3(
+            vel[:3], centre - data.xpos[jaw_body]
+        )
+        data.qvel[self._needle_dof + 3 : self._needle_dof + 6] = rot.T @ vel[:3]
+        self._model.body_gravcomp[self.needle_body] = 0.0
+        if not in_tissue:
+            # A needle lost above the phantom lands on it (one inside tissue would be expelled).
+            self.set_pad_collides_with_needle(True)
+        self.held = False
+
+    def reset(self) -> None:
+        """Held again, weightless while held, and passing through the pad (the insertion model owns
+        the tissue's effect on a held needle)."""
+        self.held = True
+        self._model.body_gravcomp[self.needle_body] = 1.0
+        self.set_pad_collides_with_needle(False)
+
+    def set_pad_collides_with_needle(self, collides: bool) -> None:
+        bit = _NEEDLE_CONTACT_BIT if collides else 0
+        self._model.geom_conaffinity[self._pad_geom] = bit
+        # MuJoCo's broad phase filters on the per-body union of the geoms' bits too.
+        self._model.body_conaffinity[self._model.geom_bodyid[self._pad_geom]] = bit
+
+    def _set_needle_free_pose(self, data: mujoco.MjData, centre: np.ndarray, rotation: np.ndarray) -> None:
+        q = self._needle_qpos
+        data.qpos[q : q + 3] = centre
+        data.qpos[q + 3 : q + 7] = quat_from_matrix(rotation)
