@@ -103,6 +103,11 @@ def collected(gated_policy, demo_root, tmp_path_factory) -> dict:
             "`collect_episodes` must be >= 1",
         ),
         (
+            {"policy": "P", "dataset_root": "D", "new_data_repeats": 0},
+            ValueError,
+            "`new_data_repeats` must be >= 1",
+        ),
+        (
             {"policy": "/nonexistent/pretrained_model", "dataset_root": "D"},
             FileNotFoundError,
             "No trained policy",
@@ -281,6 +286,13 @@ def test_merged_dataset_holds_the_training_demonstrations_and_the_new_frames(
     for key, feature_stats in stats.items():
         for name, value in feature_stats.items():
             np.testing.assert_allclose(merged.meta.stats[key][name], value, rtol=1e-6)
+
+    # Repeated, the new episodes weigh more in a uniformly sampled batch; the demonstrations appear once.
+    out = agg.aggregate(demos, roots, tmp_path / "merged_x3", "suture-tests/dagger_x3", stats, repeats=3)
+    tripled = LeRobotDataset("suture-tests/dagger_x3", root=out, video_backend=resolve_video_backend())
+    assert tripled.meta.total_episodes == len(train) + 3 * new_episodes
+    assert tripled.meta.total_frames == train_frames + 3 * new_frames
+    np.testing.assert_array_equal(tripled[len(tripled) - 1]["action"], last["action"])
 
 
 # ------------------------------------------------------------------ the loop

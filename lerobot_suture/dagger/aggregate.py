@@ -96,15 +96,23 @@ def keep_normalization(root: Path, stats: dict) -> None:
 
 
 def aggregate(
-    demonstrations: Path, new_roots: list[Path], out: Path, repo_id: str, normalizer_stats: dict
+    demonstrations: Path,
+    new_roots: list[Path],
+    out: Path,
+    repo_id: str,
+    normalizer_stats: dict,
+    repeats: int = 1,
 ) -> Path:
-    """The labelled demonstrations and the new datasets merged (LeRobot's ``merge_datasets``) at ``out``,
-    with ``normalizer_stats`` kept (see the module docstring)."""
+    """The labelled demonstrations and the new datasets, each ``repeats`` times, merged (LeRobot's
+    ``merge_datasets``) at ``out``, with ``normalizer_stats`` kept (see the module docstring)."""
+    if repeats < 1:
+        raise ValueError(f"`repeats` must be >= 1. Got {repeats}.")
     from lerobot_suture.surgeon.merge import merge_runs
 
     partial = _partial(out)
     sources = [load_dataset(demonstrations, "local/demonstrations")]
-    sources += [load_dataset(root, f"local/{root.parent.name}_{root.name}") for root in new_roots]
+    new = [load_dataset(root, f"local/{root.parent.name}_{root.name}") for root in new_roots]
+    sources += new * repeats
     merge_runs(sources, repo_id, partial / "merged")
     keep_normalization(partial / "merged", normalizer_stats)
     os.replace(partial / "merged", out)

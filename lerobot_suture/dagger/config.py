@@ -48,6 +48,10 @@ class DaggerConfig:
         frames_per_round: new labelled frames per round for the ``ungated`` and ``bc`` arms; unset: the
             ``gated`` arm's count that round (so all arms get as many), which needs the ``gated`` arm.
         finetune_steps: ``lerobot-train`` steps per round, from the previous round's policy, >= 1.
+        new_data_repeats: how many times each new episode enters the fine-tuning data, >= 1. LeRobot samples
+            frames uniformly, and the demonstrations outnumber a round's new frames about ten to one; a repeat
+            weighs the new frames more in every batch without labelling more (the arms' frame counts and
+            the table count each labelled frame once).
         lr: fine-tuning learning rate (the reference trains at 3e-4), > 0.
         warmup_steps: learning-rate warm-up steps of the fine-tuning, >= 0.
         batch_size: fine-tuning batch size, >= 1.
@@ -76,6 +80,7 @@ class DaggerConfig:
     frames_per_round: int | None = None
     # Fine-tuning.
     finetune_steps: int = 800
+    new_data_repeats: int = 1
     lr: float = 1e-4
     warmup_steps: int = 50
     batch_size: int = 16
@@ -119,7 +124,14 @@ class DaggerConfig:
             )
         if self.frames_per_round is not None and self.frames_per_round < 0:
             raise ValueError(f"`frames_per_round` must be >= 0. Got {self.frames_per_round}.")
-        for name in ("collect_episodes", "test_episodes", "finetune_steps", "batch_size", "batch_envs"):
+        for name in (
+            "collect_episodes",
+            "test_episodes",
+            "finetune_steps",
+            "new_data_repeats",
+            "batch_size",
+            "batch_envs",
+        ):
             if getattr(self, name) < 1:
                 raise ValueError(f"`{name}` must be >= 1. Got {getattr(self, name)}.")
         if self.warmup_steps < 0:

@@ -46,6 +46,7 @@ _SETTINGS = (
     "test_episodes",
     "frames_per_round",
     "finetune_steps",
+    "new_data_repeats",
     "lr",
     "warmup_steps",
     "batch_size",
@@ -101,7 +102,7 @@ def _check_settings(cfg: DaggerConfig) -> None:
         **{name: getattr(cfg, name) for name in _SETTINGS},
     }
     if path.is_file():
-        before = read_json(path)
+        before = {"new_data_repeats": 1, **read_json(path)}  # runs from before the flag existed
         changed = {k: (before.get(k), v) for k, v in settings.items() if before.get(k) != v}
         if changed:
             raise ValueError(
@@ -273,6 +274,7 @@ class DaggerRun:
             self.round_dir(arm, round_) / "dataset",
             f"local/dagger_{arm}_round_{round_}",
             stats,
+            repeats=self.cfg.new_data_repeats,
         )
 
     def train(self, arm: str, round_: int, policy: Path) -> Path:
