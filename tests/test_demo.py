@@ -46,6 +46,13 @@ def _stats(directory: Path) -> dict[str, tuple[int, int]]:
     }
 
 
+def _ctrl_c_as_at_a_terminal() -> None:
+    """In the demo's process, before it starts: SIGINT's default action. A shell without job control
+    starts background jobs with SIGINT ignored (``cmd &`` in a script), every child inherits that, and
+    Python then installs no KeyboardInterrupt handler: the interrupt would never arrive."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_an_interrupted_demo_resumes_and_keeps_what_it_finished(tmp_path, capsys):
     out = tmp_path / "demo"
     last = out / "train" / "checkpoints" / "last"
@@ -59,6 +66,7 @@ def test_an_interrupted_demo_resumes_and_keeps_what_it_finished(tmp_path, capsys
             stdout=subprocess.DEVNULL,
             stderr=stderr,
             start_new_session=True,
+            preexec_fn=_ctrl_c_as_at_a_terminal,
         )
     deadline = time.monotonic() + 300
     try:
