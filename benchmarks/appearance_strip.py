@@ -2,8 +2,8 @@
 """A strip of endoscope frames across the appearance options (``lerobot_suture.sim.appearance``).
 
 The same episode (seed, expert, control step) is shown with every option off, then with each option on
-alone at twice its range in ``datasets/suture_expert_randomized.yaml``, then with all of them at the
-recipe's ranges. One seed draws the same uniform numbers for every column, so each column shows the
+alone at twice its range in ``datasets/suture_expert_randomized.yaml`` (an option the recipe leaves off, at
+a tenth of its limit), then with all of them at the recipe's ranges. One seed draws the same uniform numbers for every column, so each column shows the
 option's effect on one scene; the trajectory is the same in all of them.
 
     python benchmarks/appearance_strip.py [--out docs/appearance_strip.png] [--seed 7] [--image_size 96]
@@ -42,14 +42,14 @@ def frame(appearance: dict | None, seed: int, image_size: int, steps: int) -> np
 
 
 def strip_columns(seed: int = 7, image_size: int = 96, steps: int = 20) -> list[tuple[str, np.ndarray]]:
-    """(label, frame) per column: off, each option alone (twice the recipe's range, within its limit),
-    all options at the recipe's ranges."""
+    """(label, frame) per column: off, each option alone (twice the recipe's range, within its limit; a
+    tenth of its limit where the recipe leaves it off), all options at the recipe's ranges."""
     from lerobot_suture.sim.appearance import LIMITS
 
     ranges = recipe_ranges()
     columns = [("off", frame(None, seed, image_size, steps))]
     for name, value in ranges.items():
-        alone = {name: min(2 * value, LIMITS[name][0])}
+        alone = {name: min(2 * value, LIMITS[name][0]) if value else LIMITS[name][0] / 10}
         columns.append((f"{name}\n{alone[name]:g}", frame(alone, seed, image_size, steps)))
     columns.append(("all\n(recipe)", frame(ranges, seed, image_size, steps)))
     return columns

@@ -321,8 +321,9 @@ def test_the_randomized_recipe_is_the_servo_recipe_with_moderate_ranges():
         randomized, appearance=AppearanceConfig(), repo_id=servo.repo_id, root=servo.root
     )
     assert same == servo
-    # Every option on, none past half its allowed range: larger shifts are left for held-out tests.
-    assert set(randomized.appearance.active()) == set(LIMITS)
+    # Every option on but the endoscope's pose (its jitter cost the policy its precision), none past half
+    # its allowed range: larger shifts are left for held-out tests.
+    assert set(randomized.appearance.active()) == set(LIMITS) - {"camera_position", "camera_roll"}
     for name, value in randomized.appearance.active().items():
         assert value <= LIMITS[name][0] / 2, name
 
