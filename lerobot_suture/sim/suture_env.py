@@ -391,9 +391,10 @@ class SutureEnv(gym.Env):
 
     def set_grasp(self, angle: float, offset_along_jaw: float, roll: float) -> None:
         """Hold the needle with another grasp than this episode's draw (arc angle rad, offset along the
-        jaw m, roll rad; ``geometry.grasp_transform``), the needle moved into it at once."""
+        jaw m, roll rad; ``geometry.grasp_transform``), the held needle moved into it at once."""
         self._grasp.set(angle, offset_along_jaw, roll)
-        self._grasp.snap_needle(self.data)
+        if self._grasp.held:
+            self._grasp.snap_needle(self.data)
 
     def set_phantom_pose(self, position: np.ndarray, yaw: float) -> None:
         """Move the phantom (mocap) to ``position`` (3,) m with ``yaw`` rad about the world z axis."""
