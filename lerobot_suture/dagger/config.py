@@ -49,7 +49,7 @@ class DaggerConfig:
             ``gated`` arm's count that round (so all arms get as many), which needs the ``gated`` arm.
         finetune_steps: ``lerobot-train`` steps per round, from the previous round's policy, >= 1.
         new_data_repeats: how many times each new episode enters the fine-tuning data, >= 1. LeRobot samples
-            frames uniformly, and the demonstrations outnumber a round's new frames about ten to one; a repeat
+            frames uniformly, and the demonstrations outnumber the new frames about ten to one; a repeat
             weighs the new frames more in every batch without labelling more (the arms' frame counts and
             the table count each labelled frame once).
         lr: fine-tuning learning rate (the reference trains at 3e-4), > 0.

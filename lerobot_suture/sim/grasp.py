@@ -32,6 +32,7 @@ class NeedleGrasp:
         held: Whether the jaw holds the needle.
         position, rotation: The needle's pose in the jaw-tip frame ((3,) m, (3, 3)).
         offset_along_jaw: Where along the jaw the wire sits, from the nominal grasp point (m).
+        parameters: (arc angle rad, offset along the jaw m, roll rad) the pose was made from.
     """
 
     def __init__(self, model: mujoco.MjModel, arm: PSM):
