@@ -11,15 +11,9 @@ import subprocess
 import sys
 from pathlib import Path
 
+from lerobot_suture.datasets.scheduling import ordinary_scheduling
+
 logger = logging.getLogger(__name__)
-
-
-def _ordinary_priority() -> None:
-    """In the training child, before it starts: ordinary (not real-time) scheduling, whatever the parent
-    was left at. A video encoder run earlier in the parent (a recording, a merge) can leave it at real-time
-    priority (``datasets/scheduling.py``), and a real-time training would starve the rest of the machine."""
-    if hasattr(os, "sched_setscheduler") and os.sched_getscheduler(0) != os.SCHED_OTHER:
-        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
 
 
 def checkpoint_step(checkpoint: Path) -> int:
@@ -59,6 +53,6 @@ def run_lerobot_train(out: Path, fresh_args: list[str], steps: int, common_args:
         command = [lerobot_train, *fresh_args, *common]
     logger.info("training: %s", " ".join(command))
     subprocess.run(
-        command, check=True, env={**os.environ, "HF_HUB_OFFLINE": "1"}, preexec_fn=_ordinary_priority
+        command, check=True, env={**os.environ, "HF_HUB_OFFLINE": "1"}, preexec_fn=ordinary_scheduling
     )
     return policy_dir

@@ -41,7 +41,7 @@ def test_the_training_child_starts_at_ordinary_priority_whatever_the_parent_was_
     import subprocess
     import sys
 
-    from lerobot_suture.training import _ordinary_priority
+    from lerobot_suture.datasets.scheduling import ordinary_scheduling
 
     before = os.sched_getscheduler(0), os.sched_getparam(0)
     os.sched_setscheduler(0, os.SCHED_BATCH, os.sched_param(0))  # as an encoder might leave the parent
@@ -51,7 +51,7 @@ def test_the_training_child_starts_at_ordinary_priority_whatever_the_parent_was_
             check=True,
             capture_output=True,
             text=True,
-            preexec_fn=_ordinary_priority,
+            preexec_fn=ordinary_scheduling,
         )
     finally:
         os.sched_setscheduler(0, *before)
