@@ -31,7 +31,6 @@ class NeedleGrasp:
     Attributes:
         held: Whether the jaw holds the needle.
         position, rotation: The needle's pose in the jaw-tip frame ((3,) m, (3, 3)).
-        offset_along_jaw: Where along the jaw the wire sits, from the nominal grasp point (m).
         parameters: (arc angle rad, offset along the jaw m, roll rad) the pose was made from.
     """
 
@@ -55,15 +54,18 @@ class NeedleGrasp:
         needle_geom = int(np.flatnonzero(m.geom_bodyid == self.needle_body)[0])
         self._wire_diameter = 2.0 * float(m.geom_size[needle_geom][0])
         self._pad_geom = m.geom("tissue_pad").id
-        self.held = True
-        self.set(GRASP_ANGLE, 0.0, 0.0)
+        self.reset()
 
     def set(self, angle: float, offset_along_jaw: float, roll: float) -> None:
         """Hold the needle at arc angle ``angle`` (rad), ``offset_along_jaw`` (m) and ``roll`` (rad); see
         :func:`geometry.grasp_transform`. Moves nothing: :meth:`snap_needle` puts the needle there."""
         self.parameters = (float(angle), float(offset_along_jaw), float(roll))
-        self.offset_along_jaw = float(offset_along_jaw)
         self.position, self.rotation = grasp_transform(angle, offset_along_jaw, roll)
+
+    @property
+    def offset_along_jaw(self) -> float:
+        """Where along the jaw the wire sits, from the nominal grasp point (m)."""
+        return self.parameters[1]
 
     def needle_pose(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
         """Needle centre and orientation, world: (position (3,) m, rotation (3, 3))."""
@@ -121,9 +123,10 @@ class NeedleGrasp:
         self.held = False
 
     def reset(self) -> None:
-        """Held again, weightless while held, and passing through the pad (the insertion model owns
-        the tissue's effect on a held needle)."""
+        """Held again with the nominal grasp, weightless while held, and passing through the pad (the
+        insertion model owns the tissue's effect on a held needle)."""
         self.held = True
+        self.set(GRASP_ANGLE, 0.0, 0.0)
         self._model.body_gravcomp[self.needle_body] = 1.0
         self.set_pad_collides_with_needle(False)
 

@@ -443,7 +443,6 @@ class SutureEnv(gym.Env):
         rng = self.np_random
         self._reset_state()
         mujoco.mj_resetData(self.model, self.data)
-        self._grasp.reset()
         self._draw_appearance()
         self.set_endoscope_viewpoint()
 
@@ -583,12 +582,11 @@ class SutureEnv(gym.Env):
 
     def _reset_state(self) -> None:
         self._step_index = 0
-        self._grasp.held = True
+        self._grasp.reset()
         self._progress = InsertionProgress(self._arc_local, self._entry_local, self._exit_local)
         self._phantom_pos = PHANTOM_NOMINAL.copy()
         self._phantom_yaw = 0.0
         self._phantom_rot = np.eye(3)
-        self._grasp.set(GRASP_ANGLE, 0.0, 0.0)
 
     def _validated_action(self, action) -> np.ndarray:
         a = np.asarray(action, dtype=np.float64)
