@@ -20,6 +20,7 @@ lists what each invocation ran and skipped, and each stage's wall time (s). At t
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import shutil
 import time
@@ -102,7 +103,9 @@ def _check_settings(cfg: DaggerConfig) -> None:
         **{name: getattr(cfg, name) for name in _SETTINGS},
     }
     if path.is_file():
-        before = {"new_data_repeats": 1, **read_json(path)}  # runs from before the flag existed
+        # A setting the saved run predates (a flag added since) had its default there.
+        defaults = {f.name: f.default for f in dataclasses.fields(DaggerConfig) if f.name in _SETTINGS}
+        before = {**defaults, **read_json(path)}
         changed = {k: (before.get(k), v) for k, v in settings.items() if before.get(k) != v}
         if changed:
             raise ValueError(
