@@ -61,6 +61,8 @@ def test_cli_flags_parse_nested_cbf_and_scenario(suture_config_cls):
         ("--env.obs_type=pixels", "`obs_type` must be one of ('pixels_agent_pos', "),
         ("--env.fps=30", "`fps` must be 10 (the env's control rate). Got 30."),
         ("--env.episode_length=0", "`episode_length` must be >= 1. Got 0."),
+        ("--env.image_size=8", "`image_size` must be in [16, 640] px. Got 8."),
+        ("--env.render_size=1024", "`render_size` must be in [16, 640] px. Got 1024."),
         (
             "--env.appearance.noise=0.5",
             "`appearance.noise` must be in [0, 0.25] (fraction of full scale). Got 0.5.",

@@ -12,7 +12,7 @@ from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.sim.appearance import AppearanceConfig
 from lerobot_suture.sim.scenarios import SCENARIOS
-from lerobot_suture.sim.suture_env import OBS_TYPES
+from lerobot_suture.sim.suture_env import OBS_TYPES, check_image_side
 
 ENDOSCOPE_KEY = "pixels/endoscope"
 ENVIRONMENT_STATE_DIM = 18
@@ -75,6 +75,8 @@ class SutureEnvConfig(EnvConfig):
             raise ValueError(f"`scenario` must be one of {SCENARIOS}. Got {self.scenario!r}.")
         if self.episode_length < 1:
             raise ValueError(f"`episode_length` must be >= 1. Got {self.episode_length}.")
+        check_image_side("image_size", self.image_size)
+        check_image_side("render_size", self.render_size)
         if "pixels" in self.obs_type:
             self.features[ENDOSCOPE_KEY] = PolicyFeature(
                 type=FeatureType.VISUAL, shape=(self.image_size, self.image_size, 3)

@@ -189,6 +189,14 @@ from lerobot_suture.sim.task import (
 SCENE_XML = Path(__file__).parent / "assets" / "scene.xml"
 
 OBS_TYPES = ("pixels_agent_pos", "state", "pixels_agent_pos_state")
+IMAGE_SIDE_RANGE = (16, 640)  # px; the upper bound is the offscreen buffer of scene.xml
+
+
+def check_image_side(name: str, value: int) -> None:
+    """Raise a ValueError naming ``name`` unless ``value`` (px) lies in :data:`IMAGE_SIDE_RANGE`."""
+    low, high = IMAGE_SIDE_RANGE
+    if not low <= int(value) <= high:
+        raise ValueError(f"`{name}` must be in [{low}, {high}] px. Got {value}.")
 
 _N_ARC_POINTS = 13
 NEEDLE_KEYPOINTS = 3
@@ -213,14 +221,12 @@ class SutureEnv(gym.Env):
     ):
         if obs_type not in OBS_TYPES:
             raise ValueError(f"`obs_type` must be one of {OBS_TYPES}. Got {obs_type!r}.")
-        if not 16 <= int(image_size) <= 640:
-            raise ValueError(f"`image_size` must be in [16, 640] px. Got {image_size}.")
+        check_image_side("image_size", image_size)
         if grasp not in GRASP_RANGES:
             raise ValueError(f"`grasp` must be one of {list(GRASP_RANGES)}. Got {grasp!r}.")
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"`render_mode` must be 'rgb_array' or None. Got {render_mode!r}.")
-        if not 16 <= int(render_size) <= 640:
-            raise ValueError(f"`render_size` must be in [16, 640] px. Got {render_size}.")
+        check_image_side("render_size", render_size)
         self.obs_type = obs_type
         self.image_size = int(image_size)
         self.render_mode = render_mode
