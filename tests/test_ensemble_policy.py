@@ -162,7 +162,7 @@ def test_inference_stays_full_precision_under_autocast(policy):
 @pytest.mark.parametrize("mode", ["gemm", "grouped"])
 @pytest.mark.parametrize(("kernel", "stride", "padding"), [(5, 1, 2), (3, 2, 1), (1, 1, 0)])
 def test_fused_conv_equals_member_convs(mode, kernel, stride, padding):
-    from lerobot_policy_ensemble_diffusion.batched_members import FusedConv1d
+    from lerobot_policy_ensemble_diffusion.fused_unet import FusedConv1d
 
     convs = [torch.nn.Conv1d(4, 6, kernel, stride, padding) for _ in range(3)]
     fused = FusedConv1d(convs, mode)
