@@ -107,6 +107,9 @@ def collected(gated_policy, demo_root, tmp_path_factory) -> dict:
             ValueError,
             "`new_data_repeats` must be >= 1",
         ),
+        ({"patience": 0}, ValueError, r"`watch.patience` must be >= 1 \(steps\)"),
+        ({"position": float("nan")}, ValueError, r"`watch.position` must be a distance > 0 \(m\)"),
+        ({"angle": -0.1}, ValueError, r"`watch.angle` must be an angle > 0 \(rad\)"),
         (
             {"policy": "/nonexistent/pretrained_model", "dataset_root": "D"},
             FileNotFoundError,
@@ -116,7 +119,12 @@ def collected(gated_policy, demo_root, tmp_path_factory) -> dict:
 )
 def test_bad_settings_name_the_fix(kwargs, error, match):
     from lerobot_suture.calibrate import PolicyPathConfig
+    from lerobot_suture.dagger.watch import WatchConfig
 
+    if {"patience", "position", "angle"} & set(kwargs):
+        with pytest.raises(error, match=match):
+            WatchConfig(**kwargs)
+        return
     policy = kwargs.pop("policy", None)
     with pytest.raises(error, match=match):
         DaggerConfig(policy=PolicyPathConfig(path=policy and Path(policy)), **kwargs)
@@ -250,6 +258,114 @@ def test_ungated_labels_follow_the_state_the_policy_reached():
     assert in_tissue_labels
     for label, action in in_tissue_labels:
         np.testing.assert_allclose(label, action, atol=5e-4)
+
+
+def test_pose_divergence_measures_the_jaw_targets_apart():
+    from lerobot_suture.dagger.watch import pose_divergence
+    from lerobot_suture.sim.geometry import rot6_from_matrix, rotation_about_z
+
+    a = np.concatenate([[0.01, 0.02, 0.03], rot6_from_matrix(np.eye(3)), [1.0]])
+    b = a.copy()
+    b[:3] += [0.003, 0.0, -0.004]
+    b[3:9] = rot6_from_matrix(rotation_about_z(0.2))
+    b[9] = 0.0  # the jaw's closure is not judged
+    assert pose_divergence(a, a) == pytest.approx((0.0, 0.0), abs=1e-9)
+    assert pose_divergence(a, b) == pytest.approx((0.005, 0.2), abs=1e-9)
+
+
+def test_watching_surgeon_spares_the_expert_and_takes_over_after_patience():
+    """Commands that are the expert's own never stray; commands 5 mm off stray at every step, and the
+    stand-in takes over at the patience-th of them, from a fresh count every episode."""
+    import gymnasium as gym
+
+    import lerobot_suture
+    from lerobot_suture.dagger.watch import WatchConfig, WatchingExpertSurgeon
+    from lerobot_suture.expert import ExpertConfig, ScriptedExpert
+
+    env = gym.make(lerobot_suture.ENV_ID, disable_env_checker=True, obs_type="state")
+    surgeon = WatchingExpertSurgeon(ExpertConfig(), WatchConfig(enabled=True, patience=3))
+    driver = ScriptedExpert()
+    env.reset(seed=7)
+    driver.reset(env)
+    surgeon.begin_episode(env)
+    done = False
+    while not done:
+        action = driver.act(env)
+        assert not surgeon.intervenes(env, action)
+        *_, terminated, truncated, info = env.step(action)
+        done = terminated or truncated
+    assert info["is_success"]
+
+    for _episode in range(2):
+        env.reset(seed=8)
+        driver.reset(env)
+        surgeon.begin_episode(env)
+        decisions = []
+        for _step in range(4):
+            action = driver.act(env)
+            strayed = action.copy()
+            strayed[2] += 0.005
+            decisions.append(surgeon.intervenes(env, strayed))
+            env.step(action)
+        assert decisions == [False, False, True, True]
+    env.close()
+
+
+def test_gated_arm_with_a_watching_surgeon_records_its_takeover(gated_policy):
+    """The tiny policy's commands stray from the expert's from the start: the watching stand-in takes
+    over at the first step its patience allows, before the gate releases control, and its frames are kept."""
+    from lerobot_suture.dagger.watch import WatchConfig
+    from lerobot_suture.expert import ExpertConfig
+    from lerobot_suture.policy_runner import PolicyRunner, env_kwargs_for_policy
+
+    runner = PolicyRunner.from_pretrained(gated_policy)
+    spec = col.CollectSpec(
+        env_kwargs_for_policy(runner.policy.config),
+        {"nominal": [HANDOVER_SEED]},
+        ExpertConfig(),
+        watch=WatchConfig(enabled=True, patience=2),
+    )
+    episodes, runs = col.collect_gated(runner, spec)
+    (run,) = runs
+    assert run["handover_reason"] == "taken over" and run["handover_step"] == 1
+    assert len(episodes) == 1 and len(episodes[0]) == run["steps"] - 1 == run["surgeon_steps"]
+
+
+def test_report_counts_who_started_each_collection_handover():
+    from lerobot_suture.dagger.report import handover_reasons, markdown
+
+    runs = [
+        {"handover_step": 4, "handover_reason": "gate released"},
+        {"handover_step": 2, "handover_reason": "taken over"},
+        {"handover_step": 7, "handover_reason": "taken over"},
+        {"handover_step": None, "handover_reason": None},
+        {"handover_step": 3},  # a run from before the reason was kept
+    ]
+    assert handover_reasons(runs) == {"gate released": 2, "taken over": 2}
+    scenarios = ("nominal", "phantom_moved_after_insertion", "camera_moved", "phantom_servo")
+
+    def row(round_, handovers):
+        return {
+            "arm": "gated",
+            "round": round_,
+            "new_frames": 10 * round_,
+            "cumulative_frames": 10 * round_,
+            "autonomous_success": dict.fromkeys(scenarios, 0.5),
+            "success": dict.fromkeys(scenarios, 0.9),
+            "overall_autonomous_success": 0.5,
+            "overall_success": 0.9,
+            "handovers_per_episode": 0.4,
+            "surgeon_steps_per_episode": 3.0,
+            "nominal_false_alarms_per_episode": 0.0,
+            "auroc": dict.fromkeys(scenarios[1:], 0.8),
+            "test_episodes_per_scenario": 10,
+            "collection_handovers": handovers,
+        }
+
+    plain = markdown([row(0, {}), row(1, {"gate released": 3})])
+    assert "by who started it" not in plain
+    watched = markdown([row(0, {}), row(1, {"gate released": 3, "taken over": 5})])
+    assert "| round | the gate | the surgeon |" in watched and "| 1 | 3 | 5 |" in watched
 
 
 def test_merged_dataset_holds_the_training_demonstrations_and_the_new_frames(

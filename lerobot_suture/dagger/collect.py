@@ -11,8 +11,10 @@ arm        the rollout                                          the frames kept,
 ========== ==================================================== ============================================
 gated      the policy with its gate enforced; once the gate     only the surgeon's (``actor`` 1,
            releases control the surgeon stand-in (the           ``is_intervention`` 1), each contiguous run
-           privileged expert) finishes from where it is         of them an episode; ``action``: the
-                                                                surgeon's executed action
+           privileged expert) finishes from where it is; with   of them an episode; ``action``: the
+           ``watch`` it also takes over on its own when the     surgeon's executed action
+           policy's commands stray (:mod:`~lerobot_suture.
+           dagger.watch`)
 ungated    the policy drives every step (the gate reports);     every visited state (``actor`` 0,
            beside it the expert, its phase placed on the state  ``is_intervention`` 0, the gate's score and
            the policy reached (:mod:`~lerobot_suture.dagger.    decision), then a contiguous window per
@@ -34,13 +36,14 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
 from lerobot_suture.dagger.labelling import StateLabeller
+from lerobot_suture.dagger.watch import WatchConfig, WatchingExpertSurgeon
 from lerobot_suture.expert import ExpertConfig, ScriptedExpert
 from lerobot_suture.surgeon.record_run import (
     ACTOR_KEY,
@@ -67,6 +70,8 @@ class CollectSpec:
         expert_config: the demonstrations' expert.
         steps_after_success: control steps the demonstrations go on past success (the ``bc`` arm's too).
         video: store the endoscope as MP4 (as the demonstrations do) or PNG frames.
+        watch: whether and when the gated arm's surgeon stand-in takes over on its own
+            (:mod:`~lerobot_suture.dagger.watch`).
     """
 
     env_kwargs: dict
@@ -74,6 +79,7 @@ class CollectSpec:
     expert_config: ExpertConfig
     steps_after_success: int = 0
     video: bool = True
+    watch: WatchConfig = field(default_factory=WatchConfig)
 
 
 class EpisodeBuffer:
@@ -228,6 +234,7 @@ def _policy_runs(runner, spec: CollectSpec, surgeon, recorder, desc: str) -> lis
                             "success": log.success,
                             "steps": len(log.steps),
                             "handover_step": log.handovers[0][0] if log.handovers else None,
+                            "handover_reason": log.handovers[0][3] if log.handovers else None,
                             "surgeon_steps": sum(a is Actor.SURGEON for a in log.actors),
                         }
                     )
@@ -238,12 +245,17 @@ def _policy_runs(runner, spec: CollectSpec, surgeon, recorder, desc: str) -> lis
 
 
 def collect_gated(runner, spec: CollectSpec) -> tuple[list[list[dict]], list[dict]]:
-    """The gated arm: gate enforced, the expert surgeon after the handover; only the surgeon's frames."""
+    """The gated arm: gate enforced, the expert surgeon after the handover (or after its own takeover when
+    it watches); only the surgeon's frames."""
     from lerobot_suture.surgeon.surgeons import ExpertSurgeon
 
     runner.policy.config.ood.enforce = True
     recorder = BufferedRecorder()
-    runs = _policy_runs(runner, spec, ExpertSurgeon(ScriptedExpert(spec.expert_config)), recorder, "gated")
+    if spec.watch.enabled:
+        surgeon = WatchingExpertSurgeon(spec.expert_config, spec.watch)
+    else:
+        surgeon = ExpertSurgeon(ScriptedExpert(spec.expert_config))
+    runs = _policy_runs(runner, spec, surgeon, recorder, "gated")
     episodes = [seg for frames in recorder.dataset.episodes for seg in surgeon_segments(frames)]
     return episodes, runs
 

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from lerobot_suture.calibrate import PolicyPathConfig
+from lerobot_suture.dagger.watch import WatchConfig
 from lerobot_suture.safety.ood.calibration import min_calibration_episodes
 
 GATED, UNGATED, BC = "gated", "ungated", "bc"
@@ -47,6 +48,11 @@ class DaggerConfig:
             arm), >= 1.
         frames_per_round: new labelled frames per round for the ``ungated`` and ``bc`` arms; unset: the
             ``gated`` arm's count that round (so all arms get as many), which needs the ``gated`` arm.
+        watch: ``--watch.enabled=true``: in the ``gated`` arm's collection the surgeon stand-in also takes
+            over on its own when the policy's commands stray from its own (HG-DAgger's human gating; limits
+            ``--watch.position`` (m), ``--watch.angle`` (rad), ``--watch.patience`` (steps), see
+            :mod:`~lerobot_suture.dagger.watch`). The evaluations' surgeon still takes over only when the
+            gate hands over.
         finetune_steps: ``lerobot-train`` steps per round, from the previous round's policy, >= 1.
         new_data_repeats: how many times each new episode enters the fine-tuning data, >= 1. LeRobot samples
             frames uniformly, and the demonstrations outnumber the new frames about ten to one; a repeat
@@ -78,6 +84,7 @@ class DaggerConfig:
     collect_episodes: int = 6
     test_episodes: int = 10
     frames_per_round: int | None = None
+    watch: WatchConfig = field(default_factory=WatchConfig)
     # Fine-tuning.
     finetune_steps: int = 800
     new_data_repeats: int = 1

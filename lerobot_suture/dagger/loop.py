@@ -46,6 +46,7 @@ _SETTINGS = (
     "collect_episodes",
     "test_episodes",
     "frames_per_round",
+    "watch",
     "finetune_steps",
     "new_data_repeats",
     "lr",
@@ -100,11 +101,15 @@ def _check_settings(cfg: DaggerConfig) -> None:
     settings = {
         "policy": str(Path(cfg.policy.path).resolve()),
         "dataset_root": str(Path(cfg.dataset_root).resolve()),
-        **{name: getattr(cfg, name) for name in _SETTINGS},
+        **{name: _setting(getattr(cfg, name)) for name in _SETTINGS},
     }
     if path.is_file():
         # A setting the saved run predates (a flag added since) had its default there.
-        defaults = {f.name: f.default for f in dataclasses.fields(DaggerConfig) if f.name in _SETTINGS}
+        defaults = {
+            f.name: _setting(f.default if f.default_factory is dataclasses.MISSING else f.default_factory())
+            for f in dataclasses.fields(DaggerConfig)
+            if f.name in _SETTINGS
+        }
         before = {**defaults, **read_json(path)}
         changed = {k: (before.get(k), v) for k, v in settings.items() if before.get(k) != v}
         if changed:
@@ -113,6 +118,11 @@ def _check_settings(cfg: DaggerConfig) -> None:
                 "same flags (rounds, arms, device and batch_envs may change) or use a new `--output_dir`."
             )
     write_json_atomic(path, settings)
+
+
+def _setting(value):
+    """A setting as ``dagger_config.json`` holds it (a nested config as a dict)."""
+    return dataclasses.asdict(value) if dataclasses.is_dataclass(value) else value
 
 
 def _policy_config(policy_dir: Path):
@@ -224,7 +234,7 @@ class DaggerRun:
             for group, scenario in enumerate(SCENARIOS)
         }
         return col.CollectSpec(
-            self.env_kwargs, seeds, self.expert_config, self.steps_after_success, self.video
+            self.env_kwargs, seeds, self.expert_config, self.steps_after_success, self.video, self.cfg.watch
         )
 
     def budget(self, round_: int) -> int:

@@ -37,10 +37,23 @@ def table_rows(output_dir: Path, arms: list[str], rounds: int) -> list[dict]:
             folder = output_dir / "round_0" if round_ == 0 else output_dir / arm / f"round_{round_}"
             if not (folder / "eval.json").is_file() or not round0.is_file():
                 break
-            new = 0 if round_ == 0 else int(read_json(folder / "collect.json")["new_frames"])
+            collect = {} if round_ == 0 else read_json(folder / "collect.json")
+            new = int(collect.get("new_frames", 0))
             cumulative += new
             rows.append(_row(arm, round_, new, cumulative, read_json(folder / "eval.json")))
+            rows[-1]["collection_handovers"] = handover_reasons(collect.get("runs", []))
     return rows
+
+
+def handover_reasons(runs: list[dict]) -> dict[str, int]:
+    """Collection episodes by why control first changed hands (the gate released it, or the surgeon
+    took it); runs written before the reason was kept count under "gate released"."""
+    counts: dict[str, int] = {}
+    for run in runs:
+        if run.get("handover_step") is not None:
+            reason = run.get("handover_reason") or "gate released"
+            counts[reason] = counts.get(reason, 0) + 1
+    return counts
 
 
 def _row(arm: str, round_: int, new: int, cumulative: int, result: dict) -> dict:
@@ -114,6 +127,22 @@ def markdown(rows: list[dict], toy: bool = False) -> str:
     for row in rows:
         cells = [row["arm"], str(row["round"])] + [_fmt(row["success"].get(s)) for s in SCENARIOS]
         lines.append("| " + " | ".join(cells) + " |")
+    taken = [r for r in rows if r["arm"] == "gated" and r.get("collection_handovers", {}).get("taken over")]
+    if taken:
+        lines += [
+            "",
+            "In the gated arm's collection the surgeon stand-in also took over on its own when the policy's "
+            "commands strayed from its own (`--watch.enabled=true`); the evaluations' surgeon takes over only "
+            "when the gate hands over. Collection episodes handed over, by who started it:",
+            "",
+            "| round | the gate | the surgeon |",
+            "|---|---|---|",
+        ]
+        for row in (r for r in rows if r["arm"] == "gated" and r["round"] > 0):
+            counts = row["collection_handovers"]
+            lines.append(
+                f"| {row['round']} | {counts.get('gate released', 0)} | {counts.get('taken over', 0)} |"
+            )
     lines += ["", "![autonomy and success against surgeon effort](dagger.png)", ""]
     return "\n".join(lines)
 

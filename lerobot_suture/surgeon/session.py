@@ -2,7 +2,8 @@
 
 Each control step: the surgeon is polled (take over, hand back); while the policy is in control it acts
 and its gate reports (an enforced gate that releases control hands it to the surgeon, or to a hold of
-the released pose when nobody is there); the :class:`~lerobot_suture.surgeon.takeover.Takeover` names the
+the released pose when nobody is there), and a scripted surgeon may take over on seeing the action,
+before it runs; the :class:`~lerobot_suture.surgeon.takeover.Takeover` names the
 step's actor; the env steps. Whatever reaches the robot goes through the env's step, so a CBF wrapper
 filters the surgeon's commands as the policy's. The policy is not asked while it is out of control
 (its score is then NaN, its decision "not consulted"); a hand-back resets it, re-arming its gate.
@@ -10,6 +11,7 @@ filters the surgeon's commands as the policy's. The policy is not asked while it
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -63,6 +65,7 @@ def run_surgeon_episode(
     torch.manual_seed(int(seed))
     observation, info = env.reset(seed=int(seed))
     runner.reset()
+    surgeon.begin_episode(env)
     takeover = Takeover(has_surgeon=surgeon.present)
     log = SurgeonEpisode(seed=int(seed))
     held = None  # the hold action once the gate released control with nobody to take over
@@ -78,6 +81,8 @@ def run_surgeon_episode(
         action = None
         if before is Actor.POLICY and not (command.take_over and surgeon.present):
             action, status = _policy_step(runner, observation)
+            if surgeon.intervenes(env, action):
+                command = dataclasses.replace(command, take_over=True)
         actor = takeover.update(
             step, released=status["released"], take_over=command.take_over, hand_back=command.hand_back
         )

@@ -84,6 +84,14 @@ class NoSurgeon:
     def poll(self) -> SurgeonInput:
         return SurgeonInput()
 
+    def begin_episode(self, env) -> None:
+        """Called once per episode, after the env's reset."""
+
+    def intervenes(self, env, action: np.ndarray) -> bool:
+        """Whether the surgeon, seeing the policy's ``action`` at the env's state, takes over before it runs
+        (a person presses a key instead; only a scripted surgeon judges the action itself)."""
+        return False
+
     def take_control(self, env, observation: dict) -> None:
         raise RuntimeError("Nobody is there to take control.")
 
