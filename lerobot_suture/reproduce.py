@@ -55,7 +55,7 @@ RECIPES = {
     "robust": Recipe(
         REPO_ROOT / "datasets" / "suture_expert_randomized.yaml",
         REPO_ROOT / "policies" / "presets" / "robust.json",
-        REPO_ROOT / "docs" / "results" / "robust_5500",
+        REPO_ROOT / "docs" / "results" / "robust_8000",
     ),
     # The reference's recipe with two equally valid approaches (the detectors' multimodality test).
     "two_sided": Recipe(
