@@ -11,8 +11,8 @@ after ``patience`` consecutive steps whose targets lie more than ``position`` ap
 The default limits come from the robust policy on seeds of their own (``docs/surgeon.md``): in twelve
 nominal throws its commands strayed from the expert's by more than 2.5 mm for two steps in a row at most
 (its approach turns a step earlier or later than the expert's) and by no more than 0.11 rad; once the
-phantom moves under the needle they stray 4 to 5 mm for five steps or more, and with the camera moved 6
-to 12 mm and 0.15 to 0.5 rad.
+phantom moves under the needle they stray 4 to 5 mm for five steps or more in 11 of 12 throws, and with
+the camera moved 6 to 12 mm and 0.15 to 0.5 rad.
 """
 
 from __future__ import annotations
