@@ -13,8 +13,9 @@ from pathlib import Path
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from lerobot_suture.dagger.config import ARMS, SCENARIOS
+from lerobot_suture.dagger.config import ARMS, GATED, SCENARIOS
 from lerobot_suture.datasets.metadata import read_json, write_json_atomic
+from lerobot_suture.surgeon.takeover import GATE_RELEASED, TAKEN_OVER
 
 SHORT = {
     "nominal": "nominal",
@@ -51,7 +52,7 @@ def handover_reasons(runs: list[dict]) -> dict[str, int]:
     counts: dict[str, int] = {}
     for run in runs:
         if run.get("handover_step") is not None:
-            reason = run.get("handover_reason") or "gate released"
+            reason = run.get("handover_reason") or GATE_RELEASED
             counts[reason] = counts.get(reason, 0) + 1
     return counts
 
@@ -127,8 +128,8 @@ def markdown(rows: list[dict], toy: bool = False) -> str:
     for row in rows:
         cells = [row["arm"], str(row["round"])] + [_fmt(row["success"].get(s)) for s in SCENARIOS]
         lines.append("| " + " | ".join(cells) + " |")
-    taken = [r for r in rows if r["arm"] == "gated" and r.get("collection_handovers", {}).get("taken over")]
-    if taken:
+    gated = [r for r in rows if r["arm"] == GATED and r["round"] > 0]
+    if any(r.get("collection_handovers", {}).get(TAKEN_OVER) for r in gated):
         lines += [
             "",
             "In the gated arm's collection the surgeon stand-in also took over on its own when the policy's "
@@ -138,11 +139,9 @@ def markdown(rows: list[dict], toy: bool = False) -> str:
             "| round | the gate | the surgeon |",
             "|---|---|---|",
         ]
-        for row in (r for r in rows if r["arm"] == "gated" and r["round"] > 0):
+        for row in gated:
             counts = row["collection_handovers"]
-            lines.append(
-                f"| {row['round']} | {counts.get('gate released', 0)} | {counts.get('taken over', 0)} |"
-            )
+            lines.append(f"| {row['round']} | {counts.get(GATE_RELEASED, 0)} | {counts.get(TAKEN_OVER, 0)} |")
     lines += ["", "![autonomy and success against surgeon effort](dagger.png)", ""]
     return "\n".join(lines)
 

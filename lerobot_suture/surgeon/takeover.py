@@ -22,6 +22,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from enum import IntEnum
 
+GATE_RELEASED, TAKEN_OVER, HANDED_BACK = "gate released", "taken over", "handed back"
+"""Why control changed hands: the ``why`` of :attr:`Takeover.handovers`."""
+
 
 class Actor(IntEnum):
     """Who acted at a step; the integer is the dataset's ``complementary_info.actor``."""
@@ -60,11 +63,11 @@ class Takeover:
         """
         if self.actor is Actor.POLICY:
             if take_over and self.has_surgeon:
-                self._change(step, Actor.SURGEON, "taken over")
+                self._change(step, Actor.SURGEON, TAKEN_OVER)
             elif released:
-                self._change(step, Actor.SURGEON if self.has_surgeon else Actor.HOLD, "gate released")
+                self._change(step, Actor.SURGEON if self.has_surgeon else Actor.HOLD, GATE_RELEASED)
         elif hand_back:
-            self._change(step, Actor.POLICY, "handed back")
+            self._change(step, Actor.POLICY, HANDED_BACK)
         return self.actor
 
     def _change(self, step: int, to: Actor, why: str) -> None:
