@@ -127,7 +127,6 @@ argument                 default                 meaning
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from pathlib import Path
 
 import gymnasium as gym
@@ -135,7 +134,7 @@ import mujoco
 import numpy as np
 from gymnasium import spaces
 
-from lerobot_suture.sim import controller, tissue
+from lerobot_suture.sim.actuation import InstrumentDrive, TipVelocityFilter
 from lerobot_suture.sim.appearance import (
     AppearanceConfig,
     AppearanceSample,
@@ -150,7 +149,6 @@ from lerobot_suture.sim.geometry import (
     grasp_transform,
     insertion_frame,
     jaw_holding,
-    matrix_from_rot6,
     needle_arc_points,
     pose_vector,
     quat_from_matrix,
@@ -159,15 +157,7 @@ from lerobot_suture.sim.geometry import (
 )
 from lerobot_suture.sim.grasp import NeedleGrasp
 from lerobot_suture.sim.insertion import InsertionProgress
-from lerobot_suture.sim.psm import (
-    ARM_JOINTS,
-    IK_UPDATES_WHEN_FILTERED,
-    MAX_ANGULAR_SPEED,
-    MAX_LINEAR_SPEED,
-    PSM,
-    SEGMENT_TRACKING_GAIN,
-    TIME_TO_TARGET,
-)
+from lerobot_suture.sim.psm import ARM_JOINTS, PSM
 from lerobot_suture.sim.scenarios import Scenario, ScenarioConfig
 from lerobot_suture.sim.task import (
     ARM_START_NOISE,
@@ -197,6 +187,7 @@ def check_image_side(name: str, value: int) -> None:
     low, high = IMAGE_SIDE_RANGE
     if not low <= int(value) <= high:
         raise ValueError(f"`{name}` must be in [{low}, {high}] px. Got {value}.")
+
 
 _N_ARC_POINTS = 13
 NEEDLE_KEYPOINTS = 3
@@ -263,6 +254,7 @@ class SutureEnv(gym.Env):
         self._arc_local = needle_arc_points(_N_ARC_POINTS)
         self._tip_local = self._arc_local[0]
         self._keypoints_local = needle_arc_points(NEEDLE_KEYPOINTS)
+        self._drive = InstrumentDrive(m, self.data, self._arm, self._grasp, self._tip_local, self.n_substeps)
 
         self.action_space = spaces.Box(
             low=np.concatenate([WORKSPACE_LOW, -np.ones(6), [0.0]]).astype(np.float32),
@@ -279,7 +271,7 @@ class SutureEnv(gym.Env):
             obs_spaces["environment_state"] = spaces.Box(-np.inf, np.inf, (18,), dtype=np.float32)
         self.observation_space = spaces.Dict(obs_spaces)
 
-        self.tip_velocity_filter: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
+        self.tip_velocity_filter: TipVelocityFilter | None = None
         """None or f(needle_tip_pos (3,) m, v_nominal (3,) m/s) -> v_safe (3,) m/s; called once per
         control step while the needle is held, before inverse kinematics."""
 
@@ -472,84 +464,17 @@ class SutureEnv(gym.Env):
     def step(self, action):
         target = self._validated_action(action)
         self.scenario.before_step(self)
-        d, m = self.data, self.model
-
-        grasp = self._grasp
-        grasp.command_jaw(d, float(target[9]), in_tissue=self._progress.in_tissue)
-
-        filtered = grasp.held and self.tip_velocity_filter is not None
-        if filtered:
-            # MuJoCo's stored kinematics are one physics step old after mj_step; the filter must see
-            # where the tip is, since its segment starts there.
-            mujoco.mj_kinematics(m, d)
-            mujoco.mj_comPos(m, d)
-        jaw_pos, jaw_rot = self.jaw_pose()
-        linear, angular = controller.pose_velocity_command(
-            jaw_pos,
-            jaw_rot,
-            target[:3],
-            matrix_from_rot6(target[3:9]),
-            TIME_TO_TARGET,
-            MAX_LINEAR_SPEED,
-            MAX_ANGULAR_SPEED,
+        drive = self._drive.step(
+            target, self.tip_velocity_filter, self._progress.in_tissue, self.record_tip_trace
         )
-        if grasp.held:
-            point = jaw_pos + jaw_rot @ (grasp.position + grasp.rotation @ self._tip_local)
-            v_nominal = controller.point_velocity(linear, angular, jaw_pos, point)
-            v_command = v_nominal
-            if self.tip_velocity_filter is not None:
-                v_command = np.asarray(
-                    self.tip_velocity_filter(point.copy(), v_nominal.copy()), dtype=np.float64
-                )
-                if v_command.shape != (3,) or not np.all(np.isfinite(v_command)):
-                    raise ValueError(
-                        f"`tip_velocity_filter` must return a finite (3,) velocity. Got {v_command!r}."
-                    )
-        else:
-            point, v_nominal = jaw_pos, linear
-            v_command = linear
-
-        # While a safety filter shapes the tip's velocity, the tip must follow the filtered straight
-        # segment (the CBF's guarantee rests on it): the command is re-solved several times per control
-        # step by tip-first IK (``controller.tip_first_velocity_ik``), with feedback towards where the
-        # segment says the tip should be by now; otherwise one plain solve per step is enough.
-        blocks = IK_UPDATES_WHEN_FILTERED if filtered else 1
-        substeps = self.n_substeps // blocks
-        trace = np.empty((self.n_substeps, 3)) if self.record_tip_trace else None
-        segment_start = point.copy()
-        for block in range(blocks):
-            if block > 0:
-                mujoco.mj_kinematics(m, d)
-                mujoco.mj_comPos(m, d)
-                jaw_pos, jaw_rot = self.jaw_pose()
-                point = jaw_pos + jaw_rot @ (grasp.position + grasp.rotation @ self._tip_local)
-            if filtered:
-                elapsed = block * substeps * self.physics_dt
-                v_track = v_command + SEGMENT_TRACKING_GAIN * (segment_start + v_command * elapsed - point)
-                self._actuate(point, v_track, angular, jaw_pos, jaw_rot, tip_first=True)
-            else:
-                self._actuate(point, v_command, angular, jaw_pos, jaw_rot, tip_first=False)
-            if trace is not None:
-                for k in range(block * substeps, (block + 1) * substeps):
-                    mujoco.mj_step(m, d)
-                    mujoco.mj_kinematics(m, d)  # the tip after this physics step, not before it
-                    trace[k] = self.needle_tip_pos
-            else:
-                mujoco.mj_step(m, d, nstep=substeps)
-        if filtered:
-            mujoco.mj_kinematics(m, d)  # the tissue state and info read the tip where the step left it
-        if grasp.held:
-            grasp.snap_needle(d)
-            grasp.hold_jaw_on_needle(d)
-
         self._step_index += 1
         self._update_tissue_state()
         throw_over = self._throw_over()
         success = throw_over and self._on_the_marks()
         reward = 1.0 if success else 0.0
-        info = self._info(success=success, v_nominal=v_nominal, v_command=v_command)
-        if trace is not None:
-            info["needle_tip_trace"] = trace
+        info = self._info(success=success, v_nominal=drive.v_nominal, v_command=drive.v_command)
+        if drive.tip_trace is not None:
+            info["needle_tip_trace"] = drive.tip_trace
         return self._observation(), reward, throw_over, False, info
 
     def render(self):
@@ -613,25 +538,6 @@ class SutureEnv(gym.Env):
         target_pos, target_rot = jaw_holding(centre, frame.start_rotation, *self.grasp_in_jaw)
         mujoco.mj_resetData(self.model, self.data)
         return self._arm.solve_jaw_pose(self.data, target_pos, target_rot)
-
-    def _actuate(self, point, v_point, angular, jaw_pos, jaw_rot, tip_first: bool) -> None:
-        """Joint velocity commands that move ``point`` with the twist (plain or tip-first IK, see
-        ``psm.PSM``), and the tissue's resistance to the motion they make."""
-        d = self.data
-        if tip_first:
-            qdot, jac_linear, jac_angular = self._arm.tip_first_velocity_ik(d, point, v_point, angular)
-            # The tissue resists the motion the joints are asked for (part of the rotation may be dropped).
-            v_point, angular = jac_linear @ qdot, jac_angular @ qdot
-        else:
-            qdot, jac_linear, jac_angular = self._arm.velocity_ik(d, point, v_point, angular)
-        d.ctrl[self._arm.ctrl] = qdot
-        d.qfrc_applied[:] = 0.0
-        if self._grasp.held and self._progress.in_tissue:
-            centre = jaw_pos + jaw_rot @ self._grasp.position
-            axis = jaw_rot @ self._grasp.rotation[:, 2]
-            d.qfrc_applied[self._arm.dofs] = tissue.resistance_joint_forces(
-                centre, axis, point, v_point, angular, jac_linear, jac_angular
-            )
 
     def _update_tissue_state(self, first: bool = False) -> None:
         self._progress.update(
