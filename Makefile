@@ -55,6 +55,7 @@ bench: install
 
 lint: install
 	$(BIN)/ruff check lerobot_suture envs policies tests benchmarks
+	$(BIN)/ruff format --check lerobot_suture envs policies tests benchmarks
 
 clean:
 	rm -rf $(VENV) outputs .pytest_cache

@@ -40,7 +40,10 @@ def test_a_missing_or_unknown_subcommand_lists_the_subcommands(argv, message, ca
     [
         # Flags that do not parse, or that the config refuses.
         (["experiments", "--nonexistent=1"], "unrecognized arguments: --nonexistent=1"),
-        (["experiments", f"--policy.path={NOWHERE}", "--nominal_episodes=0"], "`nominal_episodes` must be >= 1"),
+        (
+            ["experiments", f"--policy.path={NOWHERE}", "--nominal_episodes=0"],
+            "`nominal_episodes` must be >= 1",
+        ),
         (["experiments", "--nominal_episodes"], "argument --nominal_episodes: expected one argument"),
         (["experiments"], "`--policy.path` is required"),
         (["cbf-replay", "--seed=abc"], "`seed`: Couldn't parse 'abc' into an int"),
@@ -54,7 +57,10 @@ def test_a_missing_or_unknown_subcommand_lists_the_subcommands(argv, message, ca
         (["demo", "--dataset_episodes=1"], "`dataset_episodes` must be 0 (no dataset) or >= 2"),
         (["demo", "--checkpoint_every=0"], "`train_steps` and `checkpoint_every` must be >= 1"),
         (["demo", "--frame_size=8"], "`frame_size` must be in [16, 640] px"),
-        (["calibrate", "--calibration_episodes=0", f"--policy.path={NOWHERE}"], "`calibration_episodes` must"),
+        (
+            ["calibrate", "--calibration_episodes=0", f"--policy.path={NOWHERE}"],
+            "`calibration_episodes` must",
+        ),
         (["record", "--bogus=1"], "unrecognized arguments: --bogus=1"),
         (["record", "--repo_id=a/b", "--num_episodes=1"], "`val_fraction`=0.25 holds out all 1 episode(s)"),
     ],
@@ -80,7 +86,10 @@ def test_assemble_names_a_missing_member(tmp_path, capsys):
 
 def test_experiments_without_a_calibration_says_how_to_calibrate(tiny_policy_dir, tmp_path, capsys):
     line = _bad_input(["experiments", f"--policy.path={tiny_policy_dir}", f"--output_dir={tmp_path}"], capsys)
-    assert "has no O.O.D. calibration" in line and f"lerobot-suture calibrate --policy.path={tiny_policy_dir}" in line
+    assert (
+        "has no O.O.D. calibration" in line
+        and f"lerobot-suture calibrate --policy.path={tiny_policy_dir}" in line
+    )
 
 
 def test_help_lists_the_subcommands_and_a_subcommand_its_flags(capsys):

@@ -157,7 +157,9 @@ def test_video_backend_falls_back_past_a_decoder_that_fails_to_load_and_says_whe
     broken, loads = "suture_test_codec_without_ffmpeg", "suture_test_codec_that_loads"
     assert first_loading_backend({"first": broken, "second": loads}) == "second"
     assert first_loading_backend({"first": loads, "second": broken}) == "first"
-    with pytest.raises(RuntimeError, match=r"No video decoder loads here .*apt-get install ffmpeg.*--video=false"):
+    with pytest.raises(
+        RuntimeError, match=r"No video decoder loads here .*apt-get install ffmpeg.*--video=false"
+    ):
         first_loading_backend({"first": broken, "second": "suture_test_codec_not_installed"})
 
 
@@ -258,7 +260,9 @@ def test_split_matches_lerobot_eval_split(n, fraction, expected_val):
 
 @pytest.mark.parametrize("n, fraction", [(1, 0.5), (1, 0.25), (2, 0.75), (3, 0.9)])
 def test_split_without_a_training_episode_is_refused_as_lerobot_refuses_it(n, fraction):
-    with pytest.raises(ValueError, match=f"`val_fraction`={fraction} holds out all {n} episode.*none to train"):
+    with pytest.raises(
+        ValueError, match=f"`val_fraction`={fraction} holds out all {n} episode.*none to train"
+    ):
         split_episodes(n, fraction)
 
 

@@ -362,7 +362,9 @@ def test_sigkill_loses_only_episodes_since_the_last_checkpoint(tmp_path, caplog)
     def past_a_checkpoint() -> bool:
         """A checkpoint holds 2 or more episodes and another one is on disk past it."""
         episodes = read(checkpoint, "episode_log", "episodes") or []
-        return len(episodes) >= 2 and (read(root / "meta" / "info.json", "total_episodes") or 0) > len(episodes)
+        return len(episodes) >= 2 and (read(root / "meta" / "info.json", "total_episodes") or 0) > len(
+            episodes
+        )
 
     deadline = time.monotonic() + 240
     try:

@@ -111,8 +111,6 @@ def test_an_interrupted_demo_resumes_and_keeps_what_it_finished(tmp_path, capsys
     assert f"summary: {out / 'summary.json'}" in printed
 
     # Run again when everything is done: nothing is trained, calibrated or run again.
-    done = _stats(out / "train") | {
-        f"experiments/{k}": v for k, v in _stats(experiments).items()
-    }
+    done = _stats(out / "train") | {f"experiments/{k}": v for k, v in _stats(experiments).items()}
     cli_main(["demo", f"--output_dir={out}", *SMALL])
     assert done == _stats(out / "train") | {f"experiments/{k}": v for k, v in _stats(experiments).items()}

@@ -104,4 +104,10 @@ def test_experiments_write_figures_metrics_and_report(tiny_policy_dir, tmp_path)
     assert replay["left_set_reference"] and not replay["left_set_safe"] and replay["h_min_safe"] >= 0
     # Nothing else is written, and nothing is missing.
     written = {p.name for p in out.iterdir()}
-    assert written == {*result["figures"].values(), "metrics.json", "report.md", "traces.json", "cbf_replay.json"}
+    assert written == {
+        *result["figures"].values(),
+        "metrics.json",
+        "report.md",
+        "traces.json",
+        "cbf_replay.json",
+    }

@@ -166,7 +166,8 @@ def test_calibrate_with_a_score_choice_writes_it_beside_its_calibration(tiny_pol
         cli_main([*args, "--uncertainty_source=aleatoric", "--mode=per_prediction"])  # one sample per member
     assert exit_info.value.code == 2
     assert re.search(
-        "`uncertainty_source`=.aleatoric. needs `uncertainty_samples_per_member` >= 2", capsys.readouterr().err
+        "`uncertainty_source`=.aleatoric. needs `uncertainty_samples_per_member` >= 2",
+        capsys.readouterr().err,
     )
     assert json.loads((directory / "config.json").read_text())["uncertainty_source"] == "total"
     cli_main([*args, "--uncertainty_score=trace", "--uncertainty_steps=action", "--mode=per_prediction"])

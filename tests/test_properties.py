@@ -75,7 +75,9 @@ def test_per_prediction_threshold_is_the_id_model_quantile(scores, model, alpha,
 )
 def test_per_episode_threshold_is_the_finite_sample_quantile_of_the_episode_maxima(data, alpha, model):
     n = data.draw(st.integers(min_calibration_episodes(alpha), 60), label="episodes")
-    episodes = data.draw(st.lists(st.lists(st.floats(1e-3, 1e3), min_size=1, max_size=6), min_size=n, max_size=n))
+    episodes = data.draw(
+        st.lists(st.lists(st.floats(1e-3, 1e3), min_size=1, max_size=6), min_size=n, max_size=n)
+    )
     scores = np.concatenate([np.asarray(e) for e in episodes])
     ids = np.repeat(np.arange(n), [len(e) for e in episodes])
     maxima = np.array([max(e) for e in episodes])
@@ -110,7 +112,9 @@ def test_ensemble_statistics_are_numpy_s_and_blind_to_member_order_and_shift(sam
     member_means = samples.mean(axis=2)[0]  # (N, T, A)
     stats_ = compute_ensemble_stats(s)
     _close(stats_.mean[0], member_means.mean(axis=0), math.sqrt(scale))
-    epistemic = np.stack([np.cov(member_means[:, step], rowvar=False, ddof=1).reshape(a, a) for step in range(t)])
+    epistemic = np.stack(
+        [np.cov(member_means[:, step], rowvar=False, ddof=1).reshape(a, a) for step in range(t)]
+    )
     _close(stats_.epistemic[0], epistemic, scale)
     cov = stats_.covariance[0]  # (T, A, A)
     assert torch.equal(cov, cov.transpose(-1, -2))
