@@ -12,6 +12,10 @@ The entry tolerance of the task is 2 mm.
     python benchmarks/open_loop_error.py --dataset-root DIR CHECKPOINT [CHECKPOINT ...]
 
 CHECKPOINT is a ``pretrained_model`` directory, or a run's ``checkpoints`` directory (every step in it).
+``--episodes 1,2,3`` (or ``all``) reads those episodes instead of the validation split: e.g. a
+``lerobot-suture dagger`` round's ``new_data`` (the surgeon's segments only; ``collect.json`` lists its runs,
+those with surgeon steps in order), to ask whether a fine-tuned ensemble reproduces the labels it was
+trained on, and the next round's, which it was not.
 """
 
 from __future__ import annotations
@@ -48,17 +52,21 @@ def checkpoint_dirs(paths: list[str]) -> list[Path]:
     return out
 
 
-def validation_batch(dataset_root: Path, config, n_frames: int, seed: int) -> dict:
-    """``n_frames`` validation frames with the observation and action windows of ``config``."""
+def validation_batch(
+    dataset_root: Path, config, n_frames: int, seed: int, episodes: list[int] | None = None
+) -> dict:
+    """``n_frames`` frames of ``episodes`` (default: the validation split) with the observation and action
+    windows of ``config``."""
     from lerobot.datasets import LeRobotDataset, LeRobotDatasetMetadata
 
     fps = LeRobotDatasetMetadata("local/eval", root=dataset_root).fps
     delta = {"action": [i / fps for i in config.action_delta_indices]}
     for key in config.input_features:
         delta[key] = [i / fps for i in config.observation_delta_indices]
-    episodes = validation_episodes(dataset_root)
-    if not episodes:
-        raise ValueError(f"The dataset at {dataset_root} has no validation episodes.")
+    if episodes is None:
+        episodes = validation_episodes(dataset_root)
+        if not episodes:
+            raise ValueError(f"The dataset at {dataset_root} has no validation episodes; pass --episodes.")
     dataset = LeRobotDataset("local/eval", root=dataset_root, episodes=episodes, delta_timestamps=delta)
     rng = np.random.default_rng(seed)
     indices = rng.choice(len(dataset), size=min(n_frames, len(dataset)), replace=False)
@@ -70,10 +78,17 @@ def validation_batch(dataset_root: Path, config, n_frames: int, seed: int) -> di
     return batch
 
 
-def open_loop_error(checkpoint: Path, dataset_root: Path, n_frames: int, seed: int, device: str) -> dict:
+def open_loop_error(
+    checkpoint: Path,
+    dataset_root: Path,
+    n_frames: int,
+    seed: int,
+    device: str,
+    episodes: list[int] | None = None,
+) -> dict:
     policy, preprocessor, _ = load_policy(checkpoint, device)
     config = policy.config
-    batch = validation_batch(dataset_root, config, n_frames, seed)
+    batch = validation_batch(dataset_root, config, n_frames, seed, episodes)
     expert = batch.pop("action")[..., :3]  # (B, T, 3) m
     pad = batch.pop("action_is_pad")  # (B, T)
     state = batch["observation.state"][:, -1, :3]  # (B, 3): the current jaw position
@@ -100,6 +115,22 @@ def open_loop_error(checkpoint: Path, dataset_root: Path, n_frames: int, seed: i
     }
 
 
+def parse_episodes(text: str | None, dataset_root: Path) -> list[int] | None:
+    """``--episodes``: None (the validation split), ``all``, or comma-separated indices."""
+    if text is None:
+        return None
+    if text == "all":
+        from lerobot.datasets import LeRobotDatasetMetadata
+
+        return list(range(LeRobotDatasetMetadata("local/eval", root=dataset_root).total_episodes))
+    try:
+        return [int(e) for e in text.split(",")]
+    except ValueError as err:
+        raise SystemExit(
+            f"--episodes must be 'all' or comma-separated integers, e.g. 1,2,3. Got {text!r}."
+        ) from err
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -109,10 +140,15 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=256)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--episodes", default=None, help="comma-separated episode indices, or 'all'")
     args = parser.parse_args()
+    episodes = parse_episodes(args.episodes, args.dataset_root)
     for checkpoint in checkpoint_dirs(args.checkpoints):
-        result = open_loop_error(checkpoint, args.dataset_root, args.frames, args.seed, args.device)
-        print(json.dumps({"benchmark": "open_loop_error", **result}), flush=True)
+        result = open_loop_error(checkpoint, args.dataset_root, args.frames, args.seed, args.device, episodes)
+        print(
+            json.dumps({"benchmark": "open_loop_error", "episodes": args.episodes or "validation", **result}),
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

@@ -554,6 +554,13 @@ def test_open_loop_error_benchmark_scores_a_checkpoint_on_the_validation_frames(
     assert {k: v for k, v in first.items() if k != "seconds"} == {
         k: v for k, v in again.items() if k != "seconds"
     }
+    # Chosen episodes instead of the validation split (a DAgger round's surgeon segments).
+    assert bench.parse_episodes("all", Path(tiny.root)) == list(range(tiny.num_episodes))
+    assert bench.parse_episodes("0,2", Path(tiny.root)) == [0, 2]
+    with pytest.raises(SystemExit, match="comma-separated"):
+        bench.parse_episodes("first", Path(tiny.root))
+    one = bench.open_loop_error(directory, Path(tiny.root), n_frames=8, seed=0, device="cpu", episodes=[0])
+    assert 0 < one["frames"] <= 8
 
 
 def test_needle_attention_benchmark_probes_a_checkpoint(tiny, tmp_path):
