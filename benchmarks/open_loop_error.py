@@ -15,7 +15,8 @@ CHECKPOINT is a ``pretrained_model`` directory, or a run's ``checkpoints`` direc
 ``--episodes 1,2,3`` (or ``all``) reads those episodes instead of the validation split: e.g. a
 ``lerobot-suture dagger`` round's ``new_data`` (the surgeon's segments only; ``collect.json`` lists its runs,
 those with surgeon steps in order), to ask whether a fine-tuned ensemble reproduces the labels it was
-trained on, and the next round's, which it was not.
+trained on, and the next round's, which it was not. ``--frame-bins 0,3,8`` adds the first action's error
+by frame index (in a surgeon segment: frames since the takeover).
 """
 
 from __future__ import annotations
@@ -75,6 +76,7 @@ def validation_batch(
         k: torch.stack([it[k] for it in items]) for k in [*config.input_features, "action", "action_is_pad"]
     }
     batch["task"] = [TASK] * len(items)
+    batch["frame_index"] = torch.stack([it["frame_index"] for it in items])
     return batch
 
 
@@ -85,12 +87,17 @@ def open_loop_error(
     seed: int,
     device: str,
     episodes: list[int] | None = None,
+    frame_bins: list[int] | None = None,
 ) -> dict:
+    """The JSON line of one checkpoint (see the module docstring). ``frame_bins``: edges of frame-index
+    bins (e.g. ``[0, 3, 8]``: frames 0-2, 3-7, 8 on) over which the first action's error is also given,
+    median and mean, on every sampled frame (its first action never lies past the episode's end)."""
     policy, preprocessor, _ = load_policy(checkpoint, device)
     config = policy.config
     batch = validation_batch(dataset_root, config, n_frames, seed, episodes)
     expert = batch.pop("action")[..., :3]  # (B, T, 3) m
     pad = batch.pop("action_is_pad")  # (B, T)
+    frame_index = batch.pop("frame_index").numpy()  # (B,)
     state = batch["observation.state"][:, -1, :3]  # (B, 3): the current jaw position
     policy.reset()
     started = time.perf_counter()
@@ -104,7 +111,7 @@ def open_loop_error(
     def median_mm(x: torch.Tensor) -> float:
         return round(float(x[keep].norm(dim=-1).median()) * 1e3, 3)
 
-    return {
+    result = {
         "checkpoint": str(checkpoint),
         "members": config.n_members,
         "frames": int(keep.sum()),
@@ -113,6 +120,20 @@ def open_loop_error(
         "stay_mm": median_mm(state - expert[:, last]),
         "seconds": round(time.perf_counter() - started, 1),
     }
+    if frame_bins:
+        first_mm = (mean[:, first] - expert[:, first]).norm(dim=-1).numpy() * 1e3
+        edges = [*frame_bins, np.inf]
+        by_frame = {}
+        for low, high in zip(edges[:-1], edges[1:], strict=True):
+            in_bin = (frame_index >= low) & (frame_index < high)
+            label = f"{low}-{high - 1}" if np.isfinite(high) else f"{low}-"
+            by_frame[label] = {
+                "frames": int(in_bin.sum()),
+                "median_mm": round(float(np.median(first_mm[in_bin])), 3) if in_bin.any() else None,
+                "mean_mm": round(float(np.mean(first_mm[in_bin])), 3) if in_bin.any() else None,
+            }
+        result["first_action_mm_by_frame"] = by_frame
+    return result
 
 
 def parse_episodes(text: str | None, dataset_root: Path) -> list[int] | None:
@@ -131,6 +152,19 @@ def parse_episodes(text: str | None, dataset_root: Path) -> list[int] | None:
         ) from err
 
 
+def parse_frame_bins(text: str | None) -> list[int] | None:
+    """``--frame-bins``: increasing frame indices >= 0, comma-separated (None: no bins)."""
+    if text is None:
+        return None
+    try:
+        edges = [int(e) for e in text.split(",")]
+    except ValueError as err:
+        raise SystemExit(f"--frame-bins must be comma-separated integers, e.g. 0,3,8. Got {text!r}.") from err
+    if edges[0] < 0 or any(b <= a for a, b in zip(edges, edges[1:], strict=False)):
+        raise SystemExit(f"--frame-bins must increase from a frame index >= 0, e.g. 0,3,8. Got {text!r}.")
+    return edges
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -141,10 +175,16 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--episodes", default=None, help="comma-separated episode indices, or 'all'")
+    parser.add_argument(
+        "--frame-bins", default=None, help="frame-index bin edges for the first action's error, e.g. 0,3,8"
+    )
     args = parser.parse_args()
     episodes = parse_episodes(args.episodes, args.dataset_root)
+    bins = parse_frame_bins(args.frame_bins)
     for checkpoint in checkpoint_dirs(args.checkpoints):
-        result = open_loop_error(checkpoint, args.dataset_root, args.frames, args.seed, args.device, episodes)
+        result = open_loop_error(
+            checkpoint, args.dataset_root, args.frames, args.seed, args.device, episodes, bins
+        )
         print(
             json.dumps({"benchmark": "open_loop_error", "episodes": args.episodes or "validation", **result}),
             flush=True,

@@ -561,6 +561,15 @@ def test_open_loop_error_benchmark_scores_a_checkpoint_on_the_validation_frames(
         bench.parse_episodes("first", Path(tiny.root))
     one = bench.open_loop_error(directory, Path(tiny.root), n_frames=8, seed=0, device="cpu", episodes=[0])
     assert 0 < one["frames"] <= 8
+    binned = bench.open_loop_error(
+        directory, Path(tiny.root), n_frames=16, seed=0, device="cpu", episodes=[0], frame_bins=[0, 3]
+    )
+    by_frame = binned["first_action_mm_by_frame"]
+    assert list(by_frame) == ["0-2", "3-"]
+    assert sum(b["frames"] for b in by_frame.values()) == 16
+    assert bench.parse_frame_bins("0,3,8") == [0, 3, 8]
+    with pytest.raises(SystemExit, match="increase"):
+        bench.parse_frame_bins("3,3")
 
 
 def test_needle_attention_benchmark_probes_a_checkpoint(tiny, tmp_path):
