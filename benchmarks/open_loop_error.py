@@ -53,7 +53,7 @@ def checkpoint_dirs(paths: list[str]) -> list[Path]:
     return out
 
 
-def validation_batch(
+def frame_batch(
     dataset_root: Path, config, n_frames: int, seed: int, episodes: list[int] | None = None
 ) -> dict:
     """``n_frames`` frames of ``episodes`` (default: the validation split) with the observation and action
@@ -94,7 +94,7 @@ def open_loop_error(
     median and mean, on every sampled frame (its first action never lies past the episode's end)."""
     policy, preprocessor, _ = load_policy(checkpoint, device)
     config = policy.config
-    batch = validation_batch(dataset_root, config, n_frames, seed, episodes)
+    batch = frame_batch(dataset_root, config, n_frames, seed, episodes)
     expert = batch.pop("action")[..., :3]  # (B, T, 3) m
     pad = batch.pop("action_is_pad")  # (B, T)
     frame_index = batch.pop("frame_index").numpy()  # (B,)
