@@ -53,7 +53,9 @@ class DaggerConfig:
             ``--watch.position`` (m), ``--watch.angle`` (rad), ``--watch.patience`` (steps), see
             :mod:`~lerobot_suture.dagger.watch`). The evaluations' surgeon still takes over only when the
             gate hands over.
-        finetune_steps: ``lerobot-train`` steps per round, from the previous round's policy, >= 1.
+        finetune_steps: ``lerobot-train`` steps per round, from the previous round's policy, >= 1. The
+            default keeps three arms' two rounds near 1 h 30 min on a 2-core CPU; with the watching surgeon
+            and ``new_data_repeats=10`` it took 2,000 to turn the labels into autonomy (``docs/surgeon.md``).
         new_data_repeats: how many times each new episode enters the fine-tuning data, >= 1. LeRobot samples
             frames uniformly, and the demonstrations outnumber the new frames about ten to one; a repeat
             weighs the new frames more in every batch without labelling more (the arms' frame counts and
