@@ -47,9 +47,13 @@ import dataclasses
 import math
 import numbers
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import mujoco
 import numpy as np
+
+if TYPE_CHECKING:  # the endoscope is only handed in
+    from lerobot_suture.sim.endoscope import Endoscope
 
 LIMITS: dict[str, tuple[float, str]] = {
     "light_intensity": (0.9, "fraction"),
@@ -404,6 +408,64 @@ class SceneAppearance:
     def restore(self) -> bool:
         """The scene's own look (``scene.xml``). Returns whether the texture changed (see :meth:`apply`)."""
         return self.apply(AppearanceSample())
+
+
+class EpisodeAppearance:
+    """This episode's look: drawn from the env's ranges at every reset, shown in the scene and through the
+    endoscope, and laid over the endoscope's images.
+
+    Args:
+        config: the env's appearance ranges.
+        scene: the model fields a sample edits.
+        endoscope: the camera (its pose jitter, and its renderers' copy of the tissue texture).
+
+    Attributes:
+        sample: the look in force; None while every option is off and no look was set by hand.
+    """
+
+    def __init__(self, config: AppearanceConfig, scene: SceneAppearance, endoscope: Endoscope):
+        self.config = config
+        self._scene = scene
+        self._endoscope = endoscope
+        self.sample: AppearanceSample | None = None
+        self._rng: np.random.Generator | None = None
+
+    def draw(self, np_random: np.random.Generator) -> None:
+        """This episode's look, from a generator spawned from the env's ``np_random``; nothing is drawn or
+        edited when every option is off, but a look set by :meth:`set` in the last episode is undone."""
+        if not self.config.enabled:
+            if self.sample is not None:
+                self._show(AppearanceSample(), None)
+                self.sample = None
+            return
+        rng = child_generator(np_random)
+        self._show(sample_appearance(self.config, rng), rng)
+
+    def set(self, sample: AppearanceSample, np_random: np.random.Generator) -> None:
+        """Show ``sample`` in place of the drawn look, the endoscope kept at its current viewpoint."""
+        self._show(sample, child_generator(np_random))
+        self._endoscope.set_viewpoint(*self._endoscope.viewpoint)
+
+    def degrade(self, image: np.ndarray) -> np.ndarray:
+        """The endoscope observation ``image`` under the look's haze, blur and noise (unchanged without)."""
+        if self.sample is not None and self.sample.image_effects:
+            return degrade_image(image, self.sample, self._rng)
+        return image
+
+    def _show(self, sample: AppearanceSample, rng: np.random.Generator | None) -> None:
+        self.sample, self._rng = sample, rng
+        if self._scene.apply(sample):
+            self._endoscope.upload_texture(self._scene.texture_id)
+        self._endoscope.set_jitter(sample.camera_offset, sample.camera_roll)
+
+
+def child_generator(np_random: np.random.Generator) -> np.random.Generator:
+    """A generator spawned from ``np_random``, whose stream it leaves where it was: the task draws that
+    follow are those of the same seed without appearance randomization."""
+    try:
+        return np_random.spawn(1)[0]
+    except (TypeError, ValueError):  # a generator set by hand without a seed sequence
+        return np.random.default_rng(np_random.integers(2**63))
 
 
 def ranges_table(config: AppearanceConfig) -> list[dict[str, str]]:

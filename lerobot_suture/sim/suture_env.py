@@ -138,10 +138,9 @@ from lerobot_suture.sim.actuation import InstrumentDrive, TipVelocityFilter
 from lerobot_suture.sim.appearance import (
     AppearanceConfig,
     AppearanceSample,
+    EpisodeAppearance,
     SceneAppearance,
     add_tissue_texture,
-    degrade_image,
-    sample_appearance,
 )
 from lerobot_suture.sim.endoscope import Endoscope
 from lerobot_suture.sim.geometry import (
@@ -246,9 +245,7 @@ class SutureEnv(gym.Env):
         self._grasp = NeedleGrasp(m, self._arm)
         self._phantom_mocap = m.body("phantom").mocapid[0]
         self._endoscope = Endoscope(m, self.image_size, self.render_size)
-        self._scene_appearance = SceneAppearance(m)
-        self._appearance_sample: AppearanceSample | None = None
-        self._appearance_rng: np.random.Generator | None = None
+        self._look = EpisodeAppearance(self.appearance, SceneAppearance(m), self._endoscope)
         self._entry_local = m.site("entry_point").pos.copy()
         self._exit_local = m.site("exit_point").pos.copy()
         self._arc_local = needle_arc_points(_N_ARC_POINTS)
@@ -352,7 +349,7 @@ class SutureEnv(gym.Env):
     @property
     def appearance_sample(self) -> AppearanceSample | None:
         """This episode's draw of ``appearance`` (None when every option is off)."""
-        return self._appearance_sample
+        return self._look.sample
 
     @property
     def needle_tip_pos(self) -> np.ndarray:
@@ -411,8 +408,7 @@ class SutureEnv(gym.Env):
         shift of appearance (``lerobot_suture.sim.shifts``). The next ``reset`` draws (or restores) the
         configured look again. A mottled tissue needs ``appearance.tissue_texture`` > 0 at construction
         (the texture is part of the model); without it the contrast is ignored."""
-        self._show_appearance(sample, self._appearance_generator())
-        self._endoscope.set_viewpoint(*self._endoscope.viewpoint)
+        self._look.set(sample, self.np_random)
 
     def set_endoscope_viewpoint(self, azimuth_offset: float = 0.0, elevation_offset: float = 0.0) -> None:
         """Place the endoscope on its sphere about the work site, offset from the training view (rad)."""
@@ -441,7 +437,7 @@ class SutureEnv(gym.Env):
         rng = self.np_random
         self._reset_state()
         mujoco.mj_resetData(self.model, self.data)
-        self._draw_appearance()
+        self._look.draw(rng)
         self.set_endoscope_viewpoint()
 
         xy = PHANTOM_NOMINAL[:2] + rng.uniform(-PHANTOM_RANGE_XY, PHANTOM_RANGE_XY, size=2)
@@ -486,31 +482,6 @@ class SutureEnv(gym.Env):
         self._endoscope.close()
 
     # ------------------------------------------------------------------ internals
-    def _appearance_generator(self) -> np.random.Generator:
-        try:
-            # A spawned child leaves the parent's stream where it was: the task draws that follow are
-            # those of the same seed without appearance randomization.
-            return self.np_random.spawn(1)[0]
-        except (TypeError, ValueError):  # a generator set by hand without a seed sequence
-            return np.random.default_rng(self.np_random.integers(2**63))
-
-    def _draw_appearance(self) -> None:
-        """This episode's look (see "Appearance randomization"); nothing is drawn or edited when off, but a
-        look set by :meth:`set_appearance` in the last episode is undone."""
-        if not self.appearance.enabled:
-            if self._appearance_sample is not None:
-                self._show_appearance(AppearanceSample(), None)
-                self._appearance_sample = None
-            return
-        rng = self._appearance_generator()
-        self._show_appearance(sample_appearance(self.appearance, rng), rng)
-
-    def _show_appearance(self, sample: AppearanceSample, rng: np.random.Generator | None) -> None:
-        self._appearance_sample, self._appearance_rng = sample, rng
-        if self._scene_appearance.apply(sample):
-            self._endoscope.upload_texture(self._scene_appearance.texture_id)
-        self._endoscope.set_jitter(sample.camera_offset, sample.camera_roll)
-
     def _reset_state(self) -> None:
         self._step_index = 0
         self._grasp.reset()
@@ -560,10 +531,7 @@ class SutureEnv(gym.Env):
             "agent_pos": pose_vector(jaw_pos, jaw_rot, self._grasp.jaw_closure(self.data)).astype(np.float32)
         }
         if "pixels" in self.obs_type:
-            image = self._endoscope.image(self.data)
-            if self._appearance_sample is not None and self._appearance_sample.image_effects:
-                image = degrade_image(image, self._appearance_sample, self._appearance_rng)
-            obs["pixels"] = {"endoscope": image}
+            obs["pixels"] = {"endoscope": self._look.degrade(self._endoscope.image(self.data))}
         if self.obs_type in ("state", "pixels_agent_pos_state"):
             centre, rot = self.needle_pose()
             obs["environment_state"] = np.concatenate(
