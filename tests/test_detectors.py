@@ -16,13 +16,15 @@ from lerobot_suture.detectors import (
     RNDDetector,
     SingleMemberSpreadDetector,
     TemporalConsistencyDetector,
+    TrackingErrorDetector,
     make_detector,
     timed_scores,
 )
 from lerobot_suture.detectors.covariance import ensemble_covariances, sample_covariance
 from lerobot_suture.detectors.mahalanobis import fit_gaussian, ledoit_wolf, mahalanobis_distance
 from lerobot_suture.detectors.stac import chunk_overlap, mmd_squared
-from lerobot_suture.experiments.benchmark_ood_scoring import hold_scores
+from lerobot_suture.detectors.tracking import commanded_target, fit_tracking, tracking_score
+from lerobot_suture.experiments.benchmark_ood_scoring import hold_scores, prediction_features
 from lerobot_suture.experiments.metrics import failure_prediction_balanced_accuracy
 from lerobot_suture.safety.ood.calibration import conformal_episode_threshold, fit_calibration
 
@@ -31,12 +33,17 @@ N, K, T, A, G = 4, 3, 8, 3, 12
 
 def _features(rng, spread=0.05, shift_embedding=0.0, **kw) -> PredictionFeatures:
     base = rng.normal(size=(T, A))
+    defaults = {
+        "previous_samples": base + spread * rng.normal(size=(N, K, T, A)),
+        "shift": 4,
+        "state": rng.normal(size=A),
+    }
     return PredictionFeatures(
         samples=base + spread * rng.normal(size=(N, K, T, A)),
         action_start=1,
         embedding=rng.normal(size=(N, G)) + shift_embedding,
         single_member_samples=base + spread * rng.normal(size=(6, T, A)),
-        **kw,
+        **{**defaults, **kw},
     )
 
 
@@ -148,6 +155,68 @@ def test_stac_is_zero_for_a_consistent_plan_and_grows_when_the_plan_changes():
     x = rng.normal(size=(6, 4, A))
     assert mmd_squared(x, x, 0.5) == pytest.approx(0.0, abs=1e-12)
     assert mmd_squared(x, x + 1.0, 0.5) == pytest.approx(mmd_squared(x + 1.0, x, 0.5))
+
+
+def _tracking_run(rng, n, lag=0, reading_noise=0.0):
+    """Predictions of an arm that reaches the command of ``lag`` steps earlier, its state read in other
+    normalized units than the action (s = 2 x + 0.5) with a little tracking noise."""
+    out = []
+    for _ in range(n):
+        previous = np.cumsum(rng.normal(size=(T, A)), axis=0)[None, None] + 0.01 * rng.normal(
+            size=(N, K, T, A)
+        )
+        reached = previous.mean(axis=(0, 1))[1 + 4 - 1 - lag]  # action_start 1, shift 4
+        state = 2.0 * reached + 0.5 + 0.01 * rng.normal(size=A) + reading_noise * rng.normal(size=A)
+        out.append(_features(rng, previous_samples=previous, shift=4, state=state))
+    return out
+
+
+def test_tracking_error_is_low_when_the_arm_follows_and_high_when_it_lags_or_reads_noisily():
+    rng = np.random.default_rng(10)
+    detector = TrackingErrorDetector(dims=(0, 1, 2)).fit(_tracking_run(rng, 100))
+    np.testing.assert_allclose(detector.fitted.slope, 2.0, atol=0.01)  # the two normalizations, learned
+    np.testing.assert_allclose(detector.fitted.intercept, 0.5, atol=0.05)
+    follows = [detector.score(f) for f in _tracking_run(rng, 30)]
+    lags = [detector.score(f) for f in _tracking_run(rng, 30, lag=1)]
+    noisy = [detector.score(f) for f in _tracking_run(rng, 30, reading_noise=0.2)]
+    assert np.max(follows) < 5.0 < min(np.min(lags), np.median(noisy))
+    assert detector.score(_features(rng, previous_samples=None, shift=None)) == 0.0  # no command yet
+
+
+def test_tracking_error_reads_the_executed_step_and_refuses_what_it_cannot_compare():
+    samples = np.broadcast_to(np.arange(T, dtype=float)[:, None], (N, K, T, A))  # step t holds t
+    np.testing.assert_array_equal(commanded_target(samples, action_start=1, shift=4), np.full(A, 4.0))
+    with pytest.raises(ValueError, match="outside its chunk"):
+        commanded_target(samples, action_start=1, shift=T)
+    with pytest.raises(ValueError, match="M >= 3"):
+        fit_tracking(np.zeros((2, A)), np.zeros((2, A)))
+    fit = fit_tracking(np.arange(12.0).reshape(4, 3), np.arange(12.0).reshape(4, 3))  # exact: unit scale
+    assert tracking_score(fit, np.zeros(3), np.zeros(3)) == pytest.approx(0.0)
+    rng = np.random.default_rng(11)
+    with pytest.raises(ValueError, match="not fitted"):
+        TrackingErrorDetector().score(_features(rng))
+    with pytest.raises(ValueError, match="the state each prediction was made from"):
+        TrackingErrorDetector().fit([_features(rng, state=None)] * 3)
+    with pytest.raises(ValueError, match="share one layout"):
+        TrackingErrorDetector().fit([_features(rng, state=np.zeros(A + 1))] * 3)
+    with pytest.raises(ValueError, match="consecutive predictions"):
+        TrackingErrorDetector().fit([_features(rng, previous_samples=None, shift=None)] * 3)
+
+
+def test_prediction_features_read_the_last_observation_steps_state_from_the_embedding():
+    # Two observation steps of (state 2, image 3): LeRobot's conditioning [s0, img0, s1, img1] per member.
+    embedding = np.tile(np.array([1.0, 2.0, 9.0, 9.0, 9.0, 3.0, 4.0, 8.0, 8.0, 8.0]), (N, 1))
+    captured = {
+        "episode": np.array([0, 0]),
+        "step": np.array([0, 4]),
+        "samples": np.zeros((2, N, K, T, A)),
+        "embedding": np.stack([embedding, embedding]),
+        "single": np.zeros((2, 6, T, A)),
+    }
+    first, second = prediction_features(captured, action_start=1, state_dim=2)
+    np.testing.assert_array_equal(second.state, [3.0, 4.0])
+    assert first.previous_samples is None and second.shift == 4
+    assert prediction_features(captured, action_start=1)[0].state is None
 
 
 def test_every_detector_follows_the_interface_and_reports_its_cost():

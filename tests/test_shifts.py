@@ -1,10 +1,13 @@
 """The distribution shifts of ``lerobot_suture.sim.shifts``: each does what its table says, at the magnitude
 asked, on the episode's first observation, and leaves nothing behind for the next episode."""
 
+import math
+
 import gymnasium as gym
 import numpy as np
 import pytest
 
+from lerobot_suture.experiments.metrics import most_failures_flagged
 from lerobot_suture.experiments.robustness import bars
 from lerobot_suture.registration import ENV_ID
 from lerobot_suture.sim.appearance import AppearanceSample
@@ -139,3 +142,22 @@ def test_bars_pool_the_flags_over_runs_beyond_the_range():
     assert b["beyond_failed_runs"] == 10
     assert b["beyond_flagged_of_failures"] == pytest.approx((8 * 1.0 + 2 * 0.5) / 10)
     assert b["beyond_flagged_of_successes"] == pytest.approx((2 * 0.5 + 8 * 0.0) / 10)
+    assert math.isnan(b["beyond_failure_auroc"])  # a benchmark that kept no per-run scores
+    # With per-run maxima: failures 3, 5, 9 and successes 1, 4 beyond the ranges.
+    rows[1] |= {"run_max_scores": [3.0, 5.0, 4.0], "run_successes": [False, False, True]}
+    rows[2] |= {"run_max_scores": [9.0, 1.0], "run_successes": [False, True]}
+    b = bars(rows, None)
+    assert b["beyond_failure_auroc"] == pytest.approx(5 / 6)  # 3 < 4: one pair of six out of order
+    assert b["beyond_most_failures_flagged_at_bar"] == pytest.approx(2 / 3)  # above 4: 5 and 9
+
+
+def test_most_failures_flagged_is_the_best_threshold_in_hindsight():
+    failed, succeeded = [2.0, 6.0, 7.0, 8.0], [1.0, 3.0, 5.0, 9.0]
+    assert most_failures_flagged(failed, succeeded, 0.0) == 0.0  # nothing above the largest success, 9
+    assert most_failures_flagged(failed, succeeded, 0.25) == 0.75  # above 5: 6, 7, 8 (9 flagged too)
+    assert most_failures_flagged(failed, succeeded, 0.5) == 0.75  # above 3 as well: still 6, 7, 8
+    assert most_failures_flagged(failed, succeeded, 1.0) == 1.0
+    assert most_failures_flagged(failed, [5.0, 5.0], 0.5) == 0.75  # a tie lets neither success through
+    assert math.isnan(most_failures_flagged([], succeeded, 0.15))
+    with pytest.raises(ValueError, match=r"\[0, 1\]"):
+        most_failures_flagged(failed, succeeded, 1.5)

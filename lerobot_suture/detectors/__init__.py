@@ -10,6 +10,7 @@ from lerobot_suture.detectors.covariance import EnsembleCovarianceDetector, Epis
 from lerobot_suture.detectors.mahalanobis import MahalanobisDetector
 from lerobot_suture.detectors.rnd import RNDDetector
 from lerobot_suture.detectors.stac import TemporalConsistencyDetector
+from lerobot_suture.detectors.tracking import TrackingErrorDetector
 
 __all__ = [
     "DETECTOR_NAMES",
@@ -21,6 +22,7 @@ __all__ = [
     "RNDDetector",
     "SingleMemberSpreadDetector",
     "TemporalConsistencyDetector",
+    "TrackingErrorDetector",
     "make_detector",
     "timed_scores",
 ]
@@ -32,6 +34,7 @@ _DETECTORS = {
     "stac": TemporalConsistencyDetector,
     "rnd": RNDDetector,
     "epistemic": EpistemicDetector,
+    "tracking_error": TrackingErrorDetector,
 }
 DETECTOR_NAMES = tuple(_DETECTORS)
 """Every detector, the paper's (and the gate's) score first."""

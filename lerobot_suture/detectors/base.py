@@ -28,6 +28,8 @@ class PredictionFeatures:
         single_member_samples: (K', T, A) further chunks of member 0 alone, or None.
         previous_samples: (N, K, T, A) the same episode's previous prediction, None at its first.
         shift: control steps between the previous prediction and this one (None at the first).
+        state: (S,) the robot state the prediction was made from (its last observation step, normalized as
+            the members read it), or None.
     """
 
     samples: np.ndarray
@@ -36,6 +38,7 @@ class PredictionFeatures:
     single_member_samples: np.ndarray | None = None
     previous_samples: np.ndarray | None = None
     shift: int | None = None
+    state: np.ndarray | None = None
 
 
 @runtime_checkable

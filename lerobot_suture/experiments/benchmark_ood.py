@@ -321,11 +321,13 @@ def run_benchmark(cfg: BenchmarkOODConfig) -> dict:
             logger.info("Part %s: reusing %d saved episodes.", name, len(loaded[0]))
         parts[name] = loaded
     action_start = base.policy.config.n_obs_steps - 1
+    state = base.policy.config.robot_state_feature
+    state_dim = None if state is None else int(state.shape[0])
     per_detector = {}
     for name in tqdm(cfg.detectors, desc="detectors", unit="detector"):
         try:
             per_detector[name] = evaluate_detector(
-                name, parts, action_start, cfg.alpha, cfg.shifts, cfg.approach_steps
+                name, parts, action_start, cfg.alpha, cfg.shifts, cfg.approach_steps, state_dim
             )
         except ValueError as exc:  # one detector failing costs its row, not the rollouts
             logger.warning("Detector %s: %s", name, exc)

@@ -18,19 +18,30 @@ from lerobot_suture.safety.ood.calibration import conformal_episode_threshold
 SCENARIOS = tuple(scenario for _, scenario, _ in EXPERIMENTS)
 
 
-def prediction_features(captured: dict[str, np.ndarray], action_start: int) -> list[PredictionFeatures]:
-    """One :class:`PredictionFeatures` per captured prediction, each linked to its episode's previous one."""
+def prediction_features(
+    captured: dict[str, np.ndarray], action_start: int, state_dim: int | None = None
+) -> list[PredictionFeatures]:
+    """One :class:`PredictionFeatures` per captured prediction, each linked to its episode's previous one.
+
+    With ``state_dim``, each prediction's state is read from its embedding: LeRobot's diffusion
+    conditioning is, per observation step, the state followed by the image features, flattened over the
+    ``action_start + 1`` observation steps; the state is the last step's first ``state_dim`` entries."""
     out = []
     for i in range(len(captured["episode"])):
         first = i == 0 or captured["episode"][i - 1] != captured["episode"][i]
+        embedding = captured["embedding"][i]
+        state = None
+        if state_dim is not None:
+            state = embedding[0].reshape(action_start + 1, -1)[-1, :state_dim]
         out.append(
             PredictionFeatures(
                 samples=captured["samples"][i],
                 action_start=action_start,
-                embedding=captured["embedding"][i],
+                embedding=embedding,
                 single_member_samples=captured["single"][i],
                 previous_samples=None if first else captured["samples"][i - 1],
                 shift=None if first else int(captured["step"][i] - captured["step"][i - 1]),
+                state=state,
             )
         )
     return out
@@ -45,9 +56,11 @@ def hold_scores(pred_steps: np.ndarray, pred_scores: np.ndarray, n_steps: int) -
     return np.asarray(pred_scores, dtype=np.float64)[index]
 
 
-def score_part(detector, logs: list[EpisodeLog], captured: dict, action_start: int) -> tuple[list, float]:
+def score_part(
+    detector, logs: list[EpisodeLog], captured: dict, action_start: int, state_dim: int | None = None
+) -> tuple[list, float]:
     """Per episode of a part, its held per-step scores; and the detector's seconds per prediction."""
-    scores, seconds = timed_scores(detector, prediction_features(captured, action_start))
+    scores, seconds = timed_scores(detector, prediction_features(captured, action_start, state_dim))
     out = []
     for e, log in enumerate(logs):
         mine = captured["episode"] == e
@@ -67,7 +80,8 @@ def with_detector(log: EpisodeLog, scores: np.ndarray, threshold: float) -> Epis
 
 def shift_metrics(nominal: list[EpisodeLog], runs: list[EpisodeLog]) -> dict:
     """Under a shift: the policy's success, and whether the detector flags the runs that fail and spares
-    those that succeed (its alarm anywhere in the run), beside the AUROC against nominal runs."""
+    those that succeed (its alarm anywhere in the run), beside the AUROC against nominal runs; and per
+    run its largest score and its outcome, from which any other threshold's flags follow."""
     failed = [log.first_alarm_step is not None for log in runs if not log.success]
     succeeded = [log.first_alarm_step is not None for log in runs if log.success]
     m = ood_metrics(nominal, runs)
@@ -82,6 +96,8 @@ def shift_metrics(nominal: list[EpisodeLog], runs: list[EpisodeLog]) -> dict:
         "failure_prediction_balanced_accuracy": metrics.failure_prediction_balanced_accuracy(
             [log.first_alarm_step for log in episodes], [_failure_step(log) for log in episodes]
         ),
+        "run_max_scores": [float(log.scores.max()) if len(log.steps) else math.nan for log in runs],
+        "run_successes": [bool(log.success) for log in runs],
     }
 
 
@@ -129,21 +145,23 @@ def evaluate_detector(
     alpha: float,
     shifts: list[str] = (),
     approach_steps: int = 20,
+    state_dim: int | None = None,
 ) -> dict:
     """One detector: fitted on ``fit``, thresholded on ``calibration`` at per-episode level ``alpha``,
-    measured on the test parts (the paper's scenarios and the ``shifts`` parts)."""
+    measured on the test parts (the paper's scenarios and the ``shifts`` parts). ``state_dim``: the size
+    of the policy's state, which detectors that read it need (see :func:`prediction_features`)."""
     detector = make_detector(name)
     fit_logs, fit_captured = parts["fit"]
     start = time.perf_counter()
-    detector.fit(prediction_features(fit_captured, action_start))
+    detector.fit(prediction_features(fit_captured, action_start, state_dim))
     fit_seconds = time.perf_counter() - start
-    calibration, _ = score_part(detector, *parts["calibration"], action_start)
+    calibration, _ = score_part(detector, *parts["calibration"], action_start, state_dim)
     threshold = conformal_episode_threshold([s.max() for s in calibration], alpha)
     seconds, predictions, control_steps = 0.0, 0, 0
     scored: dict[str, list[EpisodeLog]] = {}
     for part in ("nominal", *SCENARIOS, *shifts):
         logs, captured = parts[part]
-        per_episode, per_call = score_part(detector, logs, captured, action_start)
+        per_episode, per_call = score_part(detector, logs, captured, action_start, state_dim)
         seconds += per_call * len(captured["episode"])
         predictions += len(captured["episode"])
         control_steps += sum(len(log.steps) for log in logs)

@@ -206,3 +206,23 @@ def insertion_accuracy(
         "entry_tolerance_mm": 1e3 * entry_tolerance_m,
         "exit_tolerance_mm": 1e3 * exit_tolerance_m,
     }
+
+
+def most_failures_flagged(
+    failed_scores: Sequence[float], succeeded_scores: Sequence[float], max_flagged_of_successes: float
+) -> float:
+    """The largest share of failed runs any threshold flags while flagging at most
+    ``max_flagged_of_successes`` of the successful ones (a run is flagged when its score exceeds the
+    threshold; scores are per-run maxima). A hindsight bound: no calibration of this score can do better.
+    nan when either side is empty."""
+    if not 0 <= max_flagged_of_successes <= 1:
+        raise ValueError(f"`max_flagged_of_successes` must lie in [0, 1]. Got {max_flagged_of_successes}.")
+    failed = np.asarray(failed_scores, dtype=np.float64)
+    succeeded = np.sort(np.asarray(succeeded_scores, dtype=np.float64))[::-1]
+    if failed.size == 0 or succeeded.size == 0:
+        return math.nan
+    allowed = int(math.floor(max_flagged_of_successes * succeeded.size + 1e-9))
+    if allowed >= succeeded.size:
+        return 1.0
+    # The lowest threshold that lets through at most `allowed` successes: the next success's own score.
+    return float(np.mean(failed > succeeded[allowed]))

@@ -9,8 +9,10 @@ and ``robustness.png`` into ``output_dir``:
   and whether the magnitude lies inside the policy's training range (its dataset's appearance
   randomization), beyond it, or varies something no recipe randomizes (``untrained``);
 - per policy, the bars: the smallest success inside the training ranges; beyond them, the share of failed
-  runs the gate flags and of successful runs it flags (pooled over shifts); and, from the experiments, the
-  paper-scenario figures (nominal success, AUROC of the drop and of the phantom moved after insertion,
+  runs the gate flags and of successful runs it flags (pooled over shifts), and what any threshold on the
+  gate's score could do there (how well it ranks failed runs above successful ones, and the most failed
+  runs it flags at the bar's share of successful ones: a hindsight bound on calibration); and, from the
+  experiments, the paper-scenario figures (nominal success, AUROC of the drop and of the phantom moved after insertion,
   servo runs flagged, drop delay, false alarms).
 
 The gate is the ``detector`` row of the benchmark (the ensemble's covariance by default), calibrated as
@@ -28,9 +30,12 @@ from pathlib import Path
 import draccus
 
 from lerobot_suture.experiments.benchmark_ood_report import fmt
+from lerobot_suture.experiments.metrics import auroc, most_failures_flagged
 from lerobot_suture.sim.shifts import Shift, within_training_range
 
 RANGE_LABELS = {True: "inside", False: "beyond", None: "untrained"}
+BEYOND_SUCCESSES_FLAGGED_BAR = 0.15
+"""Beyond the ranges, the most successful runs the gate may flag (the bar)."""
 
 
 def _named_dirs(values: list[str], what: str) -> dict[str, Path]:
@@ -92,6 +97,9 @@ def shift_rows(benchmark: dict, detector: str) -> list[dict]:
                 "success_rate": m["success_rate"],
                 "flagged_of_failures": m["flagged_of_failures"],
                 "flagged_of_successes": m["flagged_of_successes"],
+                # Per run (benchmarks from before these were kept have none): any threshold's flags.
+                "run_max_scores": m.get("run_max_scores"),
+                "run_successes": m.get("run_successes"),
             }
         )
     return rows
@@ -101,6 +109,23 @@ def _pooled(rows: list[dict], key: str, count) -> float:
     n = sum(count(r) for r in rows)
     flagged = sum(r[key] * count(r) for r in rows if count(r))
     return flagged / n if n else math.nan
+
+
+def _any_threshold(beyond: list[dict]) -> dict:
+    """Beyond the ranges, what the gate's score could do with any threshold: how well its per-run maxima
+    rank the failed runs above the successful ones (AUROC), and the most failed runs a threshold flags
+    while flagging at most the bar's share of successful ones. nan without per-run scores."""
+    if not beyond or any(r.get("run_max_scores") is None for r in beyond):
+        return {"beyond_failure_auroc": math.nan, "beyond_most_failures_flagged_at_bar": math.nan}
+    pairs = [p for r in beyond for p in zip(r["run_max_scores"], r["run_successes"], strict=True)]
+    failed = [x for x, ok in pairs if not ok]
+    succeeded = [x for x, ok in pairs if ok]
+    return {
+        "beyond_failure_auroc": auroc(succeeded, failed),
+        "beyond_most_failures_flagged_at_bar": most_failures_flagged(
+            failed, succeeded, BEYOND_SUCCESSES_FLAGGED_BAR
+        ),
+    }
 
 
 def bars(rows: list[dict], metrics: dict | None) -> dict:
@@ -114,6 +139,7 @@ def bars(rows: list[dict], metrics: dict | None) -> dict:
         "beyond_flagged_of_successes": _pooled(
             beyond, "flagged_of_successes", lambda r: r["runs"] - r["failures"]
         ),
+        **_any_threshold(beyond),
     }
     if metrics:
         e = metrics["experiments"]
@@ -166,6 +192,11 @@ def render(result: dict) -> str:
         ("beyond_flagged_of_failures", "beyond: failed runs flagged (bar >= 0.90)"),
         ("beyond_flagged_of_successes", "beyond: successful runs flagged (bar <= 0.15)"),
         ("beyond_failed_runs", "beyond: failed runs"),
+        ("beyond_failure_auroc", "beyond, any threshold: failed runs scored above successful ones (AUROC)"),
+        (
+            "beyond_most_failures_flagged_at_bar",
+            "beyond, any threshold: most failed runs flagged with <= 0.15 of successful runs flagged",
+        ),
         ("nominal_success", "nominal success (bar >= 0.90)"),
         ("needle_drop_auroc", "needle drop AUROC (bar >= 0.95)"),
         ("after_insertion_auroc", "phantom moved after insertion AUROC (bar >= 0.95)"),
