@@ -24,7 +24,7 @@ def test_benchmark_config_names_the_field_and_range(tiny_policy_dir):
         BenchmarkOODConfig(policy=PolicyPathConfig(path=tiny_policy_dir), single_member_samples=1)
 
 
-def test_benchmark_ood_writes_table_numbers_figures_and_resumes(tiny_policy_dir, tmp_path, caplog):
+def test_benchmark_ood_writes_table_numbers_figures_and_resumes(tiny_policy_dir, tmp_path, caplog, capsys):
     policy = tmp_path / "policy"
     shutil.copytree(tiny_policy_dir, policy)
     out = tmp_path / "bench"
@@ -122,6 +122,14 @@ def test_benchmark_ood_writes_table_numbers_figures_and_resumes(tiny_policy_dir,
     assert list(again["detectors"]) == ["ensemble_covariance", "stac"]
     for name in again["detectors"]:
         assert again["detectors"][name]["scenarios"] == result["detectors"][name]["scenarios"]
+    assert {"beyond_failure_auroc", "beyond_most_failures_flagged_at_bar"} <= set(
+        report["policies"]["toy"]["bars"]
+    )
+    # A report on a detector the benchmark no longer holds says which run and how to get it.
+    with pytest.raises(SystemExit) as exc:
+        cli_main(["robustness-report", f"--runs=[toy={out}]", "--detector=rnd", f"--output_dir={tmp_path}"])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and "Run 'toy'" in err and "benchmark-ood" in err
     # A policy retrained in place does not match the saved parts: they are run again.
     (policy / "model.safetensors").touch()
     caplog.clear()

@@ -263,7 +263,13 @@ def build_report(cfg: RobustnessReportConfig) -> dict:
     policies, shifts = {}, []
     for name, path in runs.items():
         benchmark = json.loads((path / "detectors.json").read_text())
-        rows = shift_rows(benchmark, cfg.detector)
+        try:
+            rows = shift_rows(benchmark, cfg.detector)
+        except ValueError as exc:
+            raise ValueError(
+                f"Run {name!r} ({path}): {exc} Run `lerobot-suture benchmark-ood` on that policy again with "
+                "the same arguments (it rescores the saved rollouts), or choose another `--detector`."
+            ) from exc
         metrics = None
         if name in experiments:
             metrics = json.loads((experiments[name] / "metrics.json").read_text())
