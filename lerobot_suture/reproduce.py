@@ -51,11 +51,11 @@ RECIPES = {
         REPO_ROOT / "policies" / "presets" / "reference.json",
         REFERENCE_RESULTS,
     ),
-    # The same motions under randomized appearance, trained with LeRobot's image transforms.
+    # The same motions under randomized appearance, trained with LeRobot's colour and sharpness transforms.
     "robust": Recipe(
         REPO_ROOT / "datasets" / "suture_expert_randomized.yaml",
         REPO_ROOT / "policies" / "presets" / "robust.json",
-        REPO_ROOT / "docs" / "results" / "robust_8000",
+        REPO_ROOT / "docs" / "results" / "robust_noaffine_8000",
     ),
     # The reference's recipe with two equally valid approaches (the detectors' multimodality test).
     "two_sided": Recipe(

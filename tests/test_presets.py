@@ -128,4 +128,5 @@ def test_variant_presets_are_the_reference_on_other_data(preset, dataset, tmp_pa
     transforms = variant.dataset.image_transforms
     assert transforms.enable is (preset == "robust")
     if transforms.enable:
-        assert set(transforms.tfs) == {"brightness", "contrast", "saturation", "hue", "sharpness", "affine"}
+        # No affine: a shifted image with an unchanged jaw is what a phantom moved after insertion looks like.
+        assert set(transforms.tfs) == {"brightness", "contrast", "saturation", "hue", "sharpness"}
