@@ -13,8 +13,10 @@ randomization (two checkpoints at the same training step, trained with and witho
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
+import sys
 
 DEFAULT_SHIFTS = (
     "dim_light@0.2",
@@ -45,7 +47,8 @@ def main() -> None:
     shifts = [Shift.parse(s) for s in args.shifts]
     seeds = [SEED + k for k in range(args.episodes)]
     for path in args.policy:
-        runner = reporting_runner(path, args.device)
+        with contextlib.redirect_stdout(sys.stderr):  # LeRobot prints while loading; stdout stays JSON lines
+            runner = reporting_runner(path, args.device)
         env_kwargs = env_kwargs_for_policy(runner.policy.config)
         result = {"policy": path, "episodes": args.episodes, "success": {}}
         for shift in [None, *shifts]:
