@@ -12,8 +12,8 @@ and ``robustness.png`` into ``output_dir``:
   runs the gate flags and of successful runs it flags (pooled over shifts), and what any threshold on the
   gate's score could do there (how well it ranks failed runs above successful ones, and the most failed
   runs it flags at the bar's share of successful ones: a hindsight bound on calibration); and, from the
-  experiments, the paper-scenario figures (nominal success, AUROC of the drop and of the phantom moved after insertion,
-  servo runs flagged, drop delay, false alarms).
+  experiments, the paper-scenario figures (nominal success, AUROC of the drop and of the phantom moved
+  after insertion, servo runs flagged, drop delay, false alarms).
 
 The gate is the ``detector`` row of the benchmark (the ensemble's covariance by default), calibrated as
 the benchmark calibrates it: per-episode threshold at alpha on nominal validation runs of the training
