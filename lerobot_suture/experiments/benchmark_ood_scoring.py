@@ -96,7 +96,7 @@ def shift_metrics(nominal: list[EpisodeLog], runs: list[EpisodeLog]) -> dict:
         "failure_prediction_balanced_accuracy": metrics.failure_prediction_balanced_accuracy(
             [log.first_alarm_step for log in episodes], [_failure_step(log) for log in episodes]
         ),
-        "run_max_scores": [float(log.scores.max()) if len(log.steps) else math.nan for log in runs],
+        "run_max_scores": [metrics.episode_score(log.scores) for log in runs],
         "run_successes": [bool(log.success) for log in runs],
     }
 

@@ -190,12 +190,16 @@ def render(result: dict) -> str:
     keys = [
         ("min_success_inside_range", "smallest success inside the training ranges (bar >= 0.80)"),
         ("beyond_flagged_of_failures", "beyond: failed runs flagged (bar >= 0.90)"),
-        ("beyond_flagged_of_successes", "beyond: successful runs flagged (bar <= 0.15)"),
+        (
+            "beyond_flagged_of_successes",
+            f"beyond: successful runs flagged (bar <= {BEYOND_SUCCESSES_FLAGGED_BAR})",
+        ),
         ("beyond_failed_runs", "beyond: failed runs"),
         ("beyond_failure_auroc", "beyond, any threshold: failed runs scored above successful ones (AUROC)"),
         (
             "beyond_most_failures_flagged_at_bar",
-            "beyond, any threshold: most failed runs flagged with <= 0.15 of successful runs flagged",
+            "beyond, any threshold: most failed runs flagged with <= "
+            f"{BEYOND_SUCCESSES_FLAGGED_BAR} of successful runs flagged",
         ),
         ("nominal_success", "nominal success (bar >= 0.90)"),
         ("needle_drop_auroc", "needle drop AUROC (bar >= 0.95)"),
