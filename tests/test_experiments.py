@@ -78,6 +78,10 @@ def test_experiments_write_figures_metrics_and_report(tiny_policy_dir, tmp_path)
         assert math.isnan(end["share_of_successful_episodes"])
     for entry in result["experiments"].values():
         assert 0.0 <= entry["auroc_common_steps"] <= 1.0
+        assert entry["flagged_runs"] == round(entry["tpr_at_threshold"] * entry["runs"])
+        low, high = entry["tpr_wilson95"]
+        assert low <= entry["tpr_at_threshold"] <= high
+        assert all(math.isnan(x) for x in entry["auroc_interval95"])  # DeLong needs two runs a side
     traces = json.loads((out / result["traces"]).read_text())
     assert len(traces["nominal"]) == 2 and len(traces["needle_drop"]) == 1
     drop = traces["needle_drop"][0]
@@ -91,6 +95,9 @@ def test_experiments_write_figures_metrics_and_report(tiny_policy_dir, tmp_path)
             assert 0.0 <= entry["handover_in_tissue_rate"] <= 1.0
     report = (out / "report.md").read_text()
     assert "| 1 | needle_drop | 1 |" in report
+    drop_row = next(line for line in report.splitlines() if line.startswith("| 1 | needle_drop |"))
+    auroc_cell, tpr_cell = drop_row.split("|")[4], drop_row.split("|")[6]
+    assert "[" not in auroc_cell and " [" in tpr_cell  # no AUROC interval of one run; Wilson's of the TPR
     assert "Where the needle crossed the tissue" in report
     assert "(alarmed episodes: " in report
     assert "in their last 8 control steps" in report or "No nominal episode succeeded" in report

@@ -40,6 +40,27 @@ def auroc(negatives: Sequence[float], positives: Sequence[float]) -> float:
     return float((greater + 0.5 * ties) / (pos.size * neg.size))
 
 
+def auroc_interval(
+    negatives: Sequence[float], positives: Sequence[float], z: float = 1.959963984540054
+) -> tuple[float, float]:
+    """95% interval of :func:`auroc` (default z) from DeLong's variance, clipped to [0, 1].
+
+    DeLong et al. 1988: each positive's share of negatives below it and each negative's share of
+    positives above it (ties count half); the AUROC's variance is the sum of their variances over their
+    counts. (nan, nan) when either side has fewer than two scores. A perfectly separated pair of samples
+    has zero variance, so its interval is a point.
+    """
+    neg = np.asarray([x for x in negatives if not math.isnan(x)], dtype=np.float64)
+    pos = np.asarray([x for x in positives if not math.isnan(x)], dtype=np.float64)
+    if neg.size < 2 or pos.size < 2:
+        return math.nan, math.nan
+    wins = (pos[:, None] > neg[None, :]) + 0.5 * (pos[:, None] == neg[None, :])
+    area = float(wins.mean())
+    variance = wins.mean(axis=1).var(ddof=1) / pos.size + wins.mean(axis=0).var(ddof=1) / neg.size
+    half = z * math.sqrt(variance)
+    return max(0.0, area - half), min(1.0, area + half)
+
+
 def episode_score(scores: Sequence[float], start: int = 0) -> float:
     """An episode's uncertainty: the maximum score from control step ``start`` on (nan if none)."""
     tail = np.asarray(scores[start:], dtype=np.float64)

@@ -148,7 +148,8 @@ def _alarms(log: EpisodeLog) -> list[bool]:
 
 
 def ood_metrics(nominal: list[EpisodeLog], runs: list[EpisodeLog]) -> dict:
-    """Episode-level AUROC against nominal runs, TPR at the calibrated threshold, detection delay."""
+    """Episode-level AUROC against nominal runs and TPR at the calibrated threshold, each with its 95%
+    interval (DeLong; Wilson), and the detection delay."""
     onsets = [log.onset_step for log in runs]
     flagged = [
         onset is not None and metrics.first_alarm_after(_alarms(log), onset) is not None
@@ -157,16 +158,18 @@ def ood_metrics(nominal: list[EpisodeLog], runs: list[EpisodeLog]) -> dict:
     delays = metrics.detection_delays(
         [(_alarms(log), onset) for log, onset in zip(runs, onsets, strict=True)]
     )
+    nominal_maxima = [metrics.episode_score(log.scores) for log in nominal]
+    run_maxima = [metrics.episode_score(log.scores) for log in runs]
     return {
         "runs": len(runs),
-        "auroc": metrics.auroc(
-            [metrics.episode_score(log.scores) for log in nominal],
-            [metrics.episode_score(log.scores) for log in runs],
-        ),
+        "auroc": metrics.auroc(nominal_maxima, run_maxima),
+        "auroc_interval95": metrics.auroc_interval(nominal_maxima, run_maxima),
         "auroc_common_steps": metrics.auroc_over_common_steps(
             [log.scores for log in nominal], [log.scores for log in runs], onsets
         ),
         "tpr_at_threshold": float(np.mean(flagged)) if runs else math.nan,
+        "flagged_runs": int(sum(flagged)),
+        "tpr_wilson95": metrics.wilson_interval(int(sum(flagged)), len(runs)),
         "detection_delay_steps": metrics.summarize(delays),
         "onset_step": metrics.summarize([o for o in onsets if o is not None]),
         "policy_success_rate": float(np.mean([log.success for log in runs])) if runs else math.nan,
@@ -350,6 +353,13 @@ def _fmt(value, digits: int = 3) -> str:
     return str(value)
 
 
+def _interval(bounds) -> str:
+    """`` [low, high]`` after a figure, or nothing (no interval, or one results written before them)."""
+    if bounds is None or any(_fmt(b) == "n/a" for b in bounds):
+        return ""
+    return f" [{_fmt(bounds[0])}, {_fmt(bounds[1])}]"
+
+
 def _settings_note(calibration: dict) -> str:
     settings = calibration.get("score_settings") or {}
     if "uncertainty_samples_per_member" not in settings:
@@ -430,19 +440,22 @@ def render_report(result: dict) -> str:
         *_insertion_lines(nominal.get("insertion")),
         "## Out of distribution (gate reporting, as in the paper)",
         "",
-        "| experiment | scenario | runs | AUROC vs nominal | AUROC over common steps | TPR at threshold | detection delay (steps), median [IQR] |",
+        "| experiment | scenario | runs | AUROC vs nominal [95% interval] | AUROC over common steps | TPR at threshold [95% interval] | detection delay (steps), median [IQR] |",
         "|---|---|---|---|---|---|---|",
     ]
     for exp_id, entry in result["experiments"].items():
         d = entry["detection_delay_steps"]
         delay = f"{_fmt(d['median'])} [{_fmt(d['q25'])}, {_fmt(d['q75'])}] (n={d['n']})" if d["n"] else "none"
         lines.append(
-            f"| {exp_id} | {entry['scenario']} | {entry['runs']} | {_fmt(entry['auroc'])} | "
-            f"{_fmt(entry.get('auroc_common_steps'))} | {_fmt(entry['tpr_at_threshold'])} | {delay} |"
+            f"| {exp_id} | {entry['scenario']} | {entry['runs']} | "
+            f"{_fmt(entry['auroc'])}{_interval(entry.get('auroc_interval95'))} | "
+            f"{_fmt(entry.get('auroc_common_steps'))} | "
+            f"{_fmt(entry['tpr_at_threshold'])}{_interval(entry.get('tpr_wilson95'))} | {delay} |"
         )
     lines += [
         "",
-        "AUROC vs nominal compares each episode's largest score; a perturbed run whose throw never "
+        "AUROC vs nominal compares each episode's largest score (interval: DeLong's variance); the TPR's "
+        "interval is Wilson's. A perturbed run whose throw never "
         "finishes (a dropped needle) goes on to the time limit, past where nominal episodes end. AUROC "
         "over common steps compares each pair of episodes over the control steps both lasted.",
     ]
