@@ -354,7 +354,7 @@ def _fmt(value, digits: int = 3) -> str:
 
 
 def _interval(bounds) -> str:
-    """`` [low, high]`` after a figure, or nothing (no interval, or one results written before them)."""
+    """`` [low, high]`` after a figure; nothing where there is none (one run a side, or older results)."""
     if bounds is None or any(_fmt(b) == "n/a" for b in bounds):
         return ""
     return f" [{_fmt(bounds[0])}, {_fmt(bounds[1])}]"
