@@ -26,18 +26,20 @@ def wilson_interval(successes: int, n: int, z: float = 1.959963984540054) -> tup
     return max(0.0, centre - half), min(1.0, centre + half)
 
 
+def _pairwise_wins(negatives: Sequence[float], positives: Sequence[float]) -> np.ndarray:
+    """(positives, negatives) matrix: 1 where the positive scores higher, 0.5 on a tie; NaN scores dropped."""
+    neg = np.asarray([x for x in negatives if not math.isnan(x)], dtype=np.float64)
+    pos = np.asarray([x for x in positives if not math.isnan(x)], dtype=np.float64)
+    return (pos[:, None] > neg[None, :]) + 0.5 * (pos[:, None] == neg[None, :])
+
+
 def auroc(negatives: Sequence[float], positives: Sequence[float]) -> float:
     """Area under the ROC curve: P(positive score > negative score) + 0.5 P(tie) (Mann-Whitney U).
 
     NaN scores are dropped; nan when either side is empty.
     """
-    neg = np.asarray([x for x in negatives if not math.isnan(x)], dtype=np.float64)
-    pos = np.asarray([x for x in positives if not math.isnan(x)], dtype=np.float64)
-    if neg.size == 0 or pos.size == 0:
-        return math.nan
-    greater = (pos[:, None] > neg[None, :]).sum()
-    ties = (pos[:, None] == neg[None, :]).sum()
-    return float((greater + 0.5 * ties) / (pos.size * neg.size))
+    wins = _pairwise_wins(negatives, positives)
+    return float(wins.mean()) if wins.size else math.nan
 
 
 def auroc_interval(
@@ -50,13 +52,12 @@ def auroc_interval(
     counts. (nan, nan) when either side has fewer than two scores. A perfectly separated pair of samples
     has zero variance, so its interval is a point.
     """
-    neg = np.asarray([x for x in negatives if not math.isnan(x)], dtype=np.float64)
-    pos = np.asarray([x for x in positives if not math.isnan(x)], dtype=np.float64)
-    if neg.size < 2 or pos.size < 2:
+    wins = _pairwise_wins(negatives, positives)
+    n_pos, n_neg = wins.shape
+    if n_neg < 2 or n_pos < 2:
         return math.nan, math.nan
-    wins = (pos[:, None] > neg[None, :]) + 0.5 * (pos[:, None] == neg[None, :])
     area = float(wins.mean())
-    variance = wins.mean(axis=1).var(ddof=1) / pos.size + wins.mean(axis=0).var(ddof=1) / neg.size
+    variance = wins.mean(axis=1).var(ddof=1) / n_pos + wins.mean(axis=0).var(ddof=1) / n_neg
     half = z * math.sqrt(variance)
     return max(0.0, area - half), min(1.0, area + half)
 

@@ -160,6 +160,7 @@ def ood_metrics(nominal: list[EpisodeLog], runs: list[EpisodeLog]) -> dict:
     )
     nominal_maxima = [metrics.episode_score(log.scores) for log in nominal]
     run_maxima = [metrics.episode_score(log.scores) for log in runs]
+    n_flagged = sum(flagged)
     return {
         "runs": len(runs),
         "auroc": metrics.auroc(nominal_maxima, run_maxima),
@@ -167,9 +168,9 @@ def ood_metrics(nominal: list[EpisodeLog], runs: list[EpisodeLog]) -> dict:
         "auroc_common_steps": metrics.auroc_over_common_steps(
             [log.scores for log in nominal], [log.scores for log in runs], onsets
         ),
-        "tpr_at_threshold": float(np.mean(flagged)) if runs else math.nan,
-        "flagged_runs": int(sum(flagged)),
-        "tpr_wilson95": metrics.wilson_interval(int(sum(flagged)), len(runs)),
+        "tpr_at_threshold": n_flagged / len(runs) if runs else math.nan,
+        "flagged_runs": n_flagged,
+        "tpr_wilson95": metrics.wilson_interval(n_flagged, len(runs)),
         "detection_delay_steps": metrics.summarize(delays),
         "onset_step": metrics.summarize([o for o in onsets if o is not None]),
         "policy_success_rate": float(np.mean([log.success for log in runs])) if runs else math.nan,
@@ -355,7 +356,7 @@ def _fmt(value, digits: int = 3) -> str:
 
 def _interval(bounds) -> str:
     """`` [low, high]`` after a figure; nothing where there is none (one run a side, or older results)."""
-    if bounds is None or any(_fmt(b) == "n/a" for b in bounds):
+    if bounds is None or any(b is None or math.isnan(b) for b in bounds):
         return ""
     return f" [{_fmt(bounds[0])}, {_fmt(bounds[1])}]"
 
