@@ -2,7 +2,7 @@
 """A strip of endoscope frames across the appearance options (``lerobot_suture.sim.appearance``).
 
 The same episode (seed, expert, control step) is shown with every option off, then with each option on
-alone at twice its range in ``datasets/suture_expert_randomized.yaml`` (an option the recipe leaves off, at
+alone at twice its range in ``recipes/suture_expert_randomized.yaml`` (an option the recipe leaves off, at
 a tenth of its limit), then with all of them at the recipe's ranges. One seed draws the same uniform numbers for every column, so each column shows the
 option's effect on one scene; the trajectory is the same in all of them.
 
@@ -17,12 +17,12 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-RECIPE = Path(__file__).resolve().parents[1] / "datasets" / "suture_expert_randomized.yaml"
+RECIPE = Path(__file__).resolve().parents[1] / "recipes" / "suture_expert_randomized.yaml"
 DEFAULT_OUT = Path(__file__).resolve().parents[1] / "docs" / "appearance_strip.png"
 
 
 def recipe_ranges() -> dict[str, float]:
-    """The appearance ranges of ``datasets/suture_expert_randomized.yaml``."""
+    """The appearance ranges of ``recipes/suture_expert_randomized.yaml``."""
     return dict(yaml.safe_load(RECIPE.read_text())["appearance"])
 
 

@@ -1,7 +1,7 @@
 """Adversarial episodes against the CBF safety filter, h read at the physics rate.
 
 Runs ``--episodes-per-family`` episodes of every scripted attack family
-(``lerobot_suture.experiments.attacks.FAMILIES``) and ``--policy-episodes`` of an ensemble policy pushed
+(``lerobot_suture.experiments.cbf_attacks.FAMILIES``) and ``--policy-episodes`` of an ensemble policy pushed
 off distribution: an untrained tiny ensemble with the expert's statistics (``--policy-path`` for a
 trained one), taking over a begun throw in the ``camera_moved`` scenario with its gate not consulted.
 Prints one JSON object: episodes; active steps; violations (episodes, and physics steps with h < 0 while
@@ -28,7 +28,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import numpy as np  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from lerobot_suture.experiments.attacks import (  # noqa: E402
+from lerobot_suture.experiments.cbf_attacks import (  # noqa: E402
     FAMILIES,
     POLICY_FAMILY,
     AttackEpisode,
@@ -112,10 +112,10 @@ def main() -> None:
             for family, seed in tqdm(jobs, desc="attacks", unit="episode", file=sys.stderr):
                 if family == POLICY_FAMILY:
                     if runner is None:
-                        from lerobot_suture.policy_runner import PolicyRunner
+                        from lerobot_suture.runtime.policy import GateMode, PolicyRunner
 
                         path = args.policy_path or tiny_off_distribution_policy(Path(tmp))
-                        runner = PolicyRunner.from_pretrained(path)
+                        runner = PolicyRunner.from_pretrained(path, GateMode.REPORT)
                     episodes.append(
                         run_policy_attack_episode(runner, seed, args.scenario, config, args.attack_steps)
                     )

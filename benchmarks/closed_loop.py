@@ -32,7 +32,7 @@ import torch  # noqa: E402
 from lerobot_policy_ensemble_diffusion.testing import fake_dataset_stats, save_untrained_policy  # noqa: E402
 
 import lerobot_suture  # noqa: E402
-from lerobot_suture.policy_runner import PolicyRunner, env_kwargs_for_policy  # noqa: E402
+from lerobot_suture.runtime.policy import GateMode, PolicyRunner, env_kwargs_for_policy  # noqa: E402
 from lerobot_suture.safety.cbf_config import CBFConfig  # noqa: E402
 from lerobot_suture.safety.ood.calibration import fit_calibration  # noqa: E402
 from lerobot_suture.safety.ood.calibration_file import save_calibration  # noqa: E402
@@ -76,7 +76,7 @@ def main() -> None:
             vision_backbone_stages=args.vision_backbone_stages,
             prior_scale=args.prior_scale,
         )
-        runner = PolicyRunner.from_pretrained(policy_dir)
+        runner = PolicyRunner.from_pretrained(policy_dir, GateMode.REPORT)
         env = gym.make(
             lerobot_suture.ENV_ID,
             disable_env_checker=True,

@@ -20,7 +20,7 @@ from tqdm import tqdm  # noqa: E402
 
 import lerobot_suture  # noqa: E402,F401
 from lerobot_suture.expert import ExpertConfig  # noqa: E402
-from lerobot_suture.rollout_expert import run_expert_episode  # noqa: E402
+from lerobot_suture.runtime.expert_rollout import run_expert_episode  # noqa: E402
 from lerobot_suture.sim.scenarios import SCENARIOS  # noqa: E402
 
 

@@ -52,7 +52,7 @@ import torch  # noqa: E402
 
 import lerobot_suture  # noqa: E402
 from lerobot_suture.expert import ScriptedExpert  # noqa: E402
-from lerobot_suture.policy_runner import PolicyRunner, env_kwargs_for_policy  # noqa: E402
+from lerobot_suture.runtime.policy import GateMode, PolicyRunner, env_kwargs_for_policy  # noqa: E402
 
 PROBE_SEED_BASE = 3_000_000
 PHANTOM_PROBE_SHIFT = np.array([0.003, 0.0, 0.0])
@@ -90,7 +90,7 @@ def _phantom_moved_observation(sim) -> dict:
 
 def needle_attention(checkpoint: Path, episodes: int, probe_steps: list[int], device: str) -> dict:
     started = time.perf_counter()
-    runner = PolicyRunner.from_pretrained(checkpoint, device)
+    runner = PolicyRunner.from_pretrained(checkpoint, GateMode.REPORT, device)
     config = runner.policy.config
     env_kwargs = env_kwargs_for_policy(config)
     if "image_size" not in env_kwargs:

@@ -33,7 +33,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from lerobot_suture.datasets.split import validation_episodes  # noqa: E402
-from lerobot_suture.policy_runner import load_policy  # noqa: E402
+from lerobot_suture.runtime.policy import load_policy  # noqa: E402
 from lerobot_suture.sim.task import TASK  # noqa: E402
 
 

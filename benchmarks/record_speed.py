@@ -49,7 +49,12 @@ def _record(workdir: Path, name: str, episodes: int, video: bool, image_size: in
 
     root = workdir / name
     cfg = RecordConfig(
-        repo_id=f"bench/{name}", root=str(root), num_episodes=episodes, image_size=image_size, video=video
+        repo_id=f"bench/{name}",
+        root=str(root),
+        num_episodes=episodes,
+        image_size=image_size,
+        video=video,
+        val_fraction=0.25 if episodes > 1 else 0.0,  # the recipes' split; one episode cannot be split
     )
     start = time.perf_counter()
     summary = record(cfg)
@@ -69,14 +74,14 @@ def _record(workdir: Path, name: str, episodes: int, video: bool, image_size: in
 
 def _rollout_only(episodes: int, image_size: int) -> dict:
     """Env + expert alone (no dataset), to show where the time goes."""
-    from lerobot_suture.datasets.episode import make_env, rollout_expert
+    from lerobot_suture.datasets.expert_episode import expert_episode_frames, make_env
     from lerobot_suture.expert import ScriptedExpert
 
     env, expert = make_env("pixels_agent_pos", image_size, "nominal"), ScriptedExpert()
-    rollout_expert(env, expert, seed=10_000)  # warm-up: renderer
+    expert_episode_frames(env, expert, seed=10_000)  # warm-up: renderer
     start, frames = time.perf_counter(), 0
     for seed in range(episodes):
-        frames += rollout_expert(env, expert, seed).length
+        frames += expert_episode_frames(env, expert, seed).length
     seconds = time.perf_counter() - start
     env.close()
     return {"frames_per_s": round(frames / seconds, 1), "s_per_episode": round(seconds / episodes, 3)}

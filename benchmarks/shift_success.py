@@ -40,8 +40,8 @@ def main() -> None:
     args = parser.parse_args()
 
     from lerobot_suture.experiments.metrics import wilson_interval
-    from lerobot_suture.policy_runner import env_kwargs_for_policy, reporting_runner
-    from lerobot_suture.rollout import make_scenario_env, rollout_seeds
+    from lerobot_suture.runtime.policy import env_kwargs_for_policy, reporting_runner
+    from lerobot_suture.runtime.rollout import make_scenario_env, rollout_seeds
     from lerobot_suture.sim.shifts import Shift
 
     shifts = [Shift.parse(s) for s in args.shifts]

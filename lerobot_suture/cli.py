@@ -1,7 +1,10 @@
 """``lerobot-suture SUBCOMMAND --flag=value ...``: one entry point, LeRobot-style flags per subcommand.
 
-Bad input (an unknown or missing subcommand, a bad flag, a missing policy, calibration or dataset) ends
-with one line on stderr that names the problem and the fix, and exit status 2; Ctrl-C with 130.
+Each subcommand is a module of :mod:`lerobot_suture.commands` with ``main(argv)``; this module reports
+what they raise. Bad input (an unknown or missing subcommand, a bad flag, a missing policy, calibration
+or dataset) ends with one line on stderr that names the problem and the fix, and exit status 2; an
+error that carries its own ``exit_status`` (a failed push: 1) with that status; Ctrl-C with 130, or
+128 + the signal's number where the interruption says which.
 """
 
 from __future__ import annotations
@@ -15,11 +18,11 @@ from draccus.utils import DecodingError, DraccusException, ParsingError
 
 # subcommand -> (module with `main(argv)`, or "module:function", one-line help)
 SUBCOMMANDS = {
-    "demo": ("lerobot_suture.demo", "run the main job at a small default and write figures"),
-    "record": ("lerobot_suture.datasets.record", "record expert insertions as a LeRobotDataset"),
-    "push": ("lerobot_suture.datasets.hub", "push a recorded dataset to the Hugging Face Hub"),
+    "demo": ("lerobot_suture.commands.demo", "run the main job at a small default and write figures"),
+    "record": ("lerobot_suture.commands.record", "record expert insertions as a LeRobotDataset"),
+    "push": ("lerobot_suture.commands.push", "push a recorded dataset to the Hugging Face Hub"),
     "calibrate": (
-        "lerobot_suture.calibrate",
+        "lerobot_suture.commands.calibrate",
         "fit the O.O.D. gate of a trained ensemble on nominal rollouts",
     ),
     # Lives in the policy plugin; imported by name only when run (the core never imports a plugin).
@@ -28,39 +31,39 @@ SUBCOMMANDS = {
         "assemble separately trained diffusion policies into one ensemble",
     ),
     "experiments": (
-        "lerobot_suture.experiments.runner",
+        "lerobot_suture.commands.experiments",
         "run the paper's experiments: figures, metrics, report",
     ),
     "score-study": (
-        "lerobot_suture.experiments.score_study",
+        "lerobot_suture.commands.score_study",
         "compare the gate's uncertainty scores on validation seeds",
     ),
     "benchmark-ood": (
-        "lerobot_suture.experiments.benchmark_ood",
+        "lerobot_suture.commands.benchmark_ood",
         "compare failure detectors (the gate's score and the field's) on the same rollouts",
     ),
     "robustness-report": (
-        "lerobot_suture.experiments.robustness",
+        "lerobot_suture.commands.robustness_report",
         "policies side by side under the shifts, inside and beyond their training ranges, with the gate",
     ),
     "reproduce": (
-        "lerobot_suture.reproduce",
+        "lerobot_suture.commands.reproduce",
         "record, train, calibrate and run the experiments of a recipe (reference, robust, two_sided)",
     ),
     "dagger": (
-        "lerobot_suture.dagger.loop",
+        "lerobot_suture.commands.dagger",
         "learn from the surgeon in rounds: uncertainty-gated DAgger beside ungated DAgger and plain BC",
     ),
     "cbf-replay": (
-        "lerobot_suture.experiments.cbf_offline",
+        "lerobot_suture.commands.cbf_replay",
         "filter a recorded unsafe throw offline, plot it",
     ),
     "surgeon-run": (
-        "lerobot_suture.surgeon.commands:surgeon_run_main",
+        "lerobot_suture.commands.surgeon_run",
         "run a policy with a surgeon (keyboard, gamepad, expert) taking over; record it, show it live",
     ),
     "teleop": (
-        "lerobot_suture.surgeon.commands:teleop_main",
+        "lerobot_suture.commands.teleop",
         "drive the env by hand with a keyboard or gamepad; record it, show it live",
     ),
 }
@@ -80,9 +83,9 @@ def flag_error(exc: DraccusException | argparse.ArgumentError) -> str:
     return str(exc)  # "`field`: Couldn't parse 'x' into an int", "unrecognized arguments: --x=1", ...
 
 
-def _fail(prefix: str, message: str) -> None:
+def _fail(prefix: str, message: str, status: int = 2) -> None:
     print(f"{prefix}: error: {' '.join(message.split())}", file=sys.stderr)  # one line, whatever the message
-    raise SystemExit(2)
+    raise SystemExit(status)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -104,13 +107,18 @@ def main(argv: list[str] | None = None) -> None:
         run(rest)
     except (DraccusException, argparse.ArgumentError) as exc:
         _fail(prefix, f"{flag_error(exc)} (`{prefix} --help` lists the flags)")
-    except (FileNotFoundError, FileExistsError, NotADirectoryError, ValueError) as exc:
-        # Found past the flags: no policy, calibration or dataset where a flag points, or a setting the
-        # loaded policy refuses. Each message says what to run or pass instead.
-        _fail(prefix, str(exc))
-    except KeyboardInterrupt:
-        print(f"{prefix}: interrupted.", file=sys.stderr)
-        raise SystemExit(130) from None
+    except KeyboardInterrupt as exc:
+        print(f"{prefix}: interrupted{f' ({exc})' if str(exc) else ''}.", file=sys.stderr)
+        raise SystemExit(getattr(exc, "exit_status", 130)) from None
+    except Exception as exc:
+        status = getattr(exc, "exit_status", None)
+        if status is not None:  # an error that knows how the command ends (a failed push)
+            _fail(prefix, str(exc), status)
+        if isinstance(exc, FileNotFoundError | FileExistsError | NotADirectoryError | ValueError):
+            # Found past the flags: no policy, calibration or dataset where a flag points, or a setting
+            # the loaded policy refuses. Each message says what to run or pass instead.
+            _fail(prefix, str(exc))
+        raise
 
 
 if __name__ == "__main__":

@@ -314,7 +314,7 @@ def test_the_randomized_recipe_is_the_servo_recipe_with_moderate_ranges():
 
     from lerobot_suture.datasets.record_config import parse_config
 
-    recipes = Path(__file__).parents[1] / "datasets"
+    recipes = Path(__file__).parents[1] / "recipes"
     servo = parse_config([f"--config_path={recipes / 'suture_expert_servo.yaml'}"])
     randomized = parse_config([f"--config_path={recipes / 'suture_expert_randomized.yaml'}"])
     same = dataclasses.replace(

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from lerobot_suture.calibrate import PolicyPathConfig
 from lerobot_suture.cli import main as cli_main
 from lerobot_suture.detectors import DETECTOR_NAMES
 from lerobot_suture.experiments.benchmark_ood import SCENARIOS, BenchmarkOODConfig
+from lerobot_suture.runtime.config import PolicyPathConfig
 
 
 def test_benchmark_config_names_the_field_and_range(tiny_policy_dir):

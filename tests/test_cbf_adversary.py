@@ -15,7 +15,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import lerobot_suture
-from lerobot_suture.experiments.attacks import (
+from lerobot_suture.experiments.cbf_attacks import (
     FAMILIES,
     AttackEpisode,
     lead_in,
@@ -24,7 +24,7 @@ from lerobot_suture.experiments.attacks import (
     run_policy_attack_episode,
 )
 from lerobot_suture.expert import ScriptedExpert
-from lerobot_suture.rollout import SURGEON, rollout_episode
+from lerobot_suture.runtime.rollout import SURGEON, rollout_episode
 from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.safety.cbf_wrapper import PHASE_ACTIVE, CBFActionWrapper, segment_distance
 from lerobot_suture.sim import controller
@@ -237,7 +237,7 @@ def test_handover_mid_insertion_keeps_h_nonnegative_and_filters_the_surgeon(seed
 def test_off_distribution_policy_taking_over_a_throw_stays_in_the_set(tiny_policy_dir):
     """An untrained tiny ensemble (the expert's statistics, so its actions have the right units) in the
     camera_moved scenario takes over a begun throw; its gate is not consulted."""
-    from lerobot_suture.policy_runner import PolicyRunner
+    from lerobot_suture.runtime.policy import GateMode, PolicyRunner
 
-    runner = PolicyRunner.from_pretrained(tiny_policy_dir)
+    runner = PolicyRunner.from_pretrained(tiny_policy_dir, GateMode.REPORT)
     assert_safe(run_policy_attack_episode(runner, seed=0, attack_steps=6, max_start_delay=0))

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lerobot_suture.experiments.adversary import CBFEpisode, run_cbf_episode
+from lerobot_suture.experiments.sideways_pull import CBFEpisode, run_cbf_episode
 from lerobot_suture.expert import ScriptedExpert
 from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.safety.cbf_wrapper import PHASE_ACTIVE, CBFActionWrapper

@@ -52,9 +52,9 @@ def collected(gated_policy, demo_root, tmp_path_factory) -> dict:
     """The three arms' new frames on the same seeds, the ungated and bc arms on the gated arm's budget."""
     from lerobot_suture.datasets.metadata import read_episode_log
     from lerobot_suture.expert import ExpertConfig
-    from lerobot_suture.policy_runner import PolicyRunner, env_kwargs_for_policy
+    from lerobot_suture.runtime.policy import GateMode, PolicyRunner, env_kwargs_for_policy
 
-    runner = PolicyRunner.from_pretrained(gated_policy)
+    runner = PolicyRunner.from_pretrained(gated_policy, GateMode.REPORT)
     log = read_episode_log(demo_root)
     spec = col.CollectSpec(
         env_kwargs_for_policy(runner.policy.config),
@@ -118,8 +118,8 @@ def collected(gated_policy, demo_root, tmp_path_factory) -> dict:
     ],
 )
 def test_bad_settings_name_the_fix(kwargs, error, match):
-    from lerobot_suture.calibrate import PolicyPathConfig
     from lerobot_suture.dagger.watch import WatchConfig
+    from lerobot_suture.runtime.config import PolicyPathConfig
 
     if {"patience", "position", "angle"} & set(kwargs):
         with pytest.raises(error, match=match):
@@ -131,7 +131,7 @@ def test_bad_settings_name_the_fix(kwargs, error, match):
 
 
 def test_dataset_without_episode_log_or_validation_is_refused(tiny_policy_dir, demo_root, tmp_path):
-    from lerobot_suture.calibrate import PolicyPathConfig
+    from lerobot_suture.runtime.config import PolicyPathConfig
 
     policy = PolicyPathConfig(path=tiny_policy_dir)
     with pytest.raises(FileNotFoundError, match="not a dataset recorded by `lerobot-suture record`"):
@@ -316,9 +316,9 @@ def test_gated_arm_with_a_watching_surgeon_records_its_takeover(gated_policy):
     over at the first step its patience allows, before the gate releases control, and its frames are kept."""
     from lerobot_suture.dagger.watch import WatchConfig
     from lerobot_suture.expert import ExpertConfig
-    from lerobot_suture.policy_runner import PolicyRunner, env_kwargs_for_policy
+    from lerobot_suture.runtime.policy import GateMode, PolicyRunner, env_kwargs_for_policy
 
-    runner = PolicyRunner.from_pretrained(gated_policy)
+    runner = PolicyRunner.from_pretrained(gated_policy, GateMode.REPORT)
     spec = col.CollectSpec(
         env_kwargs_for_policy(runner.policy.config),
         {"nominal": [HANDOVER_SEED]},
@@ -418,8 +418,8 @@ def test_merged_dataset_holds_the_training_demonstrations_and_the_new_frames(
 def test_toy_loop_writes_the_table_and_resumes_without_redoing_a_stage(tiny_policy_dir, demo_root, tmp_path):
     from PIL import Image
 
-    from lerobot_suture.calibrate import PolicyPathConfig
     from lerobot_suture.dagger.loop import run_dagger
+    from lerobot_suture.runtime.config import PolicyPathConfig
 
     def cfg():
         return DaggerConfig(

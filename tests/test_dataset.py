@@ -416,13 +416,13 @@ def test_push_in_offline_mode_says_so(tiny):
 
 
 def test_push_command_reports_errors(tiny, capsys):
-    from lerobot_suture.datasets import hub
+    from lerobot_suture.cli import main as cli_main
 
     with pytest.raises(SystemExit) as exit_:
-        hub.main(["--repo_id=not-a-repo-id"])
+        cli_main(["push", "--repo_id=not-a-repo-id"])
     assert exit_.value.code == 2 and "USER/NAME" in capsys.readouterr().err
     with pytest.raises(SystemExit) as exit_:
-        hub.main([f"--repo_id={REPO_ID}", f"--root={tiny.root}"])
+        cli_main(["push", f"--repo_id={REPO_ID}", f"--root={tiny.root}"])
     assert exit_.value.code == 1 and "HF_HUB_OFFLINE is set" in capsys.readouterr().err
 
 

@@ -15,10 +15,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from lerobot_suture.cli import main as cli_main
 from lerobot_suture.datasets import metadata
-from lerobot_suture.datasets.episode import make_env, rollout_expert
+from lerobot_suture.datasets.expert_episode import expert_episode_frames, make_env
 from lerobot_suture.datasets.features import ACTION_KEY, DONE_KEY, SUCCESS_KEY
-from lerobot_suture.datasets.record import main, record, regenerate_episode
+from lerobot_suture.datasets.record import record, regenerate_episode
 from lerobot_suture.datasets.record_config import MAX_STEPS_AFTER_SUCCESS, RecordConfig, expert_config
 from lerobot_suture.datasets.split import episode_seeds
 from lerobot_suture.datasets.stop_signals import RecordingInterrupted
@@ -68,7 +69,7 @@ def test_malformed_repo_id_is_an_error_before_any_work(repo_id, match, tmp_path,
     with pytest.raises(ValueError, match=match):
         RecordConfig(repo_id=repo_id, root=str(root))
     with pytest.raises(SystemExit) as exit_:
-        main([f"--repo_id={repo_id}", f"--root={root}"])
+        cli_main(["record", f"--repo_id={repo_id}", f"--root={root}"])
     assert exit_.value.code == 2
     assert match.split("`")[-1].strip() in capsys.readouterr().err
     assert not root.exists()
@@ -104,7 +105,7 @@ def test_bad_flags_name_the_field(flag, match, tmp_path):
 def test_dataset_recipes_parse(recipe, episodes):
     from lerobot_suture.datasets.record_config import parse_config
 
-    path = Path(__file__).parents[1] / "datasets" / recipe
+    path = Path(__file__).parents[1] / "recipes" / recipe
     cfg = parse_config([f"--config_path={path}", f"--repo_id={REPO_ID}", "--seed=3"])
     assert (cfg.num_episodes, cfg.val_fraction, cfg.image_size, cfg.seed) == (episodes, 0.25, 96, 3)
     assert cfg.obs_type == "pixels_agent_pos" and cfg.video and not cfg.push_to_hub
@@ -127,7 +128,7 @@ def test_existing_root_without_resume_is_an_error(tmp_path, capsys):
     with pytest.raises(FileExistsError, match="already exists. Pass --resume=true"):
         record(_cfg(root, **ONE))
     with pytest.raises(SystemExit) as exit_:
-        main([f"--repo_id={REPO_ID}", f"--root={root}", "--num_episodes=1", "--val_fraction=0"])
+        cli_main(["record", f"--repo_id={REPO_ID}", f"--root={root}", "--num_episodes=1", "--val_fraction=0"])
     assert exit_.value.code == 2 and "--resume=true" in capsys.readouterr().err
     assert sorted(p.name for p in root.iterdir()) == ["something.txt"]
 
@@ -182,7 +183,7 @@ def test_steps_after_success_record_the_expert_driving_on(tmp_path):
     frames = regenerate_episode(root, 0)
     env = make_env("state", 32, "nominal")
     try:
-        at_success = rollout_expert(env, ScriptedExpert(), seed=0)
+        at_success = expert_episode_frames(env, ScriptedExpert(), seed=0)
     finally:
         env.close()
     n = at_success.length
@@ -208,11 +209,11 @@ def test_episodes_past_success_are_discarded_when_cut_short_or_lost(monkeypatch)
     from lerobot_suture.sim.suture_env import SutureEnv
 
     env = make_env("state", 32, "nominal")
-    n = rollout_expert(env, ScriptedExpert(), seed=0).length
+    n = expert_episode_frames(env, ScriptedExpert(), seed=0).length
     env.close()
     # The time limit falls 2 steps after success: 5 were asked for.
     env = gym.make(ENV_ID, obs_type="state", max_episode_steps=n + 2, disable_env_checker=True)
-    cut = rollout_expert(env, ScriptedExpert(expert_config(5)), seed=0, steps_after_success=5)
+    cut = expert_episode_frames(env, ScriptedExpert(expert_config(5)), seed=0, steps_after_success=5)
     assert not cut.success and cut.reason == "time limit after success" and cut.length == n + 2
     # The insertion stops counting as on the marks 3 steps after success.
     on_the_marks = SutureEnv._on_the_marks
@@ -225,7 +226,7 @@ def test_episodes_past_success_are_discarded_when_cut_short_or_lost(monkeypatch)
 
     monkeypatch.setattr(SutureEnv, "_on_the_marks", lapsing)
     env = make_env("state", 32, "nominal")
-    lost = rollout_expert(env, ScriptedExpert(expert_config(5)), seed=0, steps_after_success=5)
+    lost = expert_episode_frames(env, ScriptedExpert(expert_config(5)), seed=0, steps_after_success=5)
     env.close()
     assert not lost.success and lost.reason == "success lost while driving on"
     assert f"lost it at step {n + 3}" in lost.detail and "--steps_after_success" in lost.detail
@@ -340,8 +341,8 @@ def test_sigkill_loses_only_episodes_since_the_last_checkpoint(tmp_path, caplog)
     """A recording killed with SIGKILL (no cleanup) is rolled back to its last checkpoint on resume."""
     root = tmp_path / "ds"
     code = (
-        "from lerobot_suture.datasets.record import main; "
-        f"main(['--repo_id={REPO_ID}', '--root={root}', '--num_episodes=50', '--image_size=32', "
+        "from lerobot_suture.cli import main; "
+        f"main(['record', '--repo_id={REPO_ID}', '--root={root}', '--num_episodes=50', '--image_size=32', "
         "'--checkpoint_every=2'])"
     )
     env = {**os.environ, "HF_HUB_OFFLINE": "1", "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}

@@ -8,12 +8,10 @@ from lerobot_policy_ensemble_diffusion.ensemble_stats import (
     compute_ensemble_stats,
     ensemble_covariance,
     ensemble_mean,
-    score_logdet,
-    score_max_abs_cov,
-    score_trace,
     total_covariance_split,
-    uncertainty_score,
 )
+
+from lerobot_suture.safety.ood.score import score_tensor
 
 
 def _np_cov(samples: np.ndarray, ddof: int) -> np.ndarray:
@@ -66,7 +64,7 @@ def test_covariance_zero_when_members_identical():
     stats = compute_ensemble_stats(member.expand(3, 5, 4, 8, 10))  # K = 4 identical samples too
     assert torch.count_nonzero(stats.covariance) == 0
     assert torch.count_nonzero(stats.aleatoric) == 0
-    assert score_max_abs_cov(stats.covariance).eq(0).all()
+    assert score_tensor(stats.covariance, "max_abs_cov").eq(0).all()
 
 
 def test_covariance_needs_enough_samples():
@@ -102,8 +100,16 @@ def test_split_separates_disagreement_from_spread():
     disagree = torch.randn(1, 5, 1, 8, 2, generator=g, dtype=torch.float64).expand(1, 5, 200, 8, 2)
     s_spread = compute_ensemble_stats(spread - spread.mean(dim=2, keepdim=True))  # member means all 0
     s_disagree = compute_ensemble_stats(disagree)
-    assert score_max_abs_cov(s_spread.epistemic) < 1e-12 < score_max_abs_cov(s_spread.aleatoric)
-    assert score_max_abs_cov(s_disagree.aleatoric) == 0 < score_max_abs_cov(s_disagree.epistemic)
+    assert (
+        score_tensor(s_spread.epistemic, "max_abs_cov")
+        < 1e-12
+        < score_tensor(s_spread.aleatoric, "max_abs_cov")
+    )
+    assert (
+        score_tensor(s_disagree.aleatoric, "max_abs_cov")
+        == 0
+        < score_tensor(s_disagree.epistemic, "max_abs_cov")
+    )
 
 
 def test_compute_ensemble_stats_shapes_and_k1():
@@ -134,11 +140,10 @@ def test_scores():
     cov = torch.zeros(2, 3, 2, 2)  # (B, T, A, A)
     cov[0, 1] = torch.tensor([[1.0, -4.0], [-4.0, 2.0]])
     cov[1, 2] = torch.tensor([[3.0, 0.5], [0.5, 3.0]])
-    torch.testing.assert_close(score_max_abs_cov(cov), torch.tensor([4.0, 3.0]))
-    torch.testing.assert_close(score_trace(cov), torch.tensor([3.0, 6.0]))
-    logdet = score_logdet(cov, eps=1e-3)
+    torch.testing.assert_close(score_tensor(cov, "max_abs_cov"), torch.tensor([4.0, 3.0]))
+    torch.testing.assert_close(score_tensor(cov, "trace"), torch.tensor([3.0, 6.0]))
+    logdet = score_tensor(cov, "logdet", logdet_eps=1e-3)
     assert torch.isfinite(logdet).all()
     torch.testing.assert_close(logdet[1], torch.logdet(cov[1, 2] + 1e-3 * torch.eye(2)))
-    torch.testing.assert_close(uncertainty_score(cov, "trace"), score_trace(cov))
-    with pytest.raises(ValueError, match="`name` must be one of"):
-        uncertainty_score(cov, "max")
+    with pytest.raises(ValueError, match="Unknown OOD score name 'max'"):
+        score_tensor(cov, "max")

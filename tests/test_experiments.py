@@ -8,8 +8,8 @@ import numpy as np
 from PIL import Image
 
 from lerobot_suture.cli import main as cli_main
-from lerobot_suture.experiments.runner import _in_tissue_at_handover
-from lerobot_suture.rollout import EpisodeLog, StepLog
+from lerobot_suture.experiments.episode_metrics import in_tissue_at_handover
+from lerobot_suture.runtime.rollout import EpisodeLog, StepLog
 from lerobot_suture.safety.ood.calibration import fit_calibration
 from lerobot_suture.safety.ood.calibration_file import save_calibration
 
@@ -21,11 +21,11 @@ def _step(in_tissue: bool) -> StepLog:
 def test_needle_in_tissue_at_handover_is_read_before_the_surgeon_acts():
     log = EpisodeLog(seed=0, scenario="nominal", steps=[_step(False), _step(True), _step(True)])
     log.handover_step = 1  # released after step 0: the needle was not in yet
-    assert not _in_tissue_at_handover(log)
+    assert not in_tissue_at_handover(log)
     log.handover_step = 2
-    assert _in_tissue_at_handover(log)
+    assert in_tissue_at_handover(log)
     log.handover_step = 0  # released before any step: the episode's start, needle outside
-    assert not _in_tissue_at_handover(log)
+    assert not in_tissue_at_handover(log)
 
 
 def test_experiments_write_figures_metrics_and_report(tiny_policy_dir, tmp_path):

@@ -10,8 +10,15 @@ import pytest
 
 import lerobot_suture
 from lerobot_suture.cli import main as cli_main
-from lerobot_suture.policy_runner import PolicyRunner, env_kwargs_for_policy
-from lerobot_suture.rollout import HOLD, POLICY, SURGEON, rollout_episode, rollout_episodes, rollout_seeds
+from lerobot_suture.runtime.policy import GateMode, PolicyRunner, env_kwargs_for_policy
+from lerobot_suture.runtime.rollout import (
+    HOLD,
+    POLICY,
+    SURGEON,
+    rollout_episode,
+    rollout_episodes,
+    rollout_seeds,
+)
 from lerobot_suture.safety.ood.calibration import fit_calibration
 from lerobot_suture.safety.ood.calibration_file import load_calibration, save_calibration
 
@@ -22,9 +29,7 @@ def _runner(policy_dir, tmp_path, threshold: float | None, enforce: bool) -> Pol
     if threshold is not None:
         scores = threshold * (1 + 1e-3 * np.random.default_rng(0).standard_normal(100))
         save_calibration(fit_calibration(np.abs(scores)), directory)
-    runner = PolicyRunner.from_pretrained(directory)
-    runner.policy.config.ood.enforce = enforce
-    return runner
+    return PolicyRunner.from_pretrained(directory, GateMode.of(enforce))
 
 
 def _env(runner, **kwargs):
@@ -130,7 +135,7 @@ def test_enforcing_without_calibration_fails_at_load_with_the_fix(tiny_policy_di
     config["ood"]["enforce"] = True
     (directory / "config.json").write_text(json.dumps(config))
     with pytest.raises(FileNotFoundError, match="lerobot-suture calibrate"):
-        PolicyRunner.from_pretrained(directory)
+        PolicyRunner.from_pretrained(directory, GateMode.REPORT)
 
 
 def test_calibrate_command_writes_a_calibration_the_policy_loads(tiny_policy_dir, tmp_path, capsys):
@@ -152,7 +157,7 @@ def test_calibrate_command_writes_a_calibration_the_policy_loads(tiny_policy_dir
     assert calibration.mode == "per_prediction" and calibration.n_samples >= 10
     report = json.loads((directory / "ood_calibration_report.json").read_text())
     assert report["calibration_seeds"] == [1_000_000, 1_000_001]
-    runner = PolicyRunner.from_pretrained(directory)
+    runner = PolicyRunner.from_pretrained(directory, GateMode.REPORT)
     assert runner.policy.ood_calibration == calibration
     assert calibration.score_settings == runner.policy.config.score_settings()
     assert (directory / "config.json").read_bytes() == config_json  # no score flags: the config is kept
@@ -171,7 +176,7 @@ def test_calibrate_with_a_score_choice_writes_it_beside_its_calibration(tiny_pol
     )
     assert json.loads((directory / "config.json").read_text())["uncertainty_source"] == "total"
     cli_main([*args, "--uncertainty_score=trace", "--uncertainty_steps=action", "--mode=per_prediction"])
-    runner = PolicyRunner.from_pretrained(directory)
+    runner = PolicyRunner.from_pretrained(directory, GateMode.REPORT)
     config = runner.policy.config
     assert (config.uncertainty_score, config.uncertainty_steps) == ("trace", "action")
     calibration = runner.policy.ood_calibration

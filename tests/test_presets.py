@@ -18,7 +18,7 @@ import yaml
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 PRESETS = REPO_ROOT / "policies" / "presets"
-DATASETS = REPO_ROOT / "datasets"
+DATASETS = REPO_ROOT / "recipes"
 REFERENCE_RUN = REPO_ROOT / "docs" / "results" / "prior_servo_5500"
 SCORE_CHOICE = ("uncertainty_score", "uncertainty_space", "uncertainty_source", "uncertainty_steps")
 # Filled from the dataset by lerobot-train (features), or where the run's files were (paths).
@@ -81,7 +81,7 @@ def test_reference_preset_is_the_reference_run(tmp_path):
 
 
 def test_reference_calibration_config_is_the_reference_calibration():
-    from lerobot_suture.calibrate import CalibrateConfig
+    from lerobot_suture.runtime.calibration import CalibrateConfig
     from lerobot_suture.safety.ood.calibration import default_model
 
     path = PRESETS / "reference_calibrate.yaml"

@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 
 from lerobot_suture.experiments.compare import compare_metrics, comparison_markdown
-from lerobot_suture.reproduce import REFERENCE_RESULTS, STAGES
+from lerobot_suture.pipelines.reproduce import REFERENCE_RESULTS, STAGES
 
 COMMITTED = json.loads((REFERENCE_RESULTS / "metrics.json").read_text())
 

@@ -11,7 +11,6 @@ import torch
 from PIL import Image
 
 import lerobot_suture
-from lerobot_suture.calibrate import SCORE_CHOICE_FIELDS, PolicyPathConfig
 from lerobot_suture.cli import main as cli_main
 from lerobot_suture.experiments.score_study import (
     RescoringRunner,
@@ -20,8 +19,10 @@ from lerobot_suture.experiments.score_study import (
     choice_label,
     with_scores,
 )
-from lerobot_suture.policy_runner import PolicyRunner, env_kwargs_for_policy
-from lerobot_suture.rollout import EpisodeLog, StepLog, rollout_seeds
+from lerobot_suture.runtime.calibration import SCORE_CHOICE_FIELDS
+from lerobot_suture.runtime.config import PolicyPathConfig
+from lerobot_suture.runtime.policy import GateMode, PolicyRunner, env_kwargs_for_policy
+from lerobot_suture.runtime.rollout import EpisodeLog, StepLog, rollout_seeds
 from lerobot_suture.safety.ood.calibration import fit_calibration
 from lerobot_suture.safety.ood.gate import OODGate
 
@@ -66,7 +67,6 @@ class _StubPolicy:
 
     def __init__(self):
         self.calls, self.last_prediction = 0, None
-        self.config = type("Config", (), {"ood": type("OOD", (), {"enforce": False})()})()
 
     def ood_status(self, index):
         return {"new_prediction": self.calls % 2 == 1}
@@ -78,6 +78,7 @@ class _StubPolicy:
 class _StubRunner:
     def __init__(self):
         self.policy = _StubPolicy()
+        self.gate = GateMode.REPORT
 
     def reset(self):
         self.policy.calls = 0
@@ -123,7 +124,7 @@ def test_score_study_needs_enough_nominal_episodes_for_its_threshold(tiny_policy
 
 
 def test_rescoring_with_the_policy_own_choice_gives_its_logged_score(tiny_policy_dir):
-    runner = PolicyRunner.from_pretrained(tiny_policy_dir)
+    runner = PolicyRunner.from_pretrained(tiny_policy_dir, GateMode.REPORT)
     assert len(choice_grid(runner.policy)) == 3 * 2 * 2  # one sample per member: one source
     runner.policy.config.uncertainty_samples_per_member = 2
     choices = choice_grid(runner.policy)

@@ -11,7 +11,7 @@ import torch
 
 import lerobot_suture
 from lerobot_suture.datasets.video import resolve_video_backend
-from lerobot_suture.policy_runner import PolicyRunner, env_kwargs_for_policy
+from lerobot_suture.runtime.policy import GateMode, PolicyRunner, env_kwargs_for_policy
 from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.safety.ood.calibration import fit_calibration
 from lerobot_suture.safety.ood.calibration_file import save_calibration
@@ -49,9 +49,7 @@ def _runner(policy_dir, tmp_path, threshold: float, enforce: bool = True) -> Pol
     config = json.loads((directory / "config.json").read_text())
     filename = config.get("ood", {}).get("calibration_file", "ood_calibration.json")
     save_calibration(fit_calibration(np.abs(scores), model="normal"), directory, filename=filename)
-    runner = PolicyRunner.from_pretrained(directory)
-    runner.policy.config.ood.enforce = enforce
-    return runner
+    return PolicyRunner.from_pretrained(directory, GateMode.of(enforce))
 
 
 def _env(runner, cbf: bool = True):

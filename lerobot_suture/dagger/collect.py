@@ -45,6 +45,7 @@ from tqdm import tqdm
 from lerobot_suture.dagger.labelling import StateLabeller
 from lerobot_suture.dagger.watch import WatchConfig, WatchingExpertSurgeon
 from lerobot_suture.expert import ExpertConfig, ScriptedExpert
+from lerobot_suture.runtime.policy import GateMode
 from lerobot_suture.surgeon.record_run import (
     ACTOR_KEY,
     GATE_DECISION_KEY,
@@ -207,7 +208,7 @@ def frame_count(episodes: list[list[dict]]) -> int:
 
 
 def _env(spec: CollectSpec, scenario: str):
-    from lerobot_suture.rollout import make_scenario_env
+    from lerobot_suture.runtime.rollout import make_scenario_env
 
     return make_scenario_env(spec.env_kwargs, scenario)
 
@@ -249,7 +250,7 @@ def collect_gated(runner, spec: CollectSpec) -> tuple[list[list[dict]], list[dic
     it watches); only the surgeon's frames."""
     from lerobot_suture.surgeon.surgeons import ExpertSurgeon
 
-    runner.policy.config.ood.enforce = True
+    runner = runner.with_gate(GateMode.ENFORCE)
     recorder = BufferedRecorder()
     if spec.watch.enabled:
         surgeon = WatchingExpertSurgeon(spec.expert_config, spec.watch)
@@ -266,7 +267,7 @@ def collect_ungated(runner, spec: CollectSpec, budget: int, seed: int) -> tuple[
 
     if budget == 0:  # nothing to label this round
         return [], []
-    runner.policy.config.ood.enforce = False
+    runner = runner.with_gate(GateMode.REPORT)
     recorder = LabellingRecorder(spec.expert_config)
     runs = _policy_runs(runner, spec, NoSurgeon(), recorder, "ungated")
     return windows(recorder.dataset.episodes, budget, seed), runs
@@ -274,7 +275,7 @@ def collect_ungated(runner, spec: CollectSpec, budget: int, seed: int) -> tuple[
 
 def collect_bc(spec: CollectSpec, budget: int) -> tuple[list[list[dict]], list[dict]]:
     """The bc arm: whole expert demonstrations, scenarios interleaved, until ``budget`` frames."""
-    from lerobot_suture.datasets.episode import rollout_expert
+    from lerobot_suture.datasets.expert_episode import expert_episode_frames
 
     envs = {scenario: _env(spec, scenario) for scenario in spec.seeds}
     rounds = max(len(s) for s in spec.seeds.values()) * _BC_ATTEMPTS_PER_EPISODE
@@ -288,7 +289,9 @@ def collect_bc(spec: CollectSpec, budget: int) -> tuple[list[list[dict]], list[d
                     if frame_count(episodes) >= budget:
                         break
                     seed = _extra_seed(spec.seeds[scenario], k)
-                    rollout = rollout_expert(env, expert, seed, steps_after_success=spec.steps_after_success)
+                    rollout = expert_episode_frames(
+                        env, expert, seed, steps_after_success=spec.steps_after_success
+                    )
                     runs.append(
                         {
                             "scenario": scenario,

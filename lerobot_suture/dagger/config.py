@@ -6,8 +6,8 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from lerobot_suture.calibrate import PolicyPathConfig
 from lerobot_suture.dagger.watch import WatchConfig
+from lerobot_suture.runtime.config import RolloutCommandConfig
 from lerobot_suture.safety.ood.calibration import min_calibration_episodes
 
 GATED, UNGATED, BC = "gated", "ungated", "bc"
@@ -32,7 +32,7 @@ TOY_SIZES = {
 
 
 @dataclass
-class DaggerConfig:
+class DaggerConfig(RolloutCommandConfig):
     """``lerobot-suture dagger --policy.path=DIR --dataset_root=DIR --rounds=R --output_dir=DIR``.
 
     Args:
@@ -77,7 +77,6 @@ class DaggerConfig:
     """
 
     # Inputs and outputs.
-    policy: PolicyPathConfig = field(default_factory=PolicyPathConfig)
     dataset_root: Path | None = None
     output_dir: Path = Path("outputs/dagger")
     rounds: int = 2
@@ -101,15 +100,10 @@ class DaggerConfig:
     # Seeds and execution.
     seed: int = 5_000_000
     test_seed: int = 6_000_000
-    batch_envs: int = 8
-    device: str = "cpu"
     toy: bool = False
 
     def __post_init__(self):
-        if self.policy.path is None:
-            raise ValueError(
-                "`--policy.path` is required: the pretrained_model directory of the ensemble to improve."
-            )
+        super().__post_init__()
         if self.dataset_root is None:
             raise ValueError(
                 "`--dataset_root` is required: the `lerobot-suture record` dataset the policy was trained on."
@@ -139,7 +133,6 @@ class DaggerConfig:
             "finetune_steps",
             "new_data_repeats",
             "batch_size",
-            "batch_envs",
         ):
             if getattr(self, name) < 1:
                 raise ValueError(f"`{name}` must be >= 1. Got {getattr(self, name)}.")

@@ -3,9 +3,9 @@
 Per scenario: autonomous success (a success with no handover), overall success (the surgeon's rescues
 count), handovers and surgeon control steps (10 Hz) per episode, episodes with an alarm (for ``nominal``
 the false alarms), and, for each perturbed scenario, the episode-level AUROC of its uncertainty scores
-against the nominal ones (:func:`~lerobot_suture.experiments.runner.ood_metrics`; once the gate has
+against the nominal ones (:func:`~lerobot_suture.experiments.episode_metrics.ood_metrics`; once the gate has
 released control the policy is not asked again, so an episode's score is its largest before the handover).
-The surgeon here is :func:`~lerobot_suture.rollout.rollout_episodes`' (the default scripted expert), as in
+The surgeon here is :func:`~lerobot_suture.runtime.rollout.rollout_episodes`' (the default scripted expert), as in
 ``lerobot-suture experiments``; it only finishes what the policy handed over.
 """
 
@@ -19,8 +19,10 @@ import numpy as np
 
 from lerobot_suture.dagger.config import SCENARIOS
 from lerobot_suture.experiments import metrics
-from lerobot_suture.experiments.runner import episode_seeds, ood_metrics
-from lerobot_suture.rollout import SURGEON, EpisodeLog, make_scenario_env, rollout_seeds
+from lerobot_suture.experiments.episode_metrics import ood_metrics
+from lerobot_suture.runtime.policy import GateMode, PolicyRunner
+from lerobot_suture.runtime.rollout import SURGEON, EpisodeLog, make_scenario_env, rollout_seeds
+from lerobot_suture.runtime.seeds import episode_seeds
 
 NOMINAL = "nominal"
 
@@ -87,12 +89,7 @@ def evaluate(
     policy_dir: Path, env_kwargs: dict, seeds: dict[str, list[int]], batch_envs: int, device: str, desc: str
 ) -> dict:
     """Roll the calibrated policy out on ``seeds`` (scenario -> seeds), gate enforced, expert surgeon."""
-    from lerobot_suture.policy_runner import PolicyRunner
-
-    runner = PolicyRunner.from_pretrained(policy_dir, device)
-    if getattr(runner.policy, "ood_calibration", None) is None:
-        raise ValueError(f"The policy at {policy_dir} has no O.O.D. calibration to enforce.")
-    runner.policy.config.ood.enforce = True
+    runner = PolicyRunner.from_pretrained(policy_dir, GateMode.ENFORCE, device)
     logs = {
         scenario: rollout_seeds(
             functools.partial(make_scenario_env, env_kwargs, scenario),

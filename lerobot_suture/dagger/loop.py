@@ -28,7 +28,6 @@ from collections.abc import Callable
 from datetime import UTC, datetime
 from pathlib import Path
 
-import draccus
 from tqdm import tqdm
 
 from lerobot_suture.dagger import aggregate as agg
@@ -36,7 +35,8 @@ from lerobot_suture.dagger import collect as col
 from lerobot_suture.dagger.config import BC, GATED, SCENARIOS, DaggerConfig
 from lerobot_suture.dagger.evaluate import evaluate, evaluation_seeds
 from lerobot_suture.datasets.metadata import read_episode_log, read_json, write_json_atomic
-from lerobot_suture.experiments.runner import episode_seeds
+from lerobot_suture.runtime.config import PolicyPathConfig
+from lerobot_suture.runtime.seeds import episode_seeds
 
 logger = logging.getLogger(__name__)
 
@@ -153,7 +153,7 @@ class DaggerRun:
     def __init__(self, cfg: DaggerConfig):
         from lerobot_suture.datasets.features import IMAGE_KEY
         from lerobot_suture.expert import ExpertConfig
-        from lerobot_suture.policy_runner import env_kwargs_for_policy
+        from lerobot_suture.runtime.policy import env_kwargs_for_policy
 
         self.cfg = cfg
         self.out = Path(cfg.output_dir)
@@ -200,7 +200,7 @@ class DaggerRun:
         )
 
     def calibrate(self, policy: Path) -> None:
-        from lerobot_suture.calibrate import CalibrateConfig, PolicyPathConfig, run_calibration
+        from lerobot_suture.runtime.calibration import CalibrateConfig, run_calibration
 
         cfg = self.cfg
         run_calibration(
@@ -244,7 +244,7 @@ class DaggerRun:
         return int(read_json(self.round_dir(GATED, round_) / "collect.json")["new_frames"])
 
     def collect(self, arm: str, round_: int, policy: Path) -> None:
-        from lerobot_suture.policy_runner import PolicyRunner
+        from lerobot_suture.runtime.policy import GateMode, PolicyRunner
 
         out = self.round_dir(arm, round_)
         shutil.rmtree(out / "new_data", ignore_errors=True)  # a write a kill interrupted
@@ -253,7 +253,8 @@ class DaggerRun:
         if arm == BC:
             episodes, runs = col.collect_bc(spec, budget)
         else:
-            runner = PolicyRunner.from_pretrained(policy, self.cfg.device)
+            # The gated arm's collection hands over; the ungated arm's policy keeps control throughout.
+            runner = PolicyRunner.from_pretrained(policy, GateMode.of(arm == GATED), self.cfg.device)
             if arm == GATED:
                 episodes, runs = col.collect_gated(runner, spec)
             else:
@@ -292,7 +293,7 @@ class DaggerRun:
 
     def train(self, arm: str, round_: int, policy: Path) -> Path:
         from lerobot_suture.datasets.video import resolve_video_backend
-        from lerobot_suture.training import run_lerobot_train
+        from lerobot_suture.runtime.training import run_lerobot_train
 
         cfg = self.cfg
         out = self.round_dir(arm, round_)
@@ -318,7 +319,7 @@ class DaggerRun:
         return run_lerobot_train(out / "train", fresh, cfg.finetune_steps, common)
 
     def trained(self, arm: str, round_: int) -> bool:
-        from lerobot_suture.training import checkpoint_step
+        from lerobot_suture.runtime.training import checkpoint_step
 
         last = self.round_dir(arm, round_) / "train" / "checkpoints" / "last"
         return last.is_dir() and checkpoint_step(last) >= self.cfg.finetune_steps
@@ -354,10 +355,3 @@ def run_dagger(cfg: DaggerConfig) -> dict:
     Path(cfg.output_dir).mkdir(parents=True, exist_ok=True)
     _check_settings(cfg)
     return DaggerRun(cfg).run()
-
-
-def main(argv: list[str] | None = None) -> None:
-    cfg = draccus.parse(config_class=DaggerConfig, args=argv, exit_on_error=False)
-    result = run_dagger(cfg)
-    print(result["table"])
-    print(f"dagger.md, dagger.json and dagger.png in {cfg.output_dir}")

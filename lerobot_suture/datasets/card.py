@@ -1,4 +1,4 @@
-"""The dataset card (``README.md``) of a recorded dataset, from ``datasets/card_template.md``.
+"""The dataset card (``README.md``) of a recorded dataset, from ``recipes/card_template.md``.
 
 Our template renders the card's description; LeRobot's own card builder
 (``lerobot.datasets.utils.create_lerobot_dataset_card``, the one ``LeRobotDataset.push_to_hub`` uses)
@@ -51,8 +51,8 @@ _DESCRIPTIONS = {
 
 
 def default_template_path() -> Path:
-    """``datasets/card_template.md`` of the lerobot-suture source tree."""
-    return Path(__file__).resolve().parents[2] / "datasets" / TEMPLATE_NAME
+    """``recipes/card_template.md`` of the lerobot-suture source tree."""
+    return Path(__file__).resolve().parents[2] / "recipes" / TEMPLATE_NAME
 
 
 def _index_range(indices: list[int]) -> str:

@@ -11,7 +11,6 @@ with the command to retry; the local dataset is only ever read.
 from __future__ import annotations
 
 import logging
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -55,6 +54,8 @@ def validate_repo_id(repo_id: str) -> None:
 
 class HubPushError(RuntimeError):
     """The dataset cannot be pushed to the Hub (no token, no network, no permission, upload failed)."""
+
+    exit_status = 1  # the command's exit status: the input was fine, the push was not
 
 
 def _hub_offline() -> bool:
@@ -173,31 +174,3 @@ class PushConfig:
 
     def __post_init__(self):
         validate_repo_id(self.repo_id)
-
-
-def main(argv: list[str] | None = None) -> None:
-    """``lerobot-suture push``: push a dataset recorded with ``lerobot-suture record``."""
-    import argparse
-
-    import draccus
-
-    from lerobot_suture.cli import flag_error
-
-    try:
-        cfg = draccus.parse(
-            config_class=PushConfig, args=argv, prog="lerobot-suture push", exit_on_error=False
-        )
-    except (draccus.utils.DraccusException, argparse.ArgumentError) as exc:
-        print(f"lerobot-suture push: error: {flag_error(exc)}", file=sys.stderr)
-        raise SystemExit(2) from None
-    if cfg.root is None:
-        from lerobot.utils.constants import HF_LEROBOT_HOME
-
-        root = Path(HF_LEROBOT_HOME) / cfg.repo_id
-    else:
-        root = Path(cfg.root).expanduser()
-    try:
-        print(push_dataset(cfg.repo_id, root, private=cfg.private))
-    except (HubPushError, RuntimeError, FileNotFoundError) as exc:
-        print(f"lerobot-suture push: error: {exc}", file=sys.stderr)
-        raise SystemExit(1) from None

@@ -37,18 +37,16 @@ Example::
 
     lerobot-suture record --repo_id=$HF_USER/suture_expert --num_episodes=133 --val_fraction=0.25 \\
         --obs_type=pixels_agent_pos --image_size=96 --scenario=nominal --seed=0 --video=true
-    lerobot-suture record --config_path=datasets/suture_expert.yaml --repo_id=$HF_USER/suture_expert
+    lerobot-suture record --config_path=recipes/suture_expert.yaml --repo_id=$HF_USER/suture_expert
 """
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import logging
 import math
 import os
 import shutil
-import sys
 import time
 from collections import Counter
 from dataclasses import dataclass
@@ -58,10 +56,10 @@ from pathlib import Path
 import numpy as np
 
 from lerobot_suture.datasets import metadata
-from lerobot_suture.datasets.episode import make_env, rollout_expert
+from lerobot_suture.datasets.expert_episode import expert_episode_frames, make_env
 from lerobot_suture.datasets.features import FPS, ROBOT_TYPE, dataset_features
-from lerobot_suture.datasets.hub import HubPushError, check_hub_access, push_dataset
-from lerobot_suture.datasets.record_config import COMMAND, RecordConfig, parse_config
+from lerobot_suture.datasets.hub import check_hub_access, push_dataset
+from lerobot_suture.datasets.record_config import RecordConfig
 from lerobot_suture.datasets.resume import prepare_root
 from lerobot_suture.datasets.scheduling import normal_scheduling
 from lerobot_suture.datasets.split import info_splits, split_episodes
@@ -89,7 +87,7 @@ def regenerate_episode(root: str | Path, episode_index: int) -> dict[str, np.nda
     entry = log["episodes"][episode_index]
     env = make_env(**log["env_kwargs"])
     try:
-        rollout = rollout_expert(
+        rollout = expert_episode_frames(
             env,
             ScriptedExpert(ExpertConfig(**log["expert"]["config"])),
             entry["seed"],
@@ -225,7 +223,7 @@ def record(cfg: RecordConfig) -> RecordSummary:
             since_checkpoint = 0
             while len(log["episodes"]) < cfg.num_episodes:
                 seed = log["next_seed"]
-                result = rollout_expert(
+                result = expert_episode_frames(
                     env,
                     expert,
                     seed,
@@ -358,45 +356,3 @@ def _log_summary(s: RecordSummary, cfg: RecordConfig) -> None:
         s.root,
         cfg.val_fraction,
     )
-
-
-def main(argv: list[str] | None = None) -> None:
-    """``lerobot-suture record``: parse flags (draccus) and record. Exits non-zero on failure.
-
-    Exit status: 0 done; 2 bad flags or root; 1 other failures; 128 + signal number when interrupted
-    (130 for Ctrl-C), with every finished episode kept.
-    """
-    import argparse
-
-    import draccus
-
-    from lerobot_suture.cli import flag_error
-
-    if not logging.getLogger().handlers:
-        logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    logging.getLogger("lerobot.configs.video").setLevel(logging.WARNING)  # "Using video codec" per file
-    with contextlib.suppress(ImportError):  # FFmpeg's own INFO lines ("Starting second pass ...")
-        import av.logging
-
-        av.logging.set_level(av.logging.ERROR)
-    try:
-        cfg = parse_config(argv)
-    except (draccus.utils.DraccusException, argparse.ArgumentError) as exc:
-        print(f"{COMMAND}: error: {flag_error(exc)} (`{COMMAND} --help` lists the flags)", file=sys.stderr)
-        raise SystemExit(2) from None
-    try:
-        record(cfg)
-    except RecordingInterrupted as exc:
-        raise SystemExit(128 + exc.signum) from None
-    except KeyboardInterrupt:
-        raise SystemExit(130) from None
-    except (FileExistsError, FileNotFoundError, ValueError) as exc:
-        print(f"{COMMAND}: error: {exc}", file=sys.stderr)
-        raise SystemExit(2) from None
-    except HubPushError as exc:
-        print(f"{COMMAND}: error: {exc}", file=sys.stderr)
-        raise SystemExit(1) from None
-
-
-if __name__ == "__main__":
-    main()

@@ -19,6 +19,11 @@ class RecordingInterrupted(KeyboardInterrupt):
         super().__init__(f"recording stopped by {signal.Signals(signum).name}")
         self.signum = signum
 
+    @property
+    def exit_status(self) -> int:
+        """The shell's convention for a process ended by a signal: 128 + its number (130 for Ctrl-C)."""
+        return 128 + self.signum
+
 
 class StopSignals:
     """Turns SIGINT/SIGTERM into :class:`RecordingInterrupted`, held back while a critical section runs.

@@ -1,6 +1,6 @@
 """``lerobot-suture benchmark-ood``: the failure detectors side by side, on the same rollouts.
 
-The policy is rolled out once per part, with its gate reporting only (``ood.enforce`` off) and the
+The policy is rolled out once per part, with its gate reporting only (``GateMode.REPORT``) and the
 features every detector reads captured at each prediction (:meth:`enable_feature_capture`: the members'
 samples, their observation embeddings, further chunks of member 0), without changing its actions:
 
@@ -30,20 +30,21 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-import draccus
 import numpy as np
 from tqdm import tqdm
 
-from lerobot_suture.calibrate import PolicyPathConfig, dataset_appearance
 from lerobot_suture.detectors import DETECTOR_NAMES
-from lerobot_suture.experiments.benchmark_ood_report import fmt, plot_detector, plot_shifts, render_tables
+from lerobot_suture.experiments.benchmark_ood_report import plot_detector, plot_shifts, render_tables
 from lerobot_suture.experiments.benchmark_ood_scoring import SCENARIOS, evaluate_detector
-from lerobot_suture.experiments.runner import episode_seeds, json_default
-from lerobot_suture.rollout import EpisodeLog, StepLog, make_scenario_env, rollout_seeds
+from lerobot_suture.experiments.report import json_default
+from lerobot_suture.runtime.calibration import dataset_appearance
+from lerobot_suture.runtime.config import RolloutCommandConfig
+from lerobot_suture.runtime.policy import GateMode, env_kwargs_for_policy, reporting_runner
+from lerobot_suture.runtime.rollout import EpisodeLog, StepLog, make_scenario_env, rollout_seeds
+from lerobot_suture.runtime.seeds import episode_seeds
 from lerobot_suture.safety.ood.calibration import min_calibration_episodes
 from lerobot_suture.sim.shifts import SHIFTS, Shift, default_shifts
 
@@ -54,9 +55,9 @@ SHIFT_GROUP = 100  # test-seed group of the first shift part, apart from the sce
 
 
 @dataclass
-class BenchmarkOODConfig:
-    """Args:
-    policy: ``--policy.path=DIR``, a trained ensemble (no calibration needed).
+class BenchmarkOODConfig(RolloutCommandConfig):
+    """Args (and those of :class:`~lerobot_suture.runtime.config.RolloutCommandConfig`; the policy is a
+    trained ensemble, no calibration needed):
     output_dir: where ``detectors.md``, ``detectors.json``, the figures and ``parts/`` go.
     validation_seed: base seed of the fit and calibration parts (apart from recording, calibration and
         score-study seeds).
@@ -77,11 +78,8 @@ class BenchmarkOODConfig:
         detector, >= 2; 0 reads member 0's own chunks of the ensemble prediction instead (no extra cost;
         needs the policy's ``uncertainty_samples_per_member`` >= 2).
     detectors: which detectors to compare (all by default).
-    batch_envs: envs run in lockstep with one batched policy call per step, >= 1.
-    device: torch device of the policy.
     """
 
-    policy: PolicyPathConfig = field(default_factory=PolicyPathConfig)
     output_dir: Path = Path("outputs/benchmark_ood")
     validation_seed: int = 1_700_000
     test_seed: int = 2_000_000
@@ -96,13 +94,10 @@ class BenchmarkOODConfig:
     alpha: float = 0.05
     single_member_samples: int = 0
     detectors: list[str] = field(default_factory=lambda: list(DETECTOR_NAMES))
-    batch_envs: int = 8
-    device: str = "cpu"
 
     def __post_init__(self):
-        if self.policy.path is None:
-            raise ValueError("`--policy.path` is required: a trained ensemble's pretrained_model directory.")
-        for key in ("fit_episodes", "nominal_episodes", "runs_per_scenario", "runs_per_shift", "batch_envs"):
+        super().__post_init__()
+        for key in ("fit_episodes", "nominal_episodes", "runs_per_scenario", "runs_per_shift"):
             if getattr(self, key) < 1:
                 raise ValueError(f"`{key}` must be >= 1. Got {getattr(self, key)}.")
         if self.single_member_samples < 0 or self.single_member_samples == 1:
@@ -161,12 +156,12 @@ def _numpy(tensor) -> np.ndarray:
 
 
 class CapturingRunner:
-    """Wraps a :class:`~lerobot_suture.policy_runner.PolicyRunner` for the rollout functions and keeps, at
+    """Wraps a :class:`~lerobot_suture.runtime.policy.PolicyRunner` for the rollout functions and keeps, at
     each new prediction, every env's features; :meth:`take` hands them out per episode."""
 
     def __init__(self, runner, single_member_samples: int, seed: int = 0):
-        if runner.policy.config.ood.enforce:
-            raise ValueError("The benchmark runs the gate in reporting mode: set `ood.enforce` to false.")
+        if runner.gate is not GateMode.REPORT:
+            raise ValueError("The benchmark runs the gate in reporting mode: pass a GateMode.REPORT runner.")
         self.runner, self.policy = runner, runner.policy
         self.policy.enable_feature_capture(single_member_samples, seed)
         self.action_start = self.policy.config.n_obs_steps - 1
@@ -266,8 +261,6 @@ def policy_fingerprint(directory: Path) -> dict[str, list[int]]:
 
 
 def run_benchmark(cfg: BenchmarkOODConfig) -> dict:
-    from lerobot_suture.policy_runner import env_kwargs_for_policy, reporting_runner
-
     cfg.output_dir.mkdir(parents=True, exist_ok=True)
     base = reporting_runner(
         cfg.policy.path,
@@ -359,15 +352,3 @@ def run_benchmark(cfg: BenchmarkOODConfig) -> dict:
     (cfg.output_dir / "detectors.json").write_text(json.dumps(result, indent=2, default=json_default))
     (cfg.output_dir / "detectors.md").write_text(render_tables(result))
     return result
-
-
-def main(argv: list[str] | None = None) -> None:
-    cfg = draccus.parse(config_class=BenchmarkOODConfig, args=argv, exit_on_error=False)
-    result = run_benchmark(cfg)
-    aurocs = {n: r.get("mean_auroc_common_steps", math.nan) for n, r in result["detectors"].items()}
-    ranked = sorted(aurocs, key=lambda n: -math.inf if math.isnan(aurocs[n]) else aurocs[n], reverse=True)
-    print(
-        "Mean AUROC over common steps: "
-        + ", ".join(f"{n} {fmt(aurocs[n])}" for n in ranked)
-        + f". Table: {cfg.output_dir / 'detectors.md'}"
-    )

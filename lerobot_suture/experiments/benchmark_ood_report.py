@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from lerobot_suture.experiments.runner import EXPERIMENTS
+from lerobot_suture.experiments.paper import EXPERIMENTS
 
 SCENARIOS = tuple(scenario for _, scenario, _ in EXPERIMENTS)
 

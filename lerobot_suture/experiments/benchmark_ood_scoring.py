@@ -11,8 +11,8 @@ import numpy as np
 
 from lerobot_suture.detectors import PredictionFeatures, make_detector, timed_scores
 from lerobot_suture.experiments import metrics
-from lerobot_suture.experiments.runner import EXPERIMENTS, ood_metrics
-from lerobot_suture.rollout import EpisodeLog
+from lerobot_suture.experiments.paper import EXPERIMENTS, ood_metrics
+from lerobot_suture.runtime.rollout import EpisodeLog
 from lerobot_suture.safety.ood.calibration import conformal_episode_threshold
 
 SCENARIOS = tuple(scenario for _, scenario, _ in EXPERIMENTS)

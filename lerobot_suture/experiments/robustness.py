@@ -27,8 +27,6 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import draccus
-
 from lerobot_suture.experiments.benchmark_ood_report import fmt
 from lerobot_suture.experiments.metrics import auroc, most_failures_flagged
 from lerobot_suture.sim.shifts import Shift, within_training_range
@@ -291,9 +289,3 @@ def build_report(cfg: RobustnessReportConfig) -> dict:
     (cfg.output_dir / "robustness.md").write_text(render(result))
     plot(result, cfg.output_dir / "robustness.png")
     return result
-
-
-def main(argv: list[str] | None = None) -> None:
-    cfg = draccus.parse(config_class=RobustnessReportConfig, args=argv, exit_on_error=False)
-    build_report(cfg)
-    print((cfg.output_dir / "robustness.md").read_text())

@@ -23,21 +23,19 @@ import itertools
 import json
 import logging
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
-import draccus
 import numpy as np
 
-from lerobot_suture.calibrate import PolicyPathConfig
+from lerobot_suture.experiments.benchmark_ood_report import fmt
+from lerobot_suture.experiments.episode_metrics import EXPERIMENTS, ood_metrics
 from lerobot_suture.experiments.metrics import END_OF_TASK_STEPS, share_of_maxima_at_end
-from lerobot_suture.experiments.runner import (
-    EXPERIMENTS,
-    episode_seeds,
-    json_default,
-    ood_metrics,
-)
-from lerobot_suture.rollout import EpisodeLog, make_scenario_env, rollout_seeds
+from lerobot_suture.experiments.report import json_default
+from lerobot_suture.runtime.config import RolloutCommandConfig
+from lerobot_suture.runtime.policy import GateMode, env_kwargs_for_policy, reporting_runner
+from lerobot_suture.runtime.rollout import EpisodeLog, make_scenario_env, rollout_seeds
+from lerobot_suture.runtime.seeds import episode_seeds
 from lerobot_suture.safety.ood.calibration import default_model, fit_calibration, min_calibration_episodes
 from lerobot_suture.safety.ood.gate import OODGate
 
@@ -45,35 +43,26 @@ logger = logging.getLogger(__name__)
 
 
 @dataclass
-class ScoreStudyConfig:
-    """Args:
-    policy: ``--policy.path=DIR``, a trained ensemble (no calibration needed).
+class ScoreStudyConfig(RolloutCommandConfig):
+    """Args (and those of :class:`~lerobot_suture.runtime.config.RolloutCommandConfig`; the policy is a
+    trained ensemble, no calibration needed):
     output_dir: where ``score_study.json``, ``score_study.md`` and ``score_study.png`` go.
     seed: base of every episode seed (validation seeds, disjoint from recording, calibration and test).
     nominal_episodes: nominal runs the per-episode threshold of each choice is fitted on.
     runs_per_scenario: runs of each perturbation scenario (experiments 1, 2, 3.1, 3.2).
     alpha: per-episode false-alarm rate the thresholds are fitted for.
-    batch_envs: envs run in lockstep with one batched policy call per step.
-    device: torch device of the policy.
     """
 
-    policy: PolicyPathConfig = field(default_factory=PolicyPathConfig)
     output_dir: Path = Path("outputs/score_study")
     seed: int = 1_500_000
     nominal_episodes: int = 40
     runs_per_scenario: int = 12
     alpha: float = 0.05
-    batch_envs: int = 8
-    device: str = "cpu"
 
     def __post_init__(self):
-        if self.policy.path is None:
-            raise ValueError("`--policy.path` is required: a trained ensemble's pretrained_model directory.")
-        if self.runs_per_scenario < 1 or self.batch_envs < 1:
-            raise ValueError(
-                f"`runs_per_scenario` and `batch_envs` must be >= 1. Got {self.runs_per_scenario}, "
-                f"{self.batch_envs}."
-            )
+        super().__post_init__()
+        if self.runs_per_scenario < 1:
+            raise ValueError(f"`runs_per_scenario` must be >= 1. Got {self.runs_per_scenario}.")
         needed = min_calibration_episodes(self.alpha)
         if self.nominal_episodes < needed:
             raise ValueError(
@@ -98,15 +87,17 @@ def choice_label(choice: dict[str, str]) -> str:
 
 
 class RescoringRunner:
-    """Wraps a :class:`~lerobot_suture.policy_runner.PolicyRunner` (for the rollout functions) and scores
+    """Wraps a :class:`~lerobot_suture.runtime.policy.PolicyRunner` (for the rollout functions) and scores
     each new prediction in every way of ``choices``. Per control step it keeps the latest prediction's
     scores (as the gate holds its score between predictions); :meth:`take` hands them out per episode.
     """
 
     def __init__(self, runner, choices: list[dict[str, str]]):
-        if runner.policy.config.ood.enforce:
+        if runner.gate is not GateMode.REPORT:
             # An enforced gate stops asking the policy, and the steps would no longer match the calls.
-            raise ValueError("The score study runs the gate in reporting mode: set `ood.enforce` to false.")
+            raise ValueError(
+                "The score study runs the gate in reporting mode: pass a GateMode.REPORT runner."
+            )
         self.runner, self.choices = runner, choices
         self.policy = runner.policy
         self._calls: list[np.ndarray] = []  # per act_batch call: (B, C)
@@ -172,7 +163,7 @@ def evaluate_choice(
     model: str = "lognormal",
 ) -> dict:
     """One score choice's numbers: its per-episode threshold fitted on ``nominal`` and, per scenario,
-    the experiments' O.O.D. metrics (:func:`~lerobot_suture.experiments.runner.ood_metrics`).
+    the experiments' O.O.D. metrics (:func:`~lerobot_suture.experiments.paper.ood_metrics`).
 
     ``model``: the calibration's I.D. model, ``normal`` for scores that can be negative (``logdet``).
     """
@@ -206,8 +197,6 @@ def evaluate_choice(
 
 
 def run_score_study(cfg: ScoreStudyConfig) -> dict:
-    from lerobot_suture.policy_runner import env_kwargs_for_policy, reporting_runner
-
     cfg.output_dir.mkdir(parents=True, exist_ok=True)
     base = reporting_runner(
         cfg.policy.path,
@@ -273,10 +262,6 @@ def _nan_low(x: float) -> float:
     return -math.inf if x is None or math.isnan(x) else x
 
 
-def _fmt(x) -> str:
-    return "n/a" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.3f}"
-
-
 def render_table(result: dict) -> str:
     """``score_study.md``: one row per score choice, best rank score first."""
     scenarios = [s for _, s, _ in EXPERIMENTS]
@@ -305,15 +290,15 @@ def render_table(result: dict) -> str:
             continue
         cells = [
             label,
-            _fmt(row["rank_score"]),
-            f"{_fmt(row['mean_auroc'])} ({_fmt(row['mean_auroc_common_steps'])})",
+            fmt(row["rank_score"]),
+            f"{fmt(row['mean_auroc'])} ({fmt(row['mean_auroc_common_steps'])})",
         ]
         for s in scenarios:
             m = row["scenarios"][s]
-            cells.append(f"{_fmt(m['auroc'])} ({_fmt(m['auroc_common_steps'])})")
+            cells.append(f"{fmt(m['auroc'])} ({fmt(m['auroc_common_steps'])})")
         delay = row["scenarios"]["needle_drop"]["detection_delay_steps"]
         cells.append(f"{delay['median']} ({delay['n']} detected)" if delay["n"] else "none detected")
-        cells.append(_fmt(row["nominal_max_in_last_steps"]))
+        cells.append(fmt(row["nominal_max_in_last_steps"]))
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
@@ -351,14 +336,3 @@ def plot_score_study(result: dict, path: Path) -> Path:
     fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return path
-
-
-def main(argv: list[str] | None = None) -> None:
-    cfg = draccus.parse(config_class=ScoreStudyConfig, args=argv, exit_on_error=False)
-    result = run_score_study(cfg)
-    best = result["choices"][0]
-    own = next(r for r in result["choices"] if r["policy_own"])
-    print(
-        f"Best: {best['label']} (rank score {_fmt(best['rank_score'])}); the policy's own {own['label']}: "
-        f"{_fmt(own['rank_score'])}. Table: {cfg.output_dir / 'score_study.md'}"
-    )

@@ -22,7 +22,7 @@ shift                  family      unit      what a magnitude ``m`` does
 =====================  ==========  ========  ===========================================================
 
 :data:`MAGNITUDES` holds two magnitudes of each: the smaller one lies inside the appearance ranges of the
-randomized recipe (``datasets/suture_expert_randomized.yaml``) where that recipe varies the quantity, the
+randomized recipe (``recipes/suture_expert_randomized.yaml``) where that recipe varies the quantity, the
 larger one beyond them. Geometry and dynamics are not randomized by any recipe: both their magnitudes are
 beyond training.
 """

@@ -27,15 +27,12 @@ A action dimensions. Member n's k-th sampled chunk is x_{n,k} (T, A).
   `correction=0` the sum equals the population covariance of all N*K samples pooled (an exact identity).
   With K = 1 the aleatoric term is not identifiable and the total is the epistemic term, the paper's Sigma.
 
-Scores map a covariance (..., T, A, A) to one number per prediction (...):
-  max_abs_cov  sigma_hat = max_t max_ij |Sigma_t,ij|   (the paper)
-  trace        max_t tr(Sigma_t)
-  logdet       max_t log det(Sigma_t + eps I)
+The scores of these covariances are `lerobot_suture.safety.ood.score.score_tensor` (one implementation,
+shared with the gate's numpy side).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, fields
 
 import torch
@@ -169,40 +166,3 @@ def compute_ensemble_stats(samples: Tensor, correction: int = 1) -> EnsembleActi
         return EnsembleActionStats(samples, member_mean, mean, epistemic, epistemic, None)
     aleatoric, epistemic, total = total_covariance_split(samples, correction=correction)  # 3 x (B, T, A, A)
     return EnsembleActionStats(samples, member_mean, mean, total, epistemic, aleatoric)
-
-
-# Scores: (..., T, A, A) covariance -> (...) one number per prediction.
-
-
-def score_max_abs_cov(cov: Tensor) -> Tensor:
-    """The paper's sigma_hat: the largest absolute covariance entry over all predicted steps.
-
-    Args:
-        cov: (..., T, A, A)
-    Returns:
-        (...)
-    """
-    return cov.abs().amax(dim=(-3, -2, -1))
-
-
-def score_trace(cov: Tensor) -> Tensor:
-    """The largest total variance (trace) over the predicted steps. cov: (..., T, A, A) -> (...)."""
-    return cov.diagonal(dim1=-2, dim2=-1).sum(dim=-1).amax(dim=-1)
-
-
-def score_logdet(cov: Tensor, eps: float = 1e-6) -> Tensor:
-    """The largest log-determinant of `cov + eps * I` over the predicted steps. (..., T, A, A) -> (...)."""
-    eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
-    return torch.linalg.slogdet(cov + eps * eye).logabsdet.amax(dim=-1)
-
-
-def uncertainty_score(cov: Tensor, name: str, logdet_eps: float = 1e-6) -> Tensor:
-    """Score `cov` (..., T, A, A) with the score called `name` (see module docstring); returns (...)."""
-    scores: dict[str, Callable[[Tensor], Tensor]] = {
-        "max_abs_cov": score_max_abs_cov,
-        "trace": score_trace,
-        "logdet": lambda c: score_logdet(c, eps=logdet_eps),
-    }
-    if name not in scores:
-        raise ValueError(f"`name` must be one of {list(scores)}. Got {name!r}.")
-    return scores[name](cov)

@@ -21,12 +21,17 @@ import logging
 import math
 from pathlib import Path
 
+import torch
+from lerobot.configs import FeatureType, NormalizationMode
+from lerobot.utils.constants import OBS_STATE
 from torch import Tensor
 
 from lerobot_suture.safety.ood.calibration import OODCalibration
+from lerobot_suture.safety.ood.calibration_file import load_calibration
 from lerobot_suture.safety.ood.gate import OODGate
 
 from .configuration_ensemble_diffusion import EnsembleDiffusionConfig
+from .normalization import action_affine_from_stats
 
 logger = logging.getLogger(__name__)
 
@@ -114,3 +119,56 @@ def gate_status(gates: list[OODGate], index: int, enforce: bool, new_prediction:
         "released": bool(gate.released and enforce),
         "new_prediction": new_prediction,
     }
+
+
+class GatedPolicyMixin:
+    """The gate's side of :class:`~.modeling_ensemble_diffusion.EnsembleDiffusionPolicy`: its calibration,
+    the per-env gates, the hold action and the status a rollout logs. Reads the policy's `config`, its
+    normalization buffers, `_ood_gates` and `_new_prediction`."""
+
+    def set_state_normalization(self, stats: dict[str, dict]) -> None:
+        """Learn the state's normalization (for the gate's hold action) from dataset-style statistics."""
+        mode = NormalizationMode(
+            (self.config.normalization_mapping or {}).get(FeatureType.STATE.value, NormalizationMode.IDENTITY)
+        )
+        scale, offset = action_affine_from_stats(stats, mode, key=OBS_STATE)
+        with torch.no_grad():
+            self.state_unnormalize_scale.copy_(scale)
+            self.state_unnormalize_offset.copy_(offset)
+
+    def load_ood_calibration(self, directory: str | Path) -> OODCalibration:
+        """Load the gate's calibration from `directory / config.ood.calibration_file`.
+
+        Raises:
+            CalibrationNotFoundError: the file is missing (its message says how to calibrate).
+            ValueError: the file is malformed, or was fitted on another score than this policy computes.
+        """
+        calibration = load_calibration(directory, filename=self.config.ood.calibration_file)
+        check_calibration_fits(calibration, self.config, directory)
+        self.ood_calibration = calibration
+        self._ood_gates = []
+        return calibration
+
+    def _update_ood_gates(self, scores: Tensor) -> None:
+        self._ood_gates = update_gates(self._ood_gates, scores, self.ood_calibration, self.config)
+
+    def _hold_action(self, batch: dict[str, Tensor]) -> Tensor:
+        """The measured pose as a normalized action, (B, A): the arm stops where it is."""
+        if not bool(torch.isfinite(self.state_unnormalize_scale).all()) or not self.has_action_stats:
+            raise ValueError(
+                "The O.O.D. gate released control but the policy cannot form a hold action: it does not know "
+                "the state and action normalization. Load the policy with `from_pretrained` from a lerobot-train "
+                "checkpoint directory (it reads them from the saved preprocessor)."
+            )
+        state = batch[OBS_STATE]  # (B, S), normalized, the current observation
+        pose = state * self.state_unnormalize_scale + self.state_unnormalize_offset
+        return (pose - self.action_unnormalize_offset) / self.action_unnormalize_scale
+
+    def ood_status(self, index: int = 0) -> dict:
+        """The gate's state for batch element `index` after the last `select_action`, for logging.
+
+        Keys: `score` (the last prediction's uncertainty score), `threshold` (NaN without a calibration),
+        `decision` (the last test said O.O.D.), `released` (control was released, latched until `reset`),
+        `new_prediction` (this call predicted a new chunk).
+        """
+        return gate_status(self._ood_gates, index, self.config.ood.enforce, self._new_prediction)

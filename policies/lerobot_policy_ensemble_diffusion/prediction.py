@@ -22,8 +22,10 @@ from dataclasses import dataclass
 
 from torch import Tensor
 
+from lerobot_suture.safety.ood.score import score_tensor
+
 from .configuration_ensemble_diffusion import SCORE_CHOICES
-from .ensemble_stats import EnsembleActionStats, uncertainty_score
+from .ensemble_stats import EnsembleActionStats
 
 
 @dataclass(frozen=True)
@@ -90,4 +92,4 @@ def score_ensemble_stats(
             "covariances need two samples each)."
         )
     cov = {"total": scored.covariance, "epistemic": scored.epistemic, "aleatoric": scored.aleatoric}[source]
-    return uncertainty_score(cov, choice["uncertainty_score"], logdet_eps=logdet_eps)
+    return score_tensor(cov, choice["uncertainty_score"], logdet_eps=logdet_eps)

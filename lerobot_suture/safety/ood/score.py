@@ -24,6 +24,7 @@ __all__ = [
     "get_score_function",
     "score_logdet",
     "score_max_abs_cov",
+    "score_tensor",
     "score_trace",
 ]
 
@@ -44,6 +45,37 @@ def _as_covariance(cov: ArrayLike) -> np.ndarray:
     return cov
 
 
+def _torch():
+    import torch  # imported when a score is computed: the rest of the gate is numpy
+
+    return torch
+
+
+def _logdet_terms(cov, eps: float):
+    """(sign, log|det|) of ``cov + eps I`` per step, ``(..., T)`` each (torch)."""
+    torch = _torch()
+    eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
+    return torch.linalg.slogdet(cov + eps * eye)
+
+
+def score_tensor(cov, name: "str | ScoreName", logdet_eps: float = LOGDET_EPS):
+    """The score ``name`` of a torch covariance ``cov``, ``(..., T, A, A)`` -> ``(...)``, on its device and
+    in its dtype: the one implementation of every score (the policy scores its predictions with it, the
+    numpy functions below wrap it).
+    """
+    name = ScoreName.parse(name)
+    if name is ScoreName.MAX_ABS_COV:
+        return cov.abs().amax(dim=(-3, -2, -1))
+    if name is ScoreName.TRACE:
+        return cov.diagonal(dim1=-2, dim2=-1).sum(dim=-1).amax(dim=-1)
+    return _logdet_terms(cov, logdet_eps).logabsdet.amax(dim=-1)
+
+
+def _numpy_score(cov: ArrayLike, name: "ScoreName", eps: float = LOGDET_EPS) -> np.ndarray:
+    torch = _torch()
+    return score_tensor(torch.from_numpy(_as_covariance(cov)), name, eps).numpy()
+
+
 def score_max_abs_cov(cov: ArrayLike) -> np.ndarray:
     """The paper's score: sigma_hat = max over steps t and entries (i, j) of |Sigma_t[i, j]|.
 
@@ -54,8 +86,7 @@ def score_max_abs_cov(cov: ArrayLike) -> np.ndarray:
         Score of shape ``(...)`` (a 0-d value for an unbatched ``(T, A, A)`` input), >= 0. NaN entries
         propagate to NaN, which the test treats as O.O.D.
     """
-    cov = _as_covariance(cov)
-    return np.max(np.abs(cov), axis=(-3, -2, -1))
+    return _numpy_score(cov, ScoreName.MAX_ABS_COV)
 
 
 def score_trace(cov: ArrayLike) -> np.ndarray:
@@ -67,8 +98,7 @@ def score_trace(cov: ArrayLike) -> np.ndarray:
     Returns:
         Score of shape ``(...)``, >= 0 for positive semi-definite ``cov``.
     """
-    cov = _as_covariance(cov)
-    return np.max(np.trace(cov, axis1=-2, axis2=-1), axis=-1)
+    return _numpy_score(cov, ScoreName.TRACE)
 
 
 def score_logdet(cov: ArrayLike, eps: float = LOGDET_EPS) -> np.ndarray:
@@ -92,16 +122,13 @@ def score_logdet(cov: ArrayLike, eps: float = LOGDET_EPS) -> np.ndarray:
     if not eps > 0:
         raise ValueError(f"`eps` must be > 0. Got {eps}.")
     cov = _as_covariance(cov)
-    eye = np.eye(cov.shape[-1])
-    with np.errstate(invalid="ignore"):
-        sign, logabsdet = np.linalg.slogdet(cov + eps * eye)  # (..., T)
-    finite = np.isfinite(logabsdet)
-    if np.any(finite & (sign <= 0)):
+    sign, logabsdet = _logdet_terms(_torch().from_numpy(cov), eps)  # (..., T)
+    if bool(((sign <= 0) & logabsdet.isfinite()).any()):
         raise ValueError(
             f"`cov` + {eps} * I must be positive definite for `score_logdet`; got a non-positive "
             "determinant. Pass a covariance (positive semi-definite) or raise `eps`."
         )
-    return np.max(logabsdet, axis=-1)
+    return logabsdet.amax(dim=-1).numpy()
 
 
 class ScoreName(StrEnum):

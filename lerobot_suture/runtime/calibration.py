@@ -1,7 +1,7 @@
-"""``lerobot-suture calibrate --policy.path=DIR``: fit the O.O.D. gate of a trained ensemble.
+"""Fitting the O.O.D. gate of a trained ensemble (``lerobot-suture calibrate``).
 
 Rolls the policy out in the nominal scenario on seeds it was not trained on (the dataset's validation
-seeds when ``--dataset_root`` is given, else fresh seeds), records the uncertainty score of every
+seeds when ``dataset_root`` is given, else fresh seeds), records the uncertainty score of every
 prediction, fits the in-distribution model on the first ``calibration_episodes`` episodes, measures
 the false-alarm rate on the remaining held-out episodes, and writes the calibration into the policy
 directory, where ``from_pretrained`` finds it.
@@ -16,34 +16,29 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
-import draccus
 import numpy as np
 
 from lerobot_suture.datasets.metadata import read_episode_log, write_json_atomic
+from lerobot_suture.runtime.config import RolloutCommandConfig
+from lerobot_suture.runtime.policy import env_kwargs_for_policy, reporting_runner
+from lerobot_suture.runtime.rollout import make_scenario_env, rollout_seeds
+from lerobot_suture.runtime.seeds import fresh_seeds
 from lerobot_suture.safety.ood.calibration import default_model, fit_calibration, min_calibration_episodes
 from lerobot_suture.safety.ood.calibration_file import save_calibration
 from lerobot_suture.safety.ood.likelihood_ratio import false_alarm_rates
 
 logger = logging.getLogger(__name__)
 
-FRESH_SEED_BASE = 1_000_000
-"""First of the fresh seeds used when no dataset gives validation seeds (far from recording seeds)."""
 SCORE_CHOICE_FIELDS = ("uncertainty_score", "uncertainty_space", "uncertainty_source", "uncertainty_steps")
 """The ensemble's config fields that choose how a prediction is scored (``lerobot-suture score-study``)."""
 
 
 @dataclass
-class PolicyPathConfig:
-    path: Path | None = None  # pretrained_model directory of a lerobot-train checkpoint
-
-
-@dataclass
-class CalibrateConfig:
-    """Args:
-    policy: ``--policy.path=DIR``, the trained ensemble's pretrained directory.
+class CalibrateConfig(RolloutCommandConfig):
+    """Args (and those of :class:`~lerobot_suture.runtime.config.RolloutCommandConfig`):
     dataset_root: a ``lerobot-suture record`` dataset whose validation seeds are used first.
     calibration_episodes: nominal episodes the in-distribution model is fitted on. In ``per_episode`` mode
         the threshold is an order statistic of their maxima: with 24 it is the largest, whose false-alarm
@@ -56,14 +51,11 @@ class CalibrateConfig:
         the running maximum holding the per-episode false-alarm rate near alpha).
     alpha: significance of the one-sided likelihood-ratio test.
     h: width factor of the in-distribution model, Normal(mean, h * std).
-    batch_envs: envs run in lockstep with one batched policy call per step (faster on any device).
-    device: torch device of the policy.
     uncertainty_score, uncertainty_space, uncertainty_source, uncertainty_steps: a choice of score (e.g.
         from ``lerobot-suture score-study``) to calibrate the gate for; it is written into the policy's
         ``config.json`` beside the calibration. Unset: the policy's own.
     """
 
-    policy: PolicyPathConfig = field(default_factory=PolicyPathConfig)
     dataset_root: Path | None = None
     calibration_episodes: int = 100
     holdout_episodes: int = 20
@@ -71,20 +63,13 @@ class CalibrateConfig:
     mode: str = "per_episode"
     alpha: float = 0.05
     h: float = 1.0
-    batch_envs: int = 8
-    device: str = "cpu"
     uncertainty_score: str | None = None
     uncertainty_space: str | None = None
     uncertainty_source: str | None = None
     uncertainty_steps: str | None = None
 
     def __post_init__(self):
-        if self.policy.path is None:
-            raise ValueError(
-                "`--policy.path` is required: the pretrained_model directory of a trained policy."
-            )
-        if self.batch_envs < 1:
-            raise ValueError(f"`batch_envs` must be >= 1. Got {self.batch_envs}.")
+        super().__post_init__()
         if self.calibration_episodes < 1 or self.holdout_episodes < 0:
             raise ValueError(
                 "`calibration_episodes` must be >= 1 and `holdout_episodes` >= 0. "
@@ -129,7 +114,7 @@ def calibration_seeds(cfg: CalibrateConfig) -> list[int]:
         from lerobot_suture.datasets.split import validation_seeds
 
         seeds = validation_seeds(cfg.dataset_root)[:needed]
-    seeds += [FRESH_SEED_BASE + k for k in range(needed - len(seeds))]
+    seeds += fresh_seeds(needed - len(seeds))
     return seeds
 
 
@@ -146,8 +131,6 @@ def collect_scores(
     runner, env_kwargs: dict, seeds: list[int], desc: str, batch_envs: int = 8
 ) -> tuple[np.ndarray, np.ndarray, list]:
     """Per-prediction uncertainty scores and their episode ids over nominal episodes of ``runner``."""
-    from lerobot_suture.rollout import make_scenario_env, rollout_seeds
-
     logs = rollout_seeds(
         lambda: make_scenario_env(env_kwargs, "nominal"), runner, seeds, batch_envs, desc=desc
     )
@@ -161,8 +144,7 @@ def collect_scores(
 
 
 def run_calibration(cfg: CalibrateConfig) -> dict:
-    from lerobot_suture.policy_runner import env_kwargs_for_policy, reporting_runner
-
+    """Fit the gate, write it beside the policy with ``ood_calibration_report.json``; returns the report."""
     runner = reporting_runner(cfg.policy.path, cfg.device)
     config = runner.policy.config
     choice = cfg.score_choice()
@@ -204,22 +186,3 @@ def run_calibration(cfg: CalibrateConfig) -> dict:
         report["holdout_success_rate"] = float(np.mean([log.success for log in held_logs]))
     (Path(cfg.policy.path) / "ood_calibration_report.json").write_text(json.dumps(report, indent=2))
     return report
-
-
-def main(argv: list[str] | None = None) -> None:
-    cfg = draccus.parse(config_class=CalibrateConfig, args=argv, exit_on_error=False)
-    report = run_calibration(cfg)
-    cal = report["calibration"]
-    print(
-        f"O.O.D. gate calibrated on {cal['n_samples']} predictions of {len(report['calibration_seeds'])} nominal "
-        f"episodes: {cal['model']} model, mean {cal['mean']:.4g}, std {cal['std']:.4g}, h {cal['h']}, "
-        f"mode {cal['mode']}, alpha {cal['alpha']} -> threshold {cal['threshold']:.4g} "
-        f"({cal['score_name']}, {cal['space']} space)."
-    )
-    if "holdout_false_alarm_rate" in report:
-        rates = report["holdout_false_alarm_rate"]
-        print(
-            f"False alarms on {rates['n_episodes']} held-out nominal episodes: {rates['per_step']:.3f} per "
-            f"prediction, {rates['per_episode']:.3f} per episode."
-        )
-    print(f"Written: {report['calibration_file']}")

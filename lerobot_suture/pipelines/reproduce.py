@@ -1,9 +1,9 @@
-"""``lerobot-suture reproduce``: the reference from nothing, and its table beside the committed one.
+"""A recipe's reference from nothing (``lerobot-suture reproduce``), and its table beside the committed one.
 
 Four stages into ``output_dir`` (default ``outputs/reproduce/``), each with the recipe files of the
 repository, each skipped when an earlier (interrupted) run finished it:
 
-1. ``data/``: the moving-phantom expert dataset (``datasets/suture_expert_servo.yaml``);
+1. ``data/``: the moving-phantom expert dataset (``recipes/suture_expert_servo.yaml``);
 2. ``train/``: the reference ensemble (``policies/presets/reference.json``) trained by the real
    ``lerobot-train``, resumed from its last checkpoint after an interruption;
 3. the gate's calibration (``policies/presets/reference_calibrate.yaml``), written beside the policy;
@@ -30,7 +30,7 @@ import draccus
 
 logger = logging.getLogger(__name__)
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
+REPO_ROOT = Path(__file__).resolve().parents[2]
 REFERENCE_RESULTS = REPO_ROOT / "docs" / "results" / "prior_servo_5500"
 CALIBRATE_CONFIG = REPO_ROOT / "policies" / "presets" / "reference_calibrate.yaml"
 
@@ -47,19 +47,19 @@ class Recipe:
 RECIPES = {
     # The paper's reference: moving-phantom demonstrations.
     "reference": Recipe(
-        REPO_ROOT / "datasets" / "suture_expert_servo.yaml",
+        REPO_ROOT / "recipes" / "suture_expert_servo.yaml",
         REPO_ROOT / "policies" / "presets" / "reference.json",
         REFERENCE_RESULTS,
     ),
     # The same motions under randomized appearance, trained with LeRobot's colour and sharpness transforms.
     "robust": Recipe(
-        REPO_ROOT / "datasets" / "suture_expert_randomized.yaml",
+        REPO_ROOT / "recipes" / "suture_expert_randomized.yaml",
         REPO_ROOT / "policies" / "presets" / "robust.json",
         REPO_ROOT / "docs" / "results" / "robust_noaffine_8000",
     ),
     # The reference's recipe with two equally valid approaches (the detectors' multimodality test).
     "two_sided": Recipe(
-        REPO_ROOT / "datasets" / "suture_expert_two_sided.yaml",
+        REPO_ROOT / "recipes" / "suture_expert_two_sided.yaml",
         REPO_ROOT / "policies" / "presets" / "two_sided.json",
         REPO_ROOT / "docs" / "results" / "two_sided_5500",
     ),
@@ -151,7 +151,7 @@ def record_stage(cfg: ReproduceConfig) -> Path:
 def train_stage(cfg: ReproduceConfig, dataset_root: Path) -> Path:
     from lerobot_suture.datasets.split import train_episodes
     from lerobot_suture.datasets.video import resolve_video_backend
-    from lerobot_suture.training import run_lerobot_train
+    from lerobot_suture.runtime.training import run_lerobot_train
 
     train_preset = RECIPES[cfg.recipe].train_preset
     preset = json.loads(train_preset.read_text())
@@ -169,7 +169,7 @@ def train_stage(cfg: ReproduceConfig, dataset_root: Path) -> Path:
 
 
 def calibrate_stage(cfg: ReproduceConfig, policy_dir: Path, dataset_root: Path) -> Path:
-    from lerobot_suture.calibrate import CalibrateConfig, run_calibration
+    from lerobot_suture.runtime.calibration import CalibrateConfig, run_calibration
     from lerobot_suture.safety.ood.calibration_file import CALIBRATION_FILENAME
 
     calibration_file = policy_dir / CALIBRATION_FILENAME
@@ -189,8 +189,8 @@ def calibrate_stage(cfg: ReproduceConfig, policy_dir: Path, dataset_root: Path) 
 
 
 def experiments_stage(cfg: ReproduceConfig, policy_dir: Path, calibration_file: Path) -> dict:
-    from lerobot_suture.calibrate import PolicyPathConfig
-    from lerobot_suture.experiments.runner import ExperimentsConfig, run_experiments
+    from lerobot_suture.experiments.paper import ExperimentsConfig, run_experiments
+    from lerobot_suture.runtime.config import PolicyPathConfig
 
     out = cfg.output_dir / "experiments"
     metrics_file = out / "metrics.json"
@@ -248,9 +248,3 @@ def run_reproduce(cfg: ReproduceConfig) -> str:
     calibration_file = timed("calibrate", calibrate_stage, cfg, policy_dir, dataset_root)
     metrics = timed("experiments", experiments_stage, cfg, policy_dir, calibration_file)
     return write_comparison(cfg, metrics, timings)
-
-
-def main(argv: list[str] | None = None) -> None:
-    cfg = draccus.parse(config_class=ReproduceConfig, args=argv, exit_on_error=False)
-    print(run_reproduce(cfg))
-    print(f"comparison.md, comparison.json and timings.json in {cfg.output_dir}")

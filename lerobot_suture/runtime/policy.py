@@ -8,6 +8,7 @@ postprocessor).
 
 from __future__ import annotations
 
+from enum import Enum
 from pathlib import Path
 
 import numpy as np
@@ -76,19 +77,66 @@ def env_kwargs_for_policy(config) -> dict:
     return {"obs_type": "state"}
 
 
-class PolicyRunner:
-    """``act(observation) -> (10,) float32`` for one env, ``act_batch`` for several, with LeRobot's processing."""
+class GateMode(Enum):
+    """What the O.O.D. gate of an ensemble does with its decision.
 
-    def __init__(self, policy, preprocessor, postprocessor):
+    ``REPORT``: the policy keeps control; scores and decisions are only logged (the paper's experiments,
+    calibration, studies). ``ENFORCE``: the first O.O.D. decision releases control to the surgeon and
+    the policy holds the pose (needs a calibration).
+    """
+
+    REPORT = "report"
+    ENFORCE = "enforce"
+
+    @classmethod
+    def of(cls, enforce: bool) -> GateMode:
+        return cls.ENFORCE if enforce else cls.REPORT
+
+
+class PolicyRunner:
+    """``act(observation) -> (10,) float32`` for one env, ``act_batch`` for several, with LeRobot's processing.
+
+    The runner owns the gate's mode: it is applied to the policy before every call, so two runners
+    sharing one policy (:meth:`with_gate`) each act in their own mode. A policy without a gate (any
+    other LeRobot policy) ignores it.
+    """
+
+    def __init__(self, policy, preprocessor, postprocessor, gate: GateMode):
+        if not isinstance(gate, GateMode):
+            raise TypeError(f"`gate` must be a GateMode (REPORT or ENFORCE). Got {gate!r}.")
         self.policy = policy
         self.preprocessor = preprocessor
         self.postprocessor = postprocessor
+        self.gate = gate
+        self._apply_gate()
 
     @classmethod
-    def from_pretrained(cls, policy_path: str | Path, device: str = "cpu") -> PolicyRunner:
-        return cls(*load_policy(policy_path, device))
+    def from_pretrained(cls, policy_path: str | Path, gate: GateMode, device: str = "cpu") -> PolicyRunner:
+        """Load a policy (:func:`load_policy`) to run with its gate in mode ``gate``.
+
+        Raises:
+            FileNotFoundError: ``gate`` is ENFORCE and the ensemble has no calibration (the message says how
+                to make one).
+        """
+        runner = cls(*load_policy(policy_path, device), gate=gate)
+        if gate is GateMode.ENFORCE and getattr(runner.policy, "ood_calibration", False) is None:
+            raise FileNotFoundError(
+                f"The gate cannot be enforced: the policy at {policy_path} has no O.O.D. calibration. Run "
+                f"`lerobot-suture calibrate --policy.path={policy_path}` first, or run the gate in report mode."
+            )
+        return runner
+
+    def with_gate(self, gate: GateMode) -> PolicyRunner:
+        """A runner of the same policy and processors (no copy) whose gate acts in mode ``gate``."""
+        return PolicyRunner(self.policy, self.preprocessor, self.postprocessor, gate)
+
+    def _apply_gate(self) -> None:
+        ood = getattr(self.policy.config, "ood", None)
+        if ood is not None:
+            ood.enforce = self.gate is GateMode.ENFORCE
 
     def reset(self) -> None:
+        self._apply_gate()
         self.policy.reset()
         for pipeline in (self.preprocessor, self.postprocessor):
             pipeline.reset()
@@ -108,6 +156,7 @@ class PolicyRunner:
     def act_batch(self, observations: list[dict]) -> np.ndarray:
         """(B, 10) float32: the actions for B envs' observations, in one policy call (row i is env i)."""
         batch = self.preprocess(observations)
+        self._apply_gate()
         with torch.inference_mode():
             action = self.policy.select_action(batch)
         action = self.postprocessor(action)
@@ -124,12 +173,11 @@ def reporting_runner(
         needs: an attribute the policy must have (a capability of ``ensemble_diffusion``), or None.
         needed_for: the error's end when it lacks it: "the <command> needs an ensemble_diffusion policy, ...".
     """
-    runner = PolicyRunner.from_pretrained(policy_path, device)
+    runner = PolicyRunner.from_pretrained(policy_path, GateMode.REPORT, device)
     if needs is not None and not hasattr(runner.policy, needs):
         raise ValueError(
             f"The policy at {policy_path} is a {runner.policy.config.type!r} policy; {needed_for}"
         )
-    runner.policy.config.ood.enforce = False
     return runner
 
 

@@ -1,5 +1,5 @@
-"""``lerobot-suture surgeon-run`` (a policy run with a surgeon in the loop) and ``lerobot-suture teleop``
-(the env driven by hand), each optionally recorded as a LeRobotDataset and shown live in rerun."""
+"""A policy run with a surgeon in the loop (``lerobot-suture surgeon-run``) and the env driven by hand
+(``lerobot-suture teleop``), each optionally recorded as a LeRobotDataset and shown live in rerun."""
 
 from __future__ import annotations
 
@@ -8,11 +8,10 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import draccus
 import gymnasium as gym
 
-from lerobot_suture.calibrate import PolicyPathConfig
 from lerobot_suture.registration import ENV_ID
+from lerobot_suture.runtime.config import PolicyCommandConfig
 from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.sim.scenarios import SCENARIOS
 from lerobot_suture.surgeon.surgeons import SURGEON_CHOICES, make_surgeon
@@ -64,25 +63,21 @@ class SessionConfig:
 
 
 @dataclass
-class SurgeonRunConfig(SessionConfig):
+class SurgeonRunConfig(SessionConfig, PolicyCommandConfig):
     """``lerobot-suture surgeon-run``: ``--policy.path=DIR --surgeon=keyboard|gamepad|expert|none``.
 
-    Args:
-        policy: a trained, calibrated ensemble (``lerobot-suture calibrate``).
+    Args (and those of :class:`~lerobot_suture.runtime.config.PolicyCommandConfig`; the policy is a
+    trained, calibrated ensemble, ``lerobot-suture calibrate``):
         surgeon: who takes over when the gate releases control (and at a key press).
         enforce: the gate releases control on its first O.O.D. decision (false: it only reports).
-        device: torch device of the policy.
     """
 
-    policy: PolicyPathConfig = field(default_factory=PolicyPathConfig)
     surgeon: str = "keyboard"
     enforce: bool = True
-    device: str = "cpu"
 
     def __post_init__(self):
-        super().__post_init__()
-        if self.policy.path is None:
-            raise ValueError("`--policy.path` is required: a trained, calibrated ensemble directory.")
+        SessionConfig.__post_init__(self)
+        PolicyCommandConfig.__post_init__(self)
         if self.surgeon not in SURGEON_CHOICES:
             raise ValueError(f"`surgeon` must be one of {SURGEON_CHOICES}. Got {self.surgeon!r}.")
 
@@ -135,11 +130,10 @@ def _close(recorder, view, surgeon, env) -> None:
 
 
 def surgeon_run(cfg: SurgeonRunConfig) -> list:
-    from lerobot_suture.policy_runner import PolicyRunner, env_kwargs_for_policy
+    from lerobot_suture.runtime.policy import GateMode, PolicyRunner, env_kwargs_for_policy
     from lerobot_suture.surgeon.session import run_surgeon_episode
 
-    runner = PolicyRunner.from_pretrained(cfg.policy.path, cfg.device)
-    runner.policy.config.ood.enforce = cfg.enforce
+    runner = PolicyRunner.from_pretrained(cfg.policy.path, GateMode.of(cfg.enforce), cfg.device)
     env_kwargs = env_kwargs_for_policy(runner.policy.config)
     surgeon = make_surgeon(cfg.surgeon, cfg.mapping)
     env = _env(cfg, env_kwargs)
@@ -198,11 +192,3 @@ def _end_events():
     from lerobot.teleoperators.utils import TeleopEvents
 
     return (TeleopEvents.SUCCESS, TeleopEvents.TERMINATE_EPISODE)
-
-
-def surgeon_run_main(argv: list[str] | None = None) -> None:
-    surgeon_run(draccus.parse(config_class=SurgeonRunConfig, args=argv, exit_on_error=False))
-
-
-def teleop_main(argv: list[str] | None = None) -> None:
-    teleop(draccus.parse(config_class=TeleopConfig, args=argv, exit_on_error=False))

@@ -256,13 +256,13 @@ def run_policy_attack_episode(
 ) -> AttackEpisode:
     """A policy pushed off distribution takes over a begun throw: the expert leads in (as in
     :func:`run_attack_episode`) in a perturbed ``scenario``, then ``runner`` (a
-    :class:`~lerobot_suture.policy_runner.PolicyRunner`) acts from its own observations.
+    :class:`~lerobot_suture.runtime.policy.PolicyRunner`) acts from its own observations.
 
     The policy's gate is not consulted: this is the case the filter exists for, a gate that failed.
     """
     import torch
 
-    from lerobot_suture.policy_runner import env_kwargs_for_policy
+    from lerobot_suture.runtime.policy import env_kwargs_for_policy
 
     rng = np.random.default_rng([seed, len(FAMILIES)])
     torch.manual_seed(seed)

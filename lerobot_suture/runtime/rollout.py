@@ -1,6 +1,6 @@
 """Run a policy in the suture env with the O.O.D. gate at the env step, and hand over to a surgeon.
 
-Every control step the policy (through :class:`~lerobot_suture.policy_runner.PolicyRunner`) proposes
+Every control step the policy (through :class:`~lerobot_suture.runtime.policy.PolicyRunner`) proposes
 an action and its gate reports the uncertainty score, the threshold and the decision. While the gate
 holds control with the policy, the policy's action is executed. Once an enforced gate releases
 control (the policy then returns a hold action), a surgeon stand-in takes over:
@@ -8,7 +8,7 @@ control (the policy then returns a hold action), a surgeon stand-in takes over:
 - ``none``: nobody; the arm holds its pose and waits;
 - ``expert``: the scripted expert, reading privileged state, finishes the task from where it is.
 
-With the gate in reporting mode (``ood.enforce=false``, the paper's experiments) the policy keeps
+With the gate in reporting mode (``GateMode.REPORT``, the paper's experiments) the policy keeps
 control and the decisions are only logged. Whatever reaches the robot goes through the env's step,
 so a CBF wrapper around the env filters the surgeon's actions too.
 """
@@ -90,7 +90,7 @@ def make_scenario_env(
     shift: Shift | None = None,
 ) -> gym.Env:
     """One suture env of ``scenario`` for policy rollouts: ``env_kwargs`` (what the policy reads, from
-    :func:`~lerobot_suture.policy_runner.env_kwargs_for_policy`), the CBF filter, the tip trace, and a
+    :func:`~lerobot_suture.runtime.policy.env_kwargs_for_policy`), the CBF filter, the tip trace, and a
     distribution shift (:mod:`lerobot_suture.sim.shifts`) over it all."""
     env = gym.make(
         ENV_ID,

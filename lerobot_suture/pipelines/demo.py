@@ -1,4 +1,4 @@
-"""``lerobot-suture demo``: the main job at a small default, writing what a person looks at.
+"""The main job at a small default (``lerobot-suture demo``), writing what a person looks at.
 
 Steps, each writing under ``output_dir`` (default ``outputs/demo/``), all at toy scale:
 
@@ -26,13 +26,12 @@ import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import draccus
 import numpy as np
 from tqdm import tqdm
 
-from lerobot_suture.rollout_expert import run_expert_episode
+from lerobot_suture.runtime.expert_rollout import run_expert_episode
+from lerobot_suture.runtime.training import run_lerobot_train
 from lerobot_suture.sim.scenarios import SCENARIOS
-from lerobot_suture.training import run_lerobot_train
 
 logger = logging.getLogger(__name__)
 
@@ -175,8 +174,9 @@ def train_toy_ensemble(cfg: DemoConfig, dataset_root: Path) -> Path:
 def calibrate_and_run_experiments(cfg: DemoConfig, policy_dir: Path) -> dict:
     """``lerobot-suture calibrate`` then ``lerobot-suture experiments`` at toy scale, each skipped when a
     run interrupted later left its result for this policy and calibration."""
-    from lerobot_suture.calibrate import CalibrateConfig, PolicyPathConfig, run_calibration
-    from lerobot_suture.experiments.runner import ExperimentsConfig, run_experiments
+    from lerobot_suture.experiments.paper import ExperimentsConfig, run_experiments
+    from lerobot_suture.runtime.calibration import CalibrateConfig, run_calibration
+    from lerobot_suture.runtime.config import PolicyPathConfig
     from lerobot_suture.safety.ood.calibration_file import CALIBRATION_FILENAME
 
     calibration_file = policy_dir / CALIBRATION_FILENAME
@@ -246,19 +246,3 @@ def run_demo(cfg: DemoConfig) -> dict:
     path.write_text(json.dumps(summary, indent=2))
     summary["path"] = str(path)
     return summary
-
-
-def main(argv: list[str] | None = None) -> None:
-    cfg = draccus.parse(config_class=DemoConfig, args=argv, exit_on_error=False)
-    summary = run_demo(cfg)
-    for name, entry in summary["scenarios"].items():
-        print(f"{name:32s} expert success {entry['success_rate']:.2f}  strip: {entry['strip']}")
-    if "dataset" in summary:
-        d = summary["dataset"]
-        print(f"dataset {d['repo_id']}: {d['episodes']} episodes, {d['frames']} frames at {d['root']}")
-    if "experiments" in summary:
-        print(f"toy ensemble: {summary['policy']}")
-        print(f"experiment figures, metrics.json and report.md: {summary['experiments']['dir']}")
-        for figure in summary["experiments"]["figures"]:
-            print(f"  {figure}")
-    print(f"summary: {summary['path']}")

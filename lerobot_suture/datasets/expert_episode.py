@@ -23,12 +23,12 @@ from lerobot_suture.datasets.features import (
     TASK,
 )
 from lerobot_suture.registration import ENV_ID
-from lerobot_suture.rollout_expert import iter_expert_steps
+from lerobot_suture.runtime.expert_rollout import iter_expert_steps
 from lerobot_suture.sim import task
 
 
 @dataclass
-class ExpertRollout:
+class ExpertEpisodeFrames:
     """One expert episode as dataset frames, with its outcome."""
 
     seed: int
@@ -80,13 +80,13 @@ def make_env(
     )
 
 
-def rollout_expert(
+def expert_episode_frames(
     env,
     expert,
     seed: int,
     on_step: Callable[[], None] | None = None,
     steps_after_success: int = 0,
-) -> ExpertRollout:
+) -> ExpertEpisodeFrames:
     """Run the expert for one episode from ``env.reset(seed=seed)``; frames in dataset layout.
 
     Args:
@@ -119,7 +119,7 @@ def rollout_expert(
         info = step.info
         if on_step is not None:
             on_step()
-    rollout = ExpertRollout(seed=seed, frames=frames, success=False, info=info)
+    rollout = ExpertEpisodeFrames(seed=seed, frames=frames, success=False, info=info)
     succeeded = [bool(f[SUCCESS_KEY][0]) for f in frames]
     if True not in succeeded:
         rollout.reason, rollout.detail = _failure_reason(info, len(frames))

@@ -12,10 +12,9 @@ import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import draccus
 import numpy as np
 
-from lerobot_suture.experiments.adversary import SidewaysPull
+from lerobot_suture.experiments.sideways_pull import SidewaysPull
 from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.safety.cbf_replay import replay_and_plot
 from lerobot_suture.safety.cbf_wrapper import CBFActionWrapper
@@ -83,9 +82,3 @@ def run_cbf_replay(cfg: CBFReplayConfig) -> dict:
     metrics = {k: (str(v) if isinstance(v, Path) else v) for k, v in metrics.items()}
     (cfg.output_dir / "cbf_replay.json").write_text(json.dumps(metrics, indent=2, default=float))
     return metrics
-
-
-def main(argv: list[str] | None = None) -> None:
-    cfg = draccus.parse(config_class=CBFReplayConfig, args=argv, exit_on_error=False)
-    metrics = run_cbf_replay(cfg)
-    print(json.dumps(metrics, indent=2, default=float))

@@ -1,0 +1,105 @@
+"""The package's layering, read from the source: commands on top, imported by the CLI alone; the gate's
+mode written by the runtime layer alone; no module over 500 lines."""
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = [ROOT / "lerobot_suture", ROOT / "policies", ROOT / "envs"]
+SOURCES = sorted(p for package in PACKAGES for p in package.rglob("*.py") if ".venv" not in p.parts)
+MAX_MODULE_LINES = 500
+
+
+def _module(path: Path) -> str:
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    if parts[0] in ("policies", "envs"):
+        parts = parts[1:]
+    return ".".join(p for p in parts if p != "__init__")
+
+
+def _imports(tree: ast.AST) -> set[str]:
+    names = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names |= {alias.name for alias in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names.add(node.module)
+            names |= {f"{node.module}.{alias.name}" for alias in node.names}
+    return names
+
+
+def _enforce_writes(tree: ast.AST) -> list[int]:
+    """Lines that assign ``<...>.ood.enforce``."""
+    lines = []
+    for node in ast.walk(tree):
+        targets = node.targets if isinstance(node, ast.Assign) else [getattr(node, "target", None)]
+        for target in targets:
+            if isinstance(target, ast.Attribute) and target.attr == "enforce":
+                owner = target.value
+                if (isinstance(owner, ast.Attribute) and owner.attr == "ood") or (
+                    isinstance(owner, ast.Name) and owner.id == "ood"
+                ):
+                    lines.append(node.lineno)
+    return lines
+
+
+@pytest.fixture(scope="module")
+def trees() -> dict[str, tuple[Path, ast.AST]]:
+    return {_module(p): (p, ast.parse(p.read_text(), filename=str(p))) for p in SOURCES}
+
+
+def test_the_scan_sees_the_package(trees):
+    assert {
+        "lerobot_suture.cli",
+        "lerobot_suture.runtime.policy",
+        "lerobot_suture.commands.experiments",
+    } <= set(trees)
+    assert _enforce_writes(ast.parse("runner.policy.config.ood.enforce = True")) == [1]
+    assert _enforce_writes(ast.parse("ood.enforce = x")) == [1]
+
+
+def test_only_the_runtime_layer_writes_the_gate_mode(trees):
+    writers = {
+        f"{name}:{line}"
+        for name, (_, tree) in trees.items()
+        for line in _enforce_writes(tree)
+        if not name.startswith("lerobot_suture.runtime.")
+    }
+    assert not writers, f"`ood.enforce` written outside lerobot_suture.runtime: {sorted(writers)}"
+
+
+def test_commands_are_imported_by_the_cli_alone_and_nothing_imports_the_cli(trees):
+    offenders = []
+    for name, (_, tree) in trees.items():
+        imported = _imports(tree)
+        if name != "lerobot_suture.cli" and any(
+            i == "lerobot_suture.cli" or i.startswith("lerobot_suture.cli.") for i in imported
+        ):
+            offenders.append(f"{name} imports lerobot_suture.cli")
+        if not name.startswith("lerobot_suture.commands") and any(
+            i.startswith("lerobot_suture.commands") for i in imported
+        ):
+            offenders.append(f"{name} imports a command")
+    assert not offenders, offenders
+
+
+def test_the_layers_below_the_runtime_never_import_it(trees):
+    # The datasets package sits beside the runtime: recording rolls the expert out through it.
+    below = ("lerobot_suture.sim", "lerobot_suture.safety", "lerobot_suture.detectors")
+    offenders = [
+        name
+        for name, (_, tree) in trees.items()
+        if name.startswith(below) and any(i.startswith("lerobot_suture.runtime") for i in _imports(tree))
+    ]
+    assert not offenders, offenders
+
+
+def test_no_module_is_over_500_lines():
+    long = {
+        str(p.relative_to(ROOT)): n
+        for p in SOURCES
+        if (n := len(p.read_text().splitlines())) > MAX_MODULE_LINES
+    }
+    assert not long, f"modules over {MAX_MODULE_LINES} lines: {long}"
