@@ -47,7 +47,9 @@ def _by_outcome(by_outcome: dict | None) -> str:
     if not by_outcome:
         return ""
     parts = [
-        f"{rates['alarmed_episodes']} of {rates['episodes']} {outcome}"
+        # Files written before the count was kept hold the rate alone, which is count / episodes.
+        f"{rates.get('alarmed_episodes', round(rates['per_episode'] * rates['episodes']))} of "
+        f"{rates['episodes']} {outcome}"
         for outcome, rates in by_outcome.items()
         if rates["episodes"]
     ]
