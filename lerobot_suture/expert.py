@@ -22,6 +22,7 @@ re-grasped by this expert; it then holds the arm still.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -198,3 +199,56 @@ class ScriptedExpert:
             self.phase = "drive"
         else:
             self.phase = "detour" if self.config.approach_detour > 0 else "approach"
+
+
+@dataclass(frozen=True)
+class ExpertStep:
+    """One control step of the expert: the observation it acted on, its action and what followed."""
+
+    obs: dict
+    needle_keypoints: np.ndarray | None  # (6,) the needle in the image of ``obs`` (privileged), if asked for
+    action: np.ndarray
+    reward: float
+    terminated: bool
+    truncated: bool
+    info: dict
+
+    @property
+    def done(self) -> bool:
+        return self.terminated or self.truncated
+
+
+def iter_expert_steps(
+    env,
+    expert: ScriptedExpert,
+    obs: dict,
+    steps_after_success: int = 0,
+    needle_keypoints: bool = False,
+) -> Iterator[ExpertStep]:
+    """Yield the expert's steps from ``obs``, the observation ``env.reset`` just returned, to the
+    episode's end.
+
+    Args:
+        steps_after_success: control steps to go on after the step the insertion succeeds (where the env
+            terminates); the last of them is yielded as the terminal step. 0: end at success.
+        needle_keypoints: also locate the needle in the image of each step's observation
+            (``SutureEnv.needle_keypoints_in_image``; a dataset's training target). Otherwise None.
+    """
+    if steps_after_success < 0:
+        raise ValueError(f"`steps_after_success` must be >= 0. Got {steps_after_success}.")
+    expert.reset(env)
+    remaining = None  # control steps left once the insertion has succeeded
+    while True:
+        keypoints = env.unwrapped.needle_keypoints_in_image() if needle_keypoints else None
+        action = expert.act(env)
+        next_obs, reward, terminated, truncated, info = env.step(action)
+        if remaining is not None:
+            remaining -= 1
+        elif terminated and info["is_success"]:
+            remaining = steps_after_success
+        if remaining is not None:
+            terminated = remaining == 0  # the episode, as recorded, ends after the extra steps
+        yield ExpertStep(obs, keypoints, action, float(reward), bool(terminated), bool(truncated), info)
+        if terminated or truncated:
+            return
+        obs = next_obs

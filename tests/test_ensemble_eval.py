@@ -37,8 +37,7 @@ from lerobot_policy_ensemble_diffusion.testing import tiny_policy_cli_args
 from lerobot_suture.datasets.record import record
 from lerobot_suture.datasets.record_config import RecordConfig
 from lerobot_suture.datasets.video import resolve_video_backend
-from lerobot_suture.expert import ScriptedExpert
-from lerobot_suture.runtime.expert_rollout import iter_expert_steps
+from lerobot_suture.expert import ScriptedExpert, iter_expert_steps
 from lerobot_suture.safety.ood.calibration import fit_calibration
 from lerobot_suture.safety.ood.calibration_file import save_calibration
 from lerobot_suture.sim.suture_env import SutureEnv

@@ -14,8 +14,7 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import lerobot_suture
-from lerobot_suture.expert import ExpertConfig, ScriptedExpert
-from lerobot_suture.runtime.expert_rollout import iter_expert_steps
+from lerobot_suture.expert import ExpertConfig, ScriptedExpert, iter_expert_steps
 from lerobot_suture.sim import suture_env, task
 from lerobot_suture.sim.geometry import pose_vector
 from lerobot_suture.sim.scenarios import SCENARIOS, ScenarioConfig

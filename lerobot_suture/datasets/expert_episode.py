@@ -22,8 +22,8 @@ from lerobot_suture.datasets.features import (
     SUCCESS_KEY,
     TASK,
 )
+from lerobot_suture.expert import iter_expert_steps
 from lerobot_suture.registration import ENV_ID
-from lerobot_suture.runtime.expert_rollout import iter_expert_steps
 from lerobot_suture.sim import task
 
 

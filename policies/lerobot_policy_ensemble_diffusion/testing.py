@@ -115,8 +115,7 @@ def save_untrained_policy(
 def expert_dataset_stats(n_seeds: int = 2) -> dict[str, dict[str, np.ndarray]]:
     """Statistics of the scripted expert's poses (state and action) over `n_seeds` throws, with images in
     [0, 1]: an untrained policy normalized with them acts in metres, inside the workspace."""
-    from lerobot_suture.expert import ScriptedExpert
-    from lerobot_suture.runtime.expert_rollout import iter_expert_steps
+    from lerobot_suture.expert import ScriptedExpert, iter_expert_steps
     from lerobot_suture.sim.suture_env import SutureEnv
 
     env, expert, poses = SutureEnv(obs_type="state"), ScriptedExpert(), []
