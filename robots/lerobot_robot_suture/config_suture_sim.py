@@ -1,0 +1,84 @@
+"""``SutureSimConfig``: the simulated needle-insertion arm as LeRobot's robot type ``suture_sim``."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from lerobot.robots.config import RobotConfig
+
+from lerobot_suture.datasets.features import POSE_NAMES
+from lerobot_suture.safety.cbf_config import CBFConfig
+from lerobot_suture.sim.appearance import AppearanceConfig
+from lerobot_suture.sim.scenarios import SCENARIOS
+from lerobot_suture.sim.suture_env import check_image_side
+from lerobot_suture.sim.task import GRASP_RANGES
+
+CAMERA = "endoscope"
+"""The camera's name: LeRobot stores it as ``observation.images.endoscope``, the expert data's key."""
+POSE_FEATURES = [f"{name}.pos" for name in POSE_NAMES]
+"""The pose's scalar feature names, in the expert data's order (x, y, z, r11, r21, r31, r12, r22, r32,
+jaw). LeRobot stacks them into ``observation.state`` (10,) and ``action`` (10,); the ``.pos`` suffix is
+LeRobot's for a position feature, and ``lerobot-rollout`` keeps only scalar features named ``*.pos`` or
+``*.vel`` (``lerobot/rollout/context.py``)."""
+CLOCKS = ("realtime", "fast")
+
+
+@RobotConfig.register_subclass("suture_sim")
+@dataclass
+class SutureSimConfig(RobotConfig):
+    """The needle-insertion scene (arm, needle, phantom, endoscope) of ``lerobot_suture.sim.suture_env``.
+
+    Args:
+        seed: seed of the scene at ``connect``; LeRobot's dataset episode ``N`` (``lerobot-record``,
+            ``lerobot-rollout --strategy.type=episodic``) plays the scene of ``seed + N``.
+        image_size: endoscope image side (px).
+        scenario: perturbation scenario, one of ``lerobot_suture.sim.scenarios.SCENARIOS``.
+        scenario_onset_step: onset (control steps); None takes the scenario's default.
+        scenario_magnitude: magnitude (rad or m); None takes the scenario's default.
+        grasp: grasp randomization, ``narrow`` or ``wide`` (``task.GRASP_RANGES``).
+        appearance: per-scene appearance randomization of the endoscope's view, every option off by
+            default (``--robot.appearance.haze=0.3``; ranges in ``lerobot_suture.sim.appearance``).
+        cbf: the control barrier function safety filter (``--robot.cbf.enabled=true``).
+        clock: ``realtime`` (a control step takes at least the control period, 0.1 s, of wall time, as
+            a real arm runs) or ``fast`` (a control step takes the time it computes in).
+        trace_path: append one JSON line per executed control step to this file: the scene's seed, the
+            step, the needle tip (m), the measured pose and the env's outcome. None: no trace.
+    """
+
+    seed: int = 0
+    image_size: int = 96
+    scenario: str = "nominal"
+    scenario_onset_step: int | None = None
+    scenario_magnitude: float | None = None
+    grasp: str = "narrow"
+    appearance: AppearanceConfig = field(default_factory=AppearanceConfig)
+    cbf: CBFConfig = field(default_factory=CBFConfig)
+    clock: str = "realtime"
+    trace_path: Path | None = None
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.scenario not in SCENARIOS:
+            raise ValueError(f"`scenario` must be one of {tuple(SCENARIOS)}. Got {self.scenario!r}.")
+        if self.grasp not in GRASP_RANGES:
+            raise ValueError(f"`grasp` must be one of {tuple(GRASP_RANGES)}. Got {self.grasp!r}.")
+        if self.clock not in CLOCKS:
+            raise ValueError(f"`clock` must be one of {CLOCKS}. Got {self.clock!r}.")
+        if self.seed < 0:
+            raise ValueError(f"`seed` must be >= 0. Got {self.seed}.")
+        check_image_side("image_size", self.image_size)
+
+    def env_kwargs(self) -> dict:
+        """Arguments of ``gym.make(lerobot_suture.ENV_ID, ...)`` for this scene."""
+        return {
+            "obs_type": "pixels_agent_pos",
+            "image_size": self.image_size,
+            "render_mode": None,
+            "scenario": self.scenario,
+            "scenario_onset_step": self.scenario_onset_step,
+            "scenario_magnitude": self.scenario_magnitude,
+            "grasp": self.grasp,
+            "appearance": self.appearance,
+            "cbf": self.cbf if self.cbf.enabled else None,
+        }

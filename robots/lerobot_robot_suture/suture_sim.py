@@ -1,0 +1,232 @@
+"""``SutureSim``: the needle-insertion scene of ``lerobot_suture`` as a LeRobot robot.
+
+The scene is the Gymnasium env ``lerobot_suture/NeedleInsertion-v0`` (``lerobot_suture.sim.suture_env``),
+made with ``gym.make`` (behind the CBF safety filter when ``--robot.cbf.enabled=true``): the same physics
+that ``lerobot-eval --env.type=suture`` and the expert recordings run.
+
+- ``get_observation()``: ``{"endoscope": (H, W, 3) uint8, "x.pos": ..., ..., "jaw.pos": ...}``, the
+  endoscope image and the measured pose of the needle holder (the env's ``agent_pos``).
+- ``send_action({"x.pos": ..., ..., "jaw.pos": ...})``: the target pose of the needle holder; the env steps
+  one control period (0.1 s, 50 physics steps) towards it. Returns the target clipped to the action space.
+- Episodes: at LeRobot's "Recording episode N" the scene is that of ``seed + N``; at "Reset the
+  environment" it is reset to the next seed and held (see :mod:`.episode_cues` and ``docs/robot.md``).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+from dataclasses import dataclass
+from functools import cached_property
+
+import gymnasium as gym
+import numpy as np
+from lerobot.lerobot_types import RobotAction, RobotObservation
+from lerobot.robots.robot import Robot
+from lerobot.utils.decorators import check_if_already_connected, check_if_not_connected
+
+import lerobot_suture
+from lerobot_suture.sim.task import CONTROL_DT, TASK
+
+from . import link
+from .clock import ControlClock
+from .config_suture_sim import CAMERA, POSE_FEATURES, SutureSimConfig
+from .episode_cues import EpisodeCues
+
+logger = logging.getLogger(__name__)
+
+FPS = round(1.0 / CONTROL_DT)
+"""The arm's control rate (10 Hz): record and replay its datasets at ``--dataset.fps=10``."""
+END_EFFECTOR_COMMAND_KEYS = ("delta_x", "delta_y", "delta_z")
+
+
+@dataclass(frozen=True)
+class SimulatedCamera:
+    """The endoscope's size; LeRobot sizes its image writers by ``len(robot.cameras)``."""
+
+    height: int
+    width: int
+    fps: int = FPS
+
+
+class SutureSim(Robot):
+    """The simulated da Vinci-style arm holding a suture needle over a phantom, seen by an endoscope."""
+
+    config_class = SutureSimConfig
+    name = "suture_sim"
+
+    def __init__(self, config: SutureSimConfig):
+        super().__init__(config)
+        self.config = config
+        self.cameras = {CAMERA: SimulatedCamera(config.image_size, config.image_size)}
+        self.task = TASK
+        """The task in words (pass it as ``--dataset.single_task``)."""
+        self.env: gym.Env | None = None
+        self._lock = threading.RLock()
+        self._clock = ControlClock(CONTROL_DT, realtime=config.clock == "realtime")
+        self._cues = EpisodeCues(self._on_episode, self._on_reset_phase)
+        self._trace = None
+        self._obs: dict | None = None
+        self.last_info: dict = {}
+        """The env's ``info`` of the last reset or step (``is_success``, ``needle_tip_pos``, ...)."""
+        self.scene_seed: int | None = None
+        self.scene_steps = 0
+        """Control steps executed in the current scene."""
+        self.scene_count = 0
+        """Scenes started since ``connect`` (a teleoperator re-anchors its target when it changes)."""
+        self.holding = False
+        """In LeRobot's reset phase: the new scene is held and actions are not executed."""
+        self._episode: int | None = None
+
+    # ------------------------------------------------------------------ features
+    @cached_property
+    def observation_features(self) -> dict[str, type | tuple]:
+        size = self.config.image_size
+        return {**dict.fromkeys(POSE_FEATURES, float), CAMERA: (size, size, 3)}
+
+    @cached_property
+    def action_features(self) -> dict[str, type]:
+        return dict.fromkeys(POSE_FEATURES, float)
+
+    # ------------------------------------------------------------------ connection
+    @property
+    def is_connected(self) -> bool:
+        return self.env is not None
+
+    @check_if_already_connected
+    def connect(self, calibrate: bool = True) -> None:
+        if not self.is_calibrated and calibrate:
+            self.calibrate()
+        self.env = gym.make(lerobot_suture.ENV_ID, disable_env_checker=True, **self.config.env_kwargs())
+        if self.config.trace_path is not None:
+            self.config.trace_path.parent.mkdir(parents=True, exist_ok=True)
+            self._trace = open(self.config.trace_path, "a", buffering=1)  # noqa: SIM115 - closed at disconnect
+        self._episode = None
+        self.holding = False
+        self._reset_scene(self.config.seed)
+        self.configure()
+        self._cues.attach()
+        link.register(self)
+        logger.info("%s connected: scene seed %d, %s clock.", self, self.config.seed, self.config.clock)
+
+    @property
+    def is_calibrated(self) -> bool:
+        return True
+
+    def calibrate(self) -> None:
+        logger.info("%s: nothing to calibrate; the simulated arm measures its pose exactly.", self)
+
+    def configure(self) -> None:
+        pass
+
+    @check_if_not_connected
+    def disconnect(self) -> None:
+        link.unregister(self)
+        self._cues.detach()
+        with self._lock:
+            self.env.close()
+            self.env = None
+            if self._trace is not None:
+                self._trace.close()
+                self._trace = None
+        logger.info("%s disconnected.", self)
+
+    # ------------------------------------------------------------------ I/O
+    @check_if_not_connected
+    def get_observation(self) -> RobotObservation:
+        with self._lock:
+            self._cues.raise_pending()
+            pose = self._obs["agent_pos"]
+            observation: dict = {name: float(v) for name, v in zip(POSE_FEATURES, pose, strict=True)}
+            observation[CAMERA] = self._obs["pixels"]["endoscope"]
+            return observation
+
+    @check_if_not_connected
+    def send_action(self, action: RobotAction) -> RobotAction:
+        target = self._target(action)
+        with self._lock:
+            self._cues.raise_pending()
+            if self.holding:
+                return dict(zip(POSE_FEATURES, target.tolist(), strict=True))
+            space = self.env.unwrapped.action_space
+            sent = np.clip(target, space.low, space.high)
+            self._clock.tick()
+            obs, _reward, terminated, truncated, info = self.env.step(target)
+            self._obs, self.last_info = obs, info
+            self.scene_steps += 1
+            self._write_trace(sent, terminated)
+            return dict(zip(POSE_FEATURES, sent.astype(float).tolist(), strict=True))
+
+    # ------------------------------------------------------------------ what else a caller may read
+    def measured_pose(self) -> np.ndarray:
+        """(10,) float64 measured pose of the needle holder (the observation's state)."""
+        with self._lock:
+            return np.asarray(self._obs["agent_pos"], dtype=np.float64).copy()
+
+    @property
+    def needle_tip(self) -> np.ndarray:
+        """(3,) needle tip position (m, world) after the last reset or step."""
+        return np.asarray(self.last_info["needle_tip_pos"], dtype=np.float64).copy()
+
+    def reset_scene(self, seed: int) -> None:
+        """Start the scene of ``seed`` now (what LeRobot's episode announcements do)."""
+        with self._lock:
+            self.holding = False
+            self._reset_scene(seed)
+
+    # ------------------------------------------------------------------ internals
+    @staticmethod
+    def _target(action: RobotAction) -> np.ndarray:
+        missing = [name for name in POSE_FEATURES if name not in action]
+        if missing:
+            if any(key in action for key in END_EFFECTOR_COMMAND_KEYS):
+                raise ValueError(
+                    "suture_sim takes a target pose, not an end-effector command (delta_x, ...). Drive it "
+                    "with --teleop.type=suture_keyboard or --teleop.type=suture_gamepad, which turn LeRobot's "
+                    "keyboard and gamepad commands into target poses."
+                )
+            raise ValueError(f"suture_sim's action lacks {missing}; it needs {POSE_FEATURES}.")
+        return np.array([float(action[name]) for name in POSE_FEATURES], dtype=np.float64)
+
+    def _reset_scene(self, seed: int) -> None:
+        self._obs, self.last_info = self.env.reset(seed=int(seed))
+        self.scene_seed = int(seed)
+        self.scene_steps = 0
+        self.scene_count += 1
+        self._clock.restart()
+
+    def _on_episode(self, episode: int) -> None:
+        """LeRobot starts dataset episode ``episode``: its scene is that of ``seed + episode``, fresh."""
+        seed = self.config.seed + episode
+        with self._lock:
+            self._episode = episode
+            self.holding = False
+            if not (self.scene_seed == seed and self.scene_steps == 0):
+                self._reset_scene(seed)
+            logger.info("%s: episode %d on the scene of seed %d.", self, episode, seed)
+
+    def _on_reset_phase(self) -> None:
+        """LeRobot's reset phase: the next episode's scene, held until that episode starts."""
+        with self._lock:
+            episode = self._episode if self._episode is not None else self.scene_seed - self.config.seed
+            self._reset_scene(self.config.seed + episode + 1)
+            self.holding = True
+            logger.info("%s: scene reset to seed %d and held for the reset phase.", self, self.scene_seed)
+
+    def _write_trace(self, sent: np.ndarray, terminated: bool) -> None:
+        if self._trace is None:
+            return
+        info = self.last_info
+        line = {
+            "seed": self.scene_seed,
+            "step": self.scene_steps,
+            "action": sent.tolist(),
+            "pose": np.asarray(self._obs["agent_pos"], dtype=float).tolist(),
+            "needle_tip": np.asarray(info["needle_tip_pos"], dtype=float).tolist(),
+            "is_success": bool(info["is_success"]),
+            "throw_over": bool(terminated),
+            "needle_in_tissue": bool(info["needle_in_tissue"]),
+            "needle_grasped": bool(info["needle_grasped"]),
+        }
+        self._trace.write(json.dumps(line) + "\n")

@@ -1,0 +1,175 @@
+"""``SutureKeyboard`` and ``SutureGamepad``: LeRobot's keyboard and gamepad teleoperators, driving
+``suture_sim`` with target poses.
+
+LeRobot's end-effector teleoperators emit a command (``delta_x/y/z`` in [-1, 1] and a gripper command);
+``suture_sim`` takes, and LeRobot records as the action, a target pose. These teleoperator types are the
+surgeons of ``lerobot-suture teleop`` (``lerobot_suture.surgeon.surgeons.KeyboardSurgeon`` and
+``GamepadSurgeon``, around LeRobot's ``KeyboardEndEffectorTeleop`` and ``GamepadTeleop``): the same keys,
+sticks and buttons, the same integration of the command into a target pose
+(``lerobot_suture.surgeon.teleop_mapping``). The target starts at the arm's measured pose when the
+teleoperator first acts, and again whenever the arm starts a new scene.
+
+``get_action`` returns ``{"x.pos": ..., ..., "jaw.pos": ...}``; ``get_teleop_events`` returns LeRobot's
+teleop events of the last ``get_action``.
+"""
+
+from __future__ import annotations
+
+import json
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+from lerobot.lerobot_types import RobotAction
+from lerobot.teleoperators.teleoperator import Teleoperator
+
+from lerobot_suture.surgeon.surgeons import (
+    GamepadSurgeon,
+    KeyboardSurgeon,
+    gamepad_teleop,
+    headless,
+    keyboard_teleop,
+)
+
+from . import link
+from .config_suture_sim import POSE_FEATURES
+from .config_suture_teleop import SutureGamepadConfig, SutureKeyboardConfig
+
+
+def load_script(path: Path) -> dict:
+    """A teleoperator script: a JSON object keyed by control step."""
+    script = json.loads(Path(path).read_text())
+    if not isinstance(script, dict):
+        raise ValueError(f"A teleoperator script is a JSON object keyed by control step. Got {type(script)}.")
+    return {int(step): held for step, held in script.items()}
+
+
+class _SurgeonTeleop(Teleoperator):
+    """A surgeon of ``lerobot_suture.surgeon.surgeons`` as a LeRobot teleoperator of target poses."""
+
+    def __init__(self, config):
+        super().__init__(config)
+        self.config = config
+        self.surgeon = None
+        self.script = None
+        self.step = 0
+        """``get_action`` calls so far: the control step a script is read at."""
+        self.last_events: dict = {}
+        self._anchor: tuple | None = None
+
+    @cached_property
+    def action_features(self) -> dict:
+        return dict.fromkeys(POSE_FEATURES, float)
+
+    @cached_property
+    def feedback_features(self) -> dict:
+        return {}
+
+    @property
+    def is_connected(self) -> bool:
+        return self.surgeon is not None and self.surgeon.teleop.is_connected
+
+    @property
+    def is_calibrated(self) -> bool:
+        return True
+
+    def calibrate(self) -> None:
+        pass
+
+    def configure(self) -> None:
+        pass
+
+    def send_feedback(self, feedback: dict[str, Any]) -> None:
+        pass
+
+    def get_action(self) -> RobotAction:
+        if self.surgeon is None:
+            raise RuntimeError(f"{self} is not connected.")
+        robot = link.connected_robot()
+        anchor = (id(robot), robot.scene_count)
+        if anchor != self._anchor:  # first action, or a new scene: start from the measured pose
+            self.surgeon.take_control(None, {"agent_pos": robot.measured_pose()})
+            self._anchor = anchor
+        if self.script is not None:
+            self.script.before_poll(self.step)
+        try:
+            command = self.surgeon.poll()
+        finally:
+            if self.script is not None:
+                self.script.after_poll(self.step)
+            self.step += 1
+        self.last_events = dict(command.events)
+        target = self.surgeon.act(None, command)
+        return {name: float(value) for name, value in zip(POSE_FEATURES, target, strict=True)}
+
+    def get_teleop_events(self) -> dict[str, Any]:
+        return dict(self.last_events)
+
+    def disconnect(self) -> None:
+        if self.surgeon is not None:
+            self.surgeon.close()
+            self.surgeon = None
+        self.script = None
+        self._anchor = None
+
+
+class SutureKeyboard(_SurgeonTeleop):
+    """LeRobot's ``KeyboardEndEffectorTeleop`` through ``KeyboardSurgeon``: arrows and shifts move the jaw tip,
+    right / left ctrl close / open the jaw, i/k, j/l, u/o turn it."""
+
+    config_class = SutureKeyboardConfig
+    name = "suture_keyboard"
+
+    def connect(self, calibrate: bool = True) -> None:
+        from lerobot.teleoperators.keyboard import teleop_keyboard
+
+        teleop = keyboard_teleop()
+        if teleop_keyboard.keyboard is None:
+            raise RuntimeError(
+                "pynput could not load a keyboard backend, so LeRobot's keyboard teleoperator cannot name "
+                "keys. On a machine without a display, start the command with PYNPUT_BACKEND=dummy in its "
+                "environment and give --teleop.script."
+            )
+        if self.config.script is not None:
+            from lerobot_suture.surgeon.scripted_input import KeyScript
+
+            script = load_script(self.config.script)
+            keys = teleop_keyboard.keyboard.Key
+            special = sorted({name for held in script.values() for name in held if len(name) > 1})
+            if special and keys.left is keys.esc:
+                # pynput's dummy backend gives every special key one value: an arrow would read as
+                # every other special key, its release as Esc (which disconnects LeRobot's teleoperator).
+                raise ValueError(
+                    f"The script holds special keys {special}, which pynput's dummy backend (no display) "
+                    "cannot tell apart. Headless, script character keys (i/k/j/l/u/o turn the jaw) or use "
+                    "--teleop.type=suture_gamepad."
+                )
+            self.script = KeyScript(teleop, script)
+        elif headless():
+            raise ValueError(
+                "suture_keyboard needs a display: pynput reads keys on X11 (not headless, not Wayland). Run "
+                "it in a desktop session, or use --teleop.type=suture_gamepad, or play --teleop.script."
+            )
+        else:
+            teleop.connect()
+        self.surgeon = KeyboardSurgeon(teleop, self.config.mapping)
+
+
+class SutureGamepad(_SurgeonTeleop):
+    """LeRobot's ``GamepadTeleop`` through ``GamepadSurgeon``: left stick x/y, right stick z and a turn of
+    the jaw, LT / RT open / close the jaw."""
+
+    config_class = SutureGamepadConfig
+    name = "suture_gamepad"
+
+    def connect(self, calibrate: bool = True) -> None:
+        teleop = gamepad_teleop()
+        teleop.connect()
+        if self.config.script is not None:
+            from lerobot_suture.surgeon.scripted_input import GamepadScript
+
+            self.script = GamepadScript(teleop, load_script(self.config.script))
+        elif teleop.gamepad.joystick is None and not teleop.config.hidapi_fallback:
+            teleop.disconnect()
+            raise ValueError("suture_gamepad found no gamepad (pygame sees none). Connect one and rerun.")
+        self.surgeon = GamepadSurgeon(teleop, self.config.mapping)
