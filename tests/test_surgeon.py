@@ -1,6 +1,7 @@
 """The surgeon in the loop: LeRobot's teleoperators driven by scripts, takeover, recorded runs and merging."""
 
 import json
+import logging
 import os
 import shutil
 
@@ -236,3 +237,33 @@ def test_surgeon_run_command_records_and_writes_the_live_view(tiny_policy_dir, t
         cli_main(["surgeon-run", f"--policy.path={tmp_path / 'policy'}", "--surgeon=robot"])
     assert exit_info.value.code == 2
     assert "`surgeon` must be one of" in capsys.readouterr().err
+
+
+def test_surgeon_run_without_a_display_says_so_once_and_carries_on(
+    tiny_policy_dir, tmp_path, monkeypatch, caplog
+):
+    """As a new user runs it on a machine without a display: the default (show the live view) turns the
+    view off with one warning, the episodes run and the recording is saved."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from lerobot_suture.cli import main as cli_main
+
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    _runner(tiny_policy_dir, tmp_path, threshold=1e-12)  # writes the calibrated copy under tmp_path/policy
+    args = ["surgeon-run", f"--policy.path={tmp_path / 'policy'}", "--surgeon=expert", "--max_steps=2"]
+    with caplog.at_level(logging.WARNING, logger="lerobot_suture.surgeon.live_view"):
+        cli_main([*args, f"--record_root={tmp_path / 'run'}", "--video=false"])
+    warnings = [r.getMessage() for r in caplog.records if r.name == "lerobot_suture.surgeon.live_view"]
+    assert len(warnings) == 1 and "live view off: no display" in warnings[0] and "--view_path" in warnings[0]
+    assert len(LeRobotDataset("local/suture_surgeon_run", root=tmp_path / "run")) == 2
+
+
+def test_surgeon_run_with_an_uncalibrated_policy_names_the_fix_before_any_view(tiny_policy_dir, capsys):
+    from lerobot_suture.cli import main as cli_main
+
+    with pytest.raises(SystemExit) as exit_info:
+        cli_main(["surgeon-run", f"--policy.path={tiny_policy_dir}", "--surgeon=expert", "--max_steps=2"])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert "lerobot-suture calibrate --policy.path=" in err and len(err.strip().splitlines()) == 1
