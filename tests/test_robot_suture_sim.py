@@ -80,7 +80,9 @@ def test_recorded_features_are_the_expert_data_s():
             teleop_action, create_initial_features(action=robot.action_features), use_videos=True
         ),
         aggregate_pipeline_dataset_features(
-            robot_observation, create_initial_features(observation=robot.observation_features), use_videos=True
+            robot_observation,
+            create_initial_features(observation=robot.observation_features),
+            use_videos=True,
         ),
     )
     expert = expert_features.dataset_features("pixels_agent_pos", 96, video=True)
@@ -196,4 +198,6 @@ def test_trace_has_a_line_per_executed_step(tmp_path, info_logging):
     lines = [json.loads(line) for line in path.read_text().splitlines()]
     assert [(line["seed"], line["step"]) for line in lines] == [(3, 1), (4, 1)]
     np.testing.assert_allclose(lines[-1]["needle_tip"], tip)
-    assert {"action", "pose", "is_success", "throw_over", "needle_in_tissue", "needle_grasped"} <= set(lines[0])
+    assert {"action", "pose", "is_success", "throw_over", "needle_in_tissue", "needle_grasped"} <= set(
+        lines[0]
+    )

@@ -1,0 +1,250 @@
+"""LeRobot's own robot commands on the simulated arm (``--robot.type=suture_sim``), run as their console
+scripts with the tiny untrained policy: ``lerobot-rollout`` (episodic with a dataset, and base),
+``lerobot-replay``, ``lerobot-record`` by hand and ``lerobot-teleoperate``, the teleoperators driven by
+scripted event sources. The robot's trace (``--robot.trace_path``) gives the needle tip at every step."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from lerobot.datasets import LeRobotDataset
+
+from lerobot_suture.datasets import features as expert_features
+from lerobot_suture.datasets.video import resolve_video_backend
+from lerobot_suture.sim.task import TASK
+from lerobot_suture.surgeon.teleop_mapping import TeleopMappingConfig, initial_target, step_target
+
+BIN = Path(sys.executable).parent
+SEED = 40
+REPLAY_TOLERANCE_M = 0.5e-3
+
+
+def _environ() -> dict:
+    return {
+        **os.environ,
+        "HF_HUB_OFFLINE": "1",
+        "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"),
+        "PYOPENGL_PLATFORM": os.environ.get("PYOPENGL_PLATFORM", "egl"),
+        "OMP_NUM_THREADS": "1",
+        # Scripted teleoperators: pynput's and SDL's backends that need no display.
+        "PYNPUT_BACKEND": "dummy",
+        "SDL_VIDEODRIVER": "dummy",
+        "SDL_AUDIODRIVER": "dummy",
+    }
+
+
+def run_command(name: str, args: list[str], timeout: int = 300) -> str:
+    """Run LeRobot's console script ``name`` with ``args``; returns its log, failing on a non-zero exit."""
+    result = subprocess.run(
+        [str(BIN / name), *args],
+        env=_environ(),
+        stdin=subprocess.DEVNULL,  # no terminal: LeRobot's keyboard controls stay off
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+    log = result.stdout + result.stderr
+    assert result.returncode == 0, log[-6000:]
+    return log
+
+
+def read_trace(path: Path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines()]
+
+
+def load_dataset(root: Path, repo_id: str) -> LeRobotDataset:
+    return LeRobotDataset(repo_id, root=root, video_backend=resolve_video_backend())
+
+
+def episode_frames(dataset: LeRobotDataset, episode: int) -> list[dict]:
+    start = int(dataset.meta.episodes["dataset_from_index"][episode])
+    stop = int(dataset.meta.episodes["dataset_to_index"][episode])
+    return [dataset[i] for i in range(start, stop)]
+
+
+def robot_args(trace: Path, *extra: str) -> list[str]:
+    return ["--robot.type=suture_sim", f"--robot.trace_path={trace}", *extra]
+
+
+def dataset_args(root: Path, repo_id: str, episodes: int, episode_s: float, reset_s: float) -> list[str]:
+    return [
+        f"--dataset.repo_id={repo_id}",
+        f"--dataset.root={root}",
+        "--dataset.fps=10",
+        f"--dataset.num_episodes={episodes}",
+        f"--dataset.episode_time_s={episode_s}",
+        f"--dataset.reset_time_s={reset_s}",
+        f"--dataset.single_task={TASK}",
+        "--dataset.push_to_hub=false",
+        "--dataset.no_stamp=true",
+        "--play_sounds=false",
+        "--display_data=false",
+    ]
+
+
+@pytest.fixture(scope="module")
+def policy_recording(tiny_policy_dir, tmp_path_factory):
+    """Two policy episodes recorded by ``lerobot-rollout --strategy.type=episodic`` on the simulated arm."""
+    directory = tmp_path_factory.mktemp("policy_recording")
+    root, trace = directory / "dataset", directory / "trace.jsonl"
+    log = run_command(
+        "lerobot-rollout",
+        [
+            "--strategy.type=episodic",
+            f"--policy.path={tiny_policy_dir}",
+            "--device=cpu",
+            "--fps=10",
+            "--return_to_initial_position=false",
+            *robot_args(trace, f"--robot.seed={SEED}"),
+            *dataset_args(root, "local/rollout_suture", episodes=2, episode_s=1.5, reset_s=0),
+        ],
+    )
+    return root, read_trace(trace), log
+
+
+def test_episodic_rollout_records_the_expert_data_s_features(policy_recording):
+    """The dataset loads in plain LeRobotDataset with the expert data's keys, dtypes and shapes; each
+    episode is the scene of seed + N, and every frame is a control step of it."""
+    root, trace, log = policy_recording
+    dataset = load_dataset(root, "local/rollout_suture")
+    assert dataset.meta.total_episodes == 2 and dataset.meta.robot_type == "suture_sim" and dataset.fps == 10
+    expert = expert_features.dataset_features("pixels_agent_pos", 96, video=True)
+    for key in (expert_features.IMAGE_KEY, expert_features.STATE_KEY, expert_features.ACTION_KEY):
+        assert dataset.features[key]["dtype"] == expert[key]["dtype"]
+        assert tuple(dataset.features[key]["shape"]) == tuple(expert[key]["shape"])
+    frame = dataset[0]
+    assert frame[expert_features.IMAGE_KEY].shape == (3, 96, 96)
+    assert frame[expert_features.STATE_KEY].shape == (10,) and frame[expert_features.ACTION_KEY].shape == (
+        10,
+    )
+    assert frame["task"] == TASK
+    for episode in range(2):
+        steps = [line for line in trace if line["seed"] == SEED + episode]
+        frames = episode_frames(dataset, episode)
+        assert len(frames) == len(steps) > 0  # one control step per recorded frame
+        # The state of frame i is the pose measured after step i - 1.
+        for frame, step in zip(frames[1:], steps[:-1], strict=True):
+            np.testing.assert_allclose(frame[expert_features.STATE_KEY].numpy(), step["pose"], atol=1e-6)
+    assert "episode 1 on the scene of seed 41" in log
+
+
+def test_replay_follows_the_recorded_needle_tip(policy_recording, tmp_path):
+    """``lerobot-replay`` of a recorded episode, on the scene of its seed, keeps the needle tip within
+    0.5 mm of the recorded one at every frame."""
+    root, trace, _ = policy_recording
+    episode = 1
+    recorded = [line for line in trace if line["seed"] == SEED + episode]
+    replay_trace = tmp_path / "replay.jsonl"
+    run_command(
+        "lerobot-replay",
+        [
+            *robot_args(replay_trace, f"--robot.seed={SEED + episode}", "--robot.clock=fast"),
+            "--dataset.repo_id=local/rollout_suture",
+            f"--dataset.root={root}",
+            f"--dataset.episode={episode}",
+            "--play_sounds=false",
+        ],
+    )
+    replayed = read_trace(replay_trace)
+    assert len(replayed) == len(recorded)
+    errors = [
+        np.linalg.norm(np.subtract(a["needle_tip"], b["needle_tip"]))
+        for a, b in zip(recorded, replayed, strict=True)
+    ]
+    assert max(errors) <= REPLAY_TOLERANCE_M, errors
+    moved = np.linalg.norm(np.subtract(recorded[-1]["needle_tip"], recorded[0]["needle_tip"]))
+    assert moved > 1e-3  # the policy moved the needle: the bar is not met by standing still
+
+
+def test_base_rollout_runs_the_policy_on_the_arm(tiny_policy_dir, tmp_path):
+    trace = tmp_path / "trace.jsonl"
+    run_command(
+        "lerobot-rollout",
+        [
+            "--strategy.type=base",
+            f"--policy.path={tiny_policy_dir}",
+            "--device=cpu",
+            "--fps=10",
+            "--duration=1.5",
+            "--return_to_initial_position=false",
+            "--play_sounds=false",
+            f"--task={TASK}",
+            *robot_args(trace, "--robot.seed=5", "--robot.image_size=96"),
+        ],
+    )
+    steps = read_trace(trace)
+    assert len(steps) >= 5 and {line["seed"] for line in steps} == {5}
+    assert [line["step"] for line in steps] == list(range(1, len(steps) + 1))
+
+
+def test_teleoperate_with_lerobot_s_keyboard_follows_the_surgeon_s_mapping(tmp_path):
+    """``lerobot-teleoperate --teleop.type=suture_keyboard``: LeRobot's keyboard teleoperator fed keys
+    through its own callbacks; `u` turns the jaw about its z axis, as ``lerobot-suture teleop`` does."""
+    trace, script = tmp_path / "trace.jsonl", tmp_path / "keys.json"
+    held = {2: ["u"], 3: ["u"], 4: ["u"]}
+    script.write_text(json.dumps(held))
+    run_command(
+        "lerobot-teleoperate",
+        [
+            *robot_args(trace, "--robot.seed=2", "--robot.image_size=32", "--robot.clock=fast"),
+            "--teleop.type=suture_keyboard",
+            f"--teleop.script={script}",
+            "--teleop.mapping.rotation_speed=1.0",
+            "--fps=20",
+            "--teleop_time_s=0.6",
+        ],
+    )
+    steps = read_trace(trace)
+    assert len(steps) >= 6
+    mapping = TeleopMappingConfig(rotation_speed=1.0)
+    from lerobot_robot_suture import SutureSim, SutureSimConfig
+
+    robot = SutureSim(SutureSimConfig(seed=2, image_size=32, clock="fast"))
+    robot.connect()
+    target = initial_target(robot.measured_pose())
+    robot.disconnect()
+    for step, line in enumerate(steps):
+        rotation = np.array([0.0, 0.0, 1.0]) if step in held else None
+        target = step_target(target, {"delta_x": 0.0, "delta_y": 0.0, "delta_z": 0.0}, rotation, mapping)
+        np.testing.assert_allclose(line["action"], target, atol=1e-9)
+    assert np.linalg.norm(np.subtract(steps[-1]["action"][3:6], steps[0]["action"][3:6])) > 0.2
+
+
+def test_record_by_hand_with_lerobot_s_gamepad(tmp_path):
+    """``lerobot-record --teleop.type=suture_gamepad``: LeRobot's gamepad teleoperator with a scripted
+    joystick drives the arm; the recorded actions are the target poses, the second episode starts on its
+    own scene, and the dataset has the expert data's features."""
+    root, trace, script = tmp_path / "dataset", tmp_path / "trace.jsonl", tmp_path / "pad.json"
+    push = {"axes": {"1": -1.0}}  # LeRobot: delta_x = -axis 1, +0.5 mm per step along world x
+    script.write_text(json.dumps({str(k): push for k in range(0, 40)}))
+    log = run_command(
+        "lerobot-record",
+        [
+            *robot_args(trace, f"--robot.seed={SEED}", "--robot.image_size=96", "--robot.clock=fast"),
+            "--teleop.type=suture_gamepad",
+            f"--teleop.script={script}",
+            *dataset_args(root, "local/suture_by_hand", episodes=2, episode_s=1.0, reset_s=0.3),
+        ],
+    )
+    dataset = load_dataset(root, "local/suture_by_hand")
+    assert dataset.meta.total_episodes == 2
+    expert = expert_features.dataset_features("pixels_agent_pos", 96, video=True)
+    for key in (expert_features.IMAGE_KEY, expert_features.STATE_KEY, expert_features.ACTION_KEY):
+        assert tuple(dataset.features[key]["shape"]) == tuple(expert[key]["shape"])
+        assert dataset.features[key]["dtype"] == expert[key]["dtype"]
+    steps = read_trace(trace)
+    for episode in range(2):
+        frames = episode_frames(dataset, episode)
+        executed = [line for line in steps if line["seed"] == SEED + episode]
+        assert len(frames) == len(executed) > 2
+        actions = np.stack([f[expert_features.ACTION_KEY].numpy() for f in frames])
+        np.testing.assert_allclose(actions, [line["action"] for line in executed], atol=1e-6)
+        np.testing.assert_allclose(
+            np.diff(actions[:, 0]), 0.5e-3, atol=1e-6
+        )  # the stick, through the mapping
+        assert np.ptp(actions[:, 1:3], axis=0).max() < 1e-6
+    assert "scene reset to seed 41 and held" in log
