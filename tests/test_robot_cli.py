@@ -24,8 +24,9 @@ REPLAY_TOLERANCE_M = 0.5e-3
 
 
 def _environ() -> dict:
+    environ = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
     return {
-        **os.environ,
+        **environ,
         "HF_HUB_OFFLINE": "1",
         "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"),
         "PYOPENGL_PLATFORM": os.environ.get("PYOPENGL_PLATFORM", "egl"),
@@ -34,7 +35,7 @@ def _environ() -> dict:
         "PYNPUT_BACKEND": "dummy",
         "SDL_VIDEODRIVER": "dummy",
         "SDL_AUDIODRIVER": "dummy",
-    }
+    }  # and no display: LeRobot reads keys from the terminal, if any
 
 
 def run_command(name: str, args: list[str], timeout: int = 300) -> str:
@@ -248,3 +249,87 @@ def test_record_by_hand_with_lerobot_s_gamepad(tmp_path):
         )  # the stick, through the mapping
         assert np.ptp(actions[:, 1:3], axis=0).max() < 1e-6
     assert "scene reset to seed 41 and held" in log
+
+
+def run_command_with_terminal_keys(
+    name: str, args: list[str], marker: str, keys: list[tuple[float, str]], timeout: int = 300
+) -> str:
+    """Run ``name`` with a pseudo-terminal as stdin (LeRobot's terminal key reader); once ``marker`` is in
+    its log, type each key after its delay (s). Returns the log, failing on a non-zero exit."""
+    import pty
+    import threading
+    import time
+
+    master, slave = pty.openpty()
+    process = subprocess.Popen(
+        [str(BIN / name), *args],
+        env=_environ(),
+        stdin=slave,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    os.close(slave)
+    lines: list[str] = []
+    seen = threading.Event()
+
+    def read() -> None:
+        for line in process.stdout:
+            lines.append(line)
+            if marker in line:
+                seen.set()
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    try:
+        assert seen.wait(timeout), "".join(lines)[-6000:]
+        for delay, key in keys:
+            time.sleep(delay)
+            os.write(master, key.encode())
+        process.wait(timeout=timeout)
+    finally:
+        if process.poll() is None:
+            process.kill()
+        reader.join(timeout=5)
+        os.close(master)
+    log = "".join(lines)
+    assert process.returncode == 0, log[-6000:]
+    return log
+
+
+def test_dagger_rollout_records_a_gamepad_correction_with_intervention_labels(tiny_policy_dir, tmp_path):
+    """``lerobot-rollout --strategy.type=dagger``: the tiny policy drives, space pauses it, tab starts and ends
+    a correction by LeRobot's gamepad (scripted); the correction is the episode, every frame labelled
+    ``intervention``, its target taken over from the pose the policy left the arm in."""
+    root, trace, script = tmp_path / "dataset", tmp_path / "trace.jsonl", tmp_path / "pad.json"
+    push = {"axes": {"1": -1.0}}  # +0.5 mm per step along world x
+    script.write_text(json.dumps({str(k): push for k in range(1, 200)}))
+    log = run_command_with_terminal_keys(
+        "lerobot-rollout",
+        [
+            "--strategy.type=dagger",
+            "--strategy.num_episodes=1",
+            f"--policy.path={tiny_policy_dir}",
+            "--device=cpu",
+            "--fps=10",
+            "--return_to_initial_position=false",
+            *robot_args(trace, f"--robot.seed={SEED}", "--robot.clock=fast"),
+            "--teleop.type=suture_gamepad",
+            f"--teleop.script={script}",
+            *dataset_args(root, "local/rollout_suture_dagger", episodes=1, episode_s=30, reset_s=0),
+        ],
+        marker="DAgger corrections-only recording started",
+        keys=[(1.0, " "), (0.3, "\t"), (2.5, "\t")],  # the handover takes about 1 s
+    )
+    assert "Correction 1/1 saved" in log
+    dataset = load_dataset(root, "local/rollout_suture_dagger")
+    assert dataset.meta.total_episodes == 1 and dataset.features["intervention"]["dtype"] == "bool"
+    frames = episode_frames(dataset, 0)
+    assert len(frames) >= 3 and all(bool(f["intervention"]) for f in frames)
+    actions = np.stack([f[expert_features.ACTION_KEY].numpy() for f in frames])
+    np.testing.assert_allclose(np.diff(actions[:, 0]), 0.5e-3, atol=1e-6)
+    first_state = frames[0][expert_features.STATE_KEY].numpy()
+    # The surgeon's target starts where the policy (then the handover) left the arm, not at the scene's start.
+    assert np.linalg.norm(actions[0, :3] - first_state[:3]) < 2e-3
+    steps = read_trace(trace)
+    assert len(steps) > len(frames) and {line["seed"] for line in steps} == {SEED}

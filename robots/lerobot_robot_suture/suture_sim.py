@@ -75,6 +75,8 @@ class SutureSim(Robot):
         """Control steps executed in the current scene."""
         self.scene_count = 0
         """Scenes started since ``connect`` (a teleoperator re-anchors its target when it changes)."""
+        self.total_steps = 0
+        """Control steps executed since ``connect``, over all scenes."""
         self.holding = False
         """In LeRobot's reset phase: the new scene is held and actions are not executed."""
         self._episode: int | None = None
@@ -155,6 +157,7 @@ class SutureSim(Robot):
             obs, _reward, terminated, truncated, info = self.env.step(target)
             self._obs, self.last_info = obs, info
             self.scene_steps += 1
+            self.total_steps += 1
             self._write_trace(sent, terminated)
             return dict(zip(POSE_FEATURES, sent.astype(float).tolist(), strict=True))
 

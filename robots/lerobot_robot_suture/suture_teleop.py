@@ -7,7 +7,8 @@ surgeons of ``lerobot-suture teleop`` (``lerobot_suture.surgeon.surgeons.Keyboar
 ``GamepadSurgeon``, around LeRobot's ``KeyboardEndEffectorTeleop`` and ``GamepadTeleop``): the same keys,
 sticks and buttons, the same integration of the command into a target pose
 (``lerobot_suture.surgeon.teleop_mapping``). The target starts at the arm's measured pose when the
-teleoperator first acts, and again whenever the arm starts a new scene.
+teleoperator first acts, and again whenever the arm has started a new scene or executed commands of
+someone else since the teleoperator's last one (a policy before a DAgger correction).
 
 ``get_action`` returns ``{"x.pos": ..., ..., "jaw.pos": ...}``; ``get_teleop_events`` returns LeRobot's
 teleop events of the last ``get_action``.
@@ -56,6 +57,7 @@ class _SurgeonTeleop(Teleoperator):
         """``get_action`` calls so far: the control step a script is read at."""
         self.last_events: dict = {}
         self._anchor: tuple | None = None
+        self._commanded_at = 0
 
     @cached_property
     def action_features(self) -> dict:
@@ -87,9 +89,12 @@ class _SurgeonTeleop(Teleoperator):
             raise RuntimeError(f"{self} is not connected.")
         robot = link.connected_robot()
         anchor = (id(robot), robot.scene_count)
-        if anchor != self._anchor:  # first action, or a new scene: start from the measured pose
+        # The arm executes at most one step per command; more since the last one: someone else drove it.
+        driven_by_others = robot.total_steps > self._commanded_at + 1
+        if anchor != self._anchor or driven_by_others:  # take control from the measured pose
             self.surgeon.take_control(None, {"agent_pos": robot.measured_pose()})
             self._anchor = anchor
+        self._commanded_at = robot.total_steps
         if self.script is not None:
             self.script.before_poll(self.step)
         try:
