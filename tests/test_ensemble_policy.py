@@ -32,11 +32,20 @@ def _policy(**overrides) -> EnsembleDiffusionPolicy:
 
 
 @pytest.fixture(scope="module")
-def policy():
+def shared_policy():
     torch.manual_seed(0)
     return EnsembleDiffusionPolicy(
         tiny_config(n_members=3, noise_scheduler_type="DDIM"), dataset_stats=fake_dataset_stats()
     ).eval()
+
+
+@pytest.fixture
+def policy(shared_policy):
+    """The module's policy, built once, with empty queues: `select_action` fills the observation queues and
+    `predict_action_distribution` reads them once filled, so a test must not see an earlier test's."""
+    shared_policy.reset()
+    shared_policy.config.batched_inference = True
+    return shared_policy
 
 
 def _train_batch(config, batch_size=4, seed=0):
