@@ -31,3 +31,21 @@ def tiny_policy_dir(tmp_path_factory) -> Path:
         num_inference_steps=3,
         noise_scheduler_type="DDIM",
     )
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_configure(config: pytest.Config) -> None:
+    """pytest-randomly, once installed, loads itself into every run; it shuffles only on request.
+
+    A plain `pytest` keeps the file order and the global seeds as they are, so that a failure reproduces by
+    running the same command again. `-p randomly` or `--randomly-seed=N` turns the shuffle (and the
+    reseeding of `random` and numpy before every test) on. Runs before pytest-randomly replaces its
+    default seed with a drawn one.
+    """
+    if not config.pluginmanager.hasplugin("randomly"):
+        return
+    named = {"randomly", "pytest_randomly"} & set(config.option.plugins or ())
+    if named or config.getoption("randomly_seed") != "default":
+        return
+    config.option.randomly_reorganize = False
+    config.option.randomly_reset_seed = False
