@@ -24,14 +24,6 @@ from typing import Any
 from lerobot.lerobot_types import RobotAction
 from lerobot.teleoperators.teleoperator import Teleoperator
 
-from lerobot_suture.surgeon.surgeons import (
-    GamepadSurgeon,
-    KeyboardSurgeon,
-    gamepad_teleop,
-    headless,
-    keyboard_teleop,
-)
-
 from . import link
 from .config_suture_sim import POSE_FEATURES
 from .config_suture_teleop import SutureGamepadConfig, SutureKeyboardConfig
@@ -128,6 +120,8 @@ class SutureKeyboard(_SurgeonTeleop):
     def connect(self, calibrate: bool = True) -> None:
         from lerobot.teleoperators.keyboard import teleop_keyboard
 
+        from lerobot_suture.surgeon.surgeons import KeyboardSurgeon, headless, keyboard_teleop
+
         teleop = keyboard_teleop()
         if teleop_keyboard.keyboard is None:
             raise RuntimeError(
@@ -168,6 +162,8 @@ class SutureGamepad(_SurgeonTeleop):
     name = "suture_gamepad"
 
     def connect(self, calibrate: bool = True) -> None:
+        from lerobot_suture.surgeon.surgeons import GamepadSurgeon, gamepad_teleop
+
         teleop = gamepad_teleop()
         teleop.connect()
         if self.config.script is not None:
