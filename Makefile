@@ -1,5 +1,5 @@
 # lerobot-suture: `make demo` runs the main job on a small default; `make test` runs the tests.
-# Both set up first (`make install`): a .venv with Python >= 3.12, the three distributions in
+# Both set up first (`make install`): a .venv with Python >= 3.12, the four distributions in
 # editable mode with the test, viz (rerun) and teleop (keyboard, gamepad) extras, and the system libraries headless rendering needs.
 
 SHELL := /bin/bash
@@ -54,8 +54,8 @@ bench: install
 	for b in benchmarks/*.py; do echo "== $$b"; $(BIN)/python $$b; done
 
 lint: install
-	$(BIN)/ruff check lerobot_suture envs policies tests benchmarks
-	$(BIN)/ruff format --check lerobot_suture envs policies tests benchmarks
+	$(BIN)/ruff check lerobot_suture envs policies robots tests benchmarks
+	$(BIN)/ruff format --check lerobot_suture envs policies robots tests benchmarks
 
 clean:
 	rm -rf $(VENV) outputs .pytest_cache
