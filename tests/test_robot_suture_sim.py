@@ -20,6 +20,7 @@ from lerobot.utils.import_utils import register_third_party_plugins
 
 import lerobot_suture
 from lerobot_suture.datasets import features as expert_features
+from lerobot_suture.registration import MAX_EPISODE_STEPS
 
 register_third_party_plugins()  # as every LeRobot command does at start-up
 
@@ -201,3 +202,28 @@ def test_trace_has_a_line_per_executed_step(tmp_path, info_logging):
     assert {"action", "pose", "is_success", "throw_over", "needle_in_tissue", "needle_grasped"} <= set(
         lines[0]
     )
+
+
+@pytest.mark.parametrize("episode_end", ["hold", "continue"])
+def test_at_the_episode_s_end_the_arm_holds_or_continues(episode_end):
+    """``hold`` stops executing once the env's episode has ended (its 10 s limit here), as lerobot-eval stops
+    an env; ``continue`` keeps following the commands; a new scene starts over either way."""
+    robot = SutureSim(SutureSimConfig(seed=3, image_size=SIZE, clock="fast", episode_end=episode_end))
+    robot.connect()
+    try:
+        hold = _pose_action(robot.measured_pose())
+        for _ in range(MAX_EPISODE_STEPS + 5):
+            robot.send_action(hold)
+        expected = MAX_EPISODE_STEPS if episode_end == "hold" else MAX_EPISODE_STEPS + 5
+        assert robot.scene_steps == expected
+        assert robot.scene_over == (episode_end == "hold")
+        robot.reset_scene(4)
+        robot.send_action(_pose_action(robot.measured_pose()))
+        assert robot.scene_steps == 1 and not robot.scene_over
+    finally:
+        robot.disconnect()
+
+
+def test_an_unknown_episode_end_is_refused_with_the_choices():
+    with pytest.raises(ValueError, match=r"`episode_end` must be one of \('continue', 'hold'\)"):
+        SutureSimConfig(episode_end="stop")

@@ -22,6 +22,7 @@ jaw). LeRobot stacks them into ``observation.state`` (10,) and ``action`` (10,);
 LeRobot's for a position feature, and ``lerobot-rollout`` keeps only scalar features named ``*.pos`` or
 ``*.vel`` (``lerobot/rollout/context.py``)."""
 CLOCKS = ("realtime", "fast")
+EPISODE_ENDS = ("continue", "hold")
 
 
 @RobotConfig.register_subclass("suture_sim")
@@ -42,8 +43,13 @@ class SutureSimConfig(RobotConfig):
         cbf: the control barrier function safety filter (``--robot.cbf.enabled=true``).
         clock: ``realtime`` (a control step takes at least the control period, 0.1 s, of wall time, as
             a real arm runs) or ``fast`` (a control step takes the time it computes in).
+        episode_end: what the arm does once the scene's episode has ended (the throw is over, or the env's
+            10 s limit came): ``continue`` (it keeps following the commands in the finished scene: a person
+            at the controls) or ``hold`` (it holds its last pose until the next scene, as ``lerobot-eval``
+            stops an env at its episode's end: evaluation).
         trace_path: append one JSON line per executed control step to this file: the scene's seed, the
-            step, the needle tip (m), the measured pose and the env's outcome. None: no trace.
+            step, the needle tip (m), the measured pose, the env's outcome and the step's wall time (s).
+            None: no trace.
     """
 
     seed: int = 0
@@ -55,6 +61,7 @@ class SutureSimConfig(RobotConfig):
     appearance: AppearanceConfig = field(default_factory=AppearanceConfig)
     cbf: CBFConfig = field(default_factory=CBFConfig)
     clock: str = "realtime"
+    episode_end: str = "continue"
     trace_path: Path | None = None
 
     def __post_init__(self):
@@ -65,6 +72,8 @@ class SutureSimConfig(RobotConfig):
             raise ValueError(f"`grasp` must be one of {tuple(GRASP_RANGES)}. Got {self.grasp!r}.")
         if self.clock not in CLOCKS:
             raise ValueError(f"`clock` must be one of {CLOCKS}. Got {self.clock!r}.")
+        if self.episode_end not in EPISODE_ENDS:
+            raise ValueError(f"`episode_end` must be one of {EPISODE_ENDS}. Got {self.episode_end!r}.")
         if self.seed < 0:
             raise ValueError(f"`seed` must be >= 0. Got {self.seed}.")
         check_image_side("image_size", self.image_size)

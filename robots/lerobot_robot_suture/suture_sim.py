@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import logging
 import threading
+import time
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -79,6 +80,9 @@ class SutureSim(Robot):
         """Control steps executed since ``connect``, over all scenes."""
         self.holding = False
         """In LeRobot's reset phase: the new scene is held and actions are not executed."""
+        self.scene_over = False
+        """With ``episode_end=hold``: the scene's episode has ended, the arm holds its last pose and actions
+        are not executed until the next scene."""
         self._episode: int | None = None
 
     # ------------------------------------------------------------------ features
@@ -149,7 +153,7 @@ class SutureSim(Robot):
         target = self._target(action)
         with self._lock:
             self._cues.raise_pending()
-            if self.holding:
+            if self.holding or self.scene_over:
                 return dict(zip(POSE_FEATURES, target.tolist(), strict=True))
             space = self.env.unwrapped.action_space
             sent = np.clip(target, space.low, space.high)
@@ -158,7 +162,8 @@ class SutureSim(Robot):
             self._obs, self.last_info = obs, info
             self.scene_steps += 1
             self.total_steps += 1
-            self._write_trace(sent, terminated)
+            self.scene_over = self.config.episode_end == "hold" and bool(terminated or truncated)
+            self._write_trace(sent, terminated, truncated)
             return dict(zip(POSE_FEATURES, sent.astype(float).tolist(), strict=True))
 
     # ------------------------------------------------------------------ what else a caller may read
@@ -196,6 +201,7 @@ class SutureSim(Robot):
         self._obs, self.last_info = self.env.reset(seed=int(seed))
         self.scene_seed = int(seed)
         self.scene_steps = 0
+        self.scene_over = False
         self.scene_count += 1
         self._clock.restart()
 
@@ -217,7 +223,7 @@ class SutureSim(Robot):
             self.holding = True
             logger.info("%s: scene reset to seed %d and held for the reset phase.", self, self.scene_seed)
 
-    def _write_trace(self, sent: np.ndarray, terminated: bool) -> None:
+    def _write_trace(self, sent: np.ndarray, terminated: bool, truncated: bool) -> None:
         if self._trace is None:
             return
         info = self.last_info
@@ -229,6 +235,8 @@ class SutureSim(Robot):
             "needle_tip": np.asarray(info["needle_tip_pos"], dtype=float).tolist(),
             "is_success": bool(info["is_success"]),
             "throw_over": bool(terminated),
+            "time_limit": bool(truncated),
+            "wall_time": time.perf_counter(),  # s, when the step ended: the loop's period and jitter
             "needle_in_tissue": bool(info["needle_in_tissue"]),
             "needle_grasped": bool(info["needle_grasped"]),
         }
