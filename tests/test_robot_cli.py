@@ -133,6 +133,42 @@ def test_episodic_rollout_records_the_expert_data_s_features(policy_recording):
     assert "episode 1 on the scene of seed 41" in log
 
 
+def test_a_robot_recording_trains_with_the_reference_preset(policy_recording, tmp_path):
+    """The reference preset's ensemble trains on the policy recording, only its needle target turned off:
+    that target is privileged (the needle located in the image by the simulator), which a robot does not
+    measure; with it on, the preset's own error names the flag."""
+    root, _, _ = policy_recording
+    preset = Path(__file__).resolve().parents[1] / "policies" / "presets" / "reference.json"
+    args = [
+        f"--config_path={preset}",
+        "--dataset.repo_id=local/rollout_suture",
+        f"--dataset.root={root}",
+        "--dataset.episodes=[0,1]",
+        "--dataset.video_backend=pyav",
+        "--steps=2",
+        "--batch_size=2",
+        "--num_workers=0",
+        "--save_checkpoint=false",
+        "--log_freq=1",
+        "--policy.push_to_hub=false",
+        "--wandb.enable=false",
+    ]
+    log = run_command(
+        "lerobot-train", [*args, "--policy.needle_keypoints_weight=0", f"--output_dir={tmp_path / 'a'}"]
+    )
+    assert "step:2" in log.replace(" ", "") or "End of training" in log
+    refused = subprocess.run(
+        [str(BIN / "lerobot-train"), *args, f"--output_dir={tmp_path / 'b'}"],
+        env=_environ(),
+        stdin=subprocess.DEVNULL,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert refused.returncode != 0
+    assert "--policy.needle_keypoints_weight=0" in refused.stdout + refused.stderr
+
+
 def test_replay_follows_the_recorded_needle_tip(policy_recording, tmp_path):
     """``lerobot-replay`` of a recorded episode, on the scene of its seed, keeps the needle tip within
     0.5 mm of the recorded one at every frame."""
