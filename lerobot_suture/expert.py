@@ -27,12 +27,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lerobot_suture.pickup_expert import PickupPlan
 from lerobot_suture.sim.geometry import (
     jaw_holding,
-    matrix_from_rotvec,
     needle_in_world,
     pose_vector,
     rotvec_from_matrix,
+    step_towards,
 )
 
 PHASES = ("detour", "approach", "descend", "drive", "hold")
@@ -91,19 +92,6 @@ class ExpertConfig:
             )
 
 
-def _step_towards(position, rotation, goal_position, goal_rotation, max_distance, max_angle):
-    """The pose one bounded step from (position, rotation) towards the goal."""
-    delta = goal_position - position
-    distance = float(np.linalg.norm(delta))
-    if distance > max_distance:
-        delta *= max_distance / distance
-    rotvec = rotvec_from_matrix(rotation.T @ goal_rotation)
-    angle = float(np.linalg.norm(rotvec))
-    if angle > max_angle:
-        rotvec *= max_angle / angle
-    return position + delta, rotation @ matrix_from_rotvec(rotvec)
-
-
 class ScriptedExpert:
     """Privileged needle-insertion expert; ``act(env)`` returns a (10,) float32 pose action."""
 
@@ -112,6 +100,7 @@ class ScriptedExpert:
         self.phase: str | None = None
         self.drive_angle = 0.0
         self.detour_side = 1.0
+        self._pickup: PickupPlan | None = None
 
     def reset(self, env=None) -> None:
         """Start over; the phase is worked out from the env's state at the next ``act``. With
@@ -120,6 +109,7 @@ class ScriptedExpert:
         scene the seed draws."""
         self.phase = None
         self.drive_angle = 0.0
+        self._pickup: PickupPlan | None = None
         seed = getattr(env.unwrapped, "np_random_seed", None) if env is not None else None
         rng = np.random.default_rng(None if seed is None or seed < 0 else [_SIDE_STREAM, seed])
         self.detour_side = 1.0 if rng.integers(2) else -1.0
@@ -127,6 +117,10 @@ class ScriptedExpert:
     def act(self, env) -> np.ndarray:
         u = env.unwrapped
         cfg = self.config
+        if u.task_name == "pickup":
+            if self._pickup is None:
+                self._pickup = PickupPlan(cfg)
+            return self._pickup.act(env)
         dt = u.control_dt
         jaw_pos, jaw_rot = u.jaw_pose()
         if not u.needle_grasped:
@@ -149,7 +143,7 @@ class ScriptedExpert:
             if np.linalg.norm(goal - centre) < 4 * cfg.position_tolerance:  # a waypoint, passed loosely
                 self.phase = "approach"
             else:
-                target = _step_towards(
+                target = step_towards(
                     centre, rotation, goal, rotation, cfg.approach_speed * dt, cfg.approach_turn_rate * dt
                 )
         if self.phase == "approach":
@@ -159,7 +153,7 @@ class ScriptedExpert:
             if error < cfg.position_tolerance and turn < cfg.angle_tolerance:
                 self.phase = "descend"
             else:
-                target = _step_towards(
+                target = step_towards(
                     centre,
                     rotation,
                     goal,
@@ -171,7 +165,7 @@ class ScriptedExpert:
             if np.linalg.norm(frame.centre - centre) < cfg.position_tolerance:
                 self.phase = "drive"
             else:
-                target = _step_towards(
+                target = step_towards(
                     centre,
                     rotation,
                     frame.centre,

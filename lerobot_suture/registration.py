@@ -1,16 +1,17 @@
-"""Gymnasium registration, from one table, and the factory it points to."""
+"""Gymnasium registration, from the task table, and the factory it points to."""
 
 from __future__ import annotations
 
 import gymnasium as gym
 
-ENV_ID = "lerobot_suture/NeedleInsertion-v0"
-MAX_EPISODE_STEPS = 100
+from lerobot_suture.sim.tasks import DEFAULT_TASK, TASKS
+
+ENV_ID = TASKS[DEFAULT_TASK].gym_id
+"""The default task's id, ``lerobot_suture/NeedleInsertion-v0``."""
+MAX_EPISODE_STEPS = TASKS[DEFAULT_TASK].max_episode_steps
 """10 s at the 10 Hz control rate; the expert needs about 6 s."""
 
-_ENVS = {
-    ENV_ID: ("lerobot_suture.registration:make_suture_env", MAX_EPISODE_STEPS),
-}
+_ENTRY_POINT = "lerobot_suture.registration:make_suture_env"
 
 
 def make_suture_env(cbf=None, **kwargs) -> gym.Env:
@@ -20,7 +21,7 @@ def make_suture_env(cbf=None, **kwargs) -> gym.Env:
         cbf: None (no filter), or a :class:`~lerobot_suture.safety.cbf_config.CBFConfig` (or its fields
             as a dict); the env is then wrapped in
             :class:`~lerobot_suture.safety.cbf_wrapper.CBFActionWrapper`.
-        **kwargs: the env's own arguments (see its docstring).
+        **kwargs: the env's own arguments (see its docstring), ``task`` among them.
     """
     from lerobot_suture.sim.suture_env import SutureEnv
 
@@ -40,6 +41,12 @@ def make_suture_env(cbf=None, **kwargs) -> gym.Env:
 
 
 def register_envs() -> None:
-    for env_id, (entry_point, max_steps) in _ENVS.items():
-        if env_id not in gym.registry:
-            gym.register(id=env_id, entry_point=entry_point, max_episode_steps=max_steps)
+    """Register one id per task (``tasks.TASKS``): its ``task`` and its episode length."""
+    for spec in TASKS.values():
+        if spec.gym_id not in gym.registry:
+            gym.register(
+                id=spec.gym_id,
+                entry_point=_ENTRY_POINT,
+                max_episode_steps=spec.max_episode_steps,
+                kwargs={"task": spec.name},
+            )

@@ -24,6 +24,7 @@ from lerobot_suture.safety.cbf import (
 from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.safety.cbf_replay import replay_and_plot, replay_cbf
 from lerobot_suture.safety.cbf_wrapper import PHASE_ACTIVE, PHASE_DONE, PHASE_IDLE, CBFActionWrapper
+from lerobot_suture.sim.tasks import TASKS
 
 N_STATES = 10_000
 DT = 0.1
@@ -402,6 +403,7 @@ class KinematicSutureEnv(gym.Env):
 
     metadata = {"render_modes": []}
     control_dt, physics_dt = 0.1, 0.002
+    task_spec = TASKS["insertion"]
 
     def __init__(self):
         self.observation_space = gym.spaces.Box(-1, 1, (3,), np.float64)

@@ -130,3 +130,20 @@ def test_variant_presets_are_the_reference_on_other_data(preset, dataset, tmp_pa
     if transforms.enable:
         # No affine: a shifted image with an unchanged jaw is what a phantom moved after insertion looks like.
         assert set(transforms.tfs) == {"brightness", "contrast", "saturation", "hue", "sharpness"}
+
+
+def test_the_pickup_preset_is_the_reference_on_the_pickup_recipe(tmp_path):
+    reference = _parse_train_config(PRESETS / "reference.json", tmp_path / "a")
+    pickup = _parse_train_config(PRESETS / "pickup.json", tmp_path / "b")
+    assert pickup.policy == reference.policy
+    for name in PIPELINE_FIELDS:
+        assert getattr(pickup, name) == getattr(reference, name), name
+    from lerobot_suture.datasets.record_config import parse_config
+
+    recipe = parse_config([f"--config_path={DATASETS / 'suture_pickup.yaml'}"])
+    assert recipe.task == "pickup" and (recipe.repo_id, recipe.root) == (
+        pickup.dataset.repo_id,
+        pickup.dataset.root,
+    )
+    assert pickup.dataset.episodes == list(range(99))  # the 99 training episodes of its 133
+    assert recipe.num_episodes - math.ceil(recipe.num_episodes * recipe.val_fraction) == 99

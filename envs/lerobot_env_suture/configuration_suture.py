@@ -1,4 +1,4 @@
-"""``SutureEnvConfig``: the needle-insertion env as LeRobot's env type ``suture``."""
+"""``SutureEnvConfig``: the suturing env, its task family, as LeRobot's env type ``suture``."""
 
 from __future__ import annotations
 
@@ -13,6 +13,9 @@ from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.sim.appearance import AppearanceConfig
 from lerobot_suture.sim.scenarios import SCENARIOS
 from lerobot_suture.sim.suture_env import OBS_TYPES, check_image_side
+from lerobot_suture.sim.tasks import DEFAULT_TASK, TASKS, check_scenario, task_spec
+
+_TASK_BY_GYM_NAME = {spec.gym_id.split("/", 1)[1]: name for name, spec in TASKS.items()}
 
 ENDOSCOPE_KEY = "pixels/endoscope"
 ENVIRONMENT_STATE_DIM = 18
@@ -21,12 +24,13 @@ ENVIRONMENT_STATE_DIM = 18
 @EnvConfig.register_subclass("suture")
 @dataclass
 class SutureEnvConfig(EnvConfig):
-    """MuJoCo needle insertion with a da Vinci-style arm (see ``lerobot_suture.sim.suture_env``).
+    """MuJoCo suturing with a da Vinci-style arm (see ``lerobot_suture.sim.suture_env``).
 
     Args:
-        task: gym id within the ``lerobot_suture`` namespace.
+        task: which task of the family (``lerobot_suture.sim.tasks.TASKS``): ``insertion`` (the paper's) or
+            ``pickup``. Its gym id (``NeedleInsertion-v0``, ...) is accepted too.
         fps: control rate (Hz); fixed by the env at 10.
-        episode_length: max control steps per episode.
+        episode_length: max control steps per episode; None: the task's own (``TaskSpec.max_episode_steps``).
         obs_type: ``pixels_agent_pos`` (endoscope + state, the paper's), ``state`` (state and
             privileged environment state, no image) or ``pixels_agent_pos_state`` (all three).
         image_size: endoscope image side (px).
@@ -40,9 +44,9 @@ class SutureEnvConfig(EnvConfig):
             ``lerobot_suture.sim.appearance``).
     """
 
-    task: str | None = "NeedleInsertion-v0"
+    task: str | None = DEFAULT_TASK
     fps: int = 10
-    episode_length: int = 100
+    episode_length: int | None = None
     obs_type: str = "pixels_agent_pos"
     image_size: int = 96
     render_size: int = 256
@@ -73,6 +77,11 @@ class SutureEnvConfig(EnvConfig):
             raise ValueError(f"`obs_type` must be one of {OBS_TYPES}. Got {self.obs_type!r}.")
         if self.scenario not in SCENARIOS:
             raise ValueError(f"`scenario` must be one of {SCENARIOS}. Got {self.scenario!r}.")
+        self.task = _TASK_BY_GYM_NAME.get(self.task, self.task or DEFAULT_TASK)
+        spec = task_spec(self.task)
+        check_scenario(self.task, self.scenario)
+        if self.episode_length is None:
+            self.episode_length = spec.max_episode_steps
         if self.episode_length < 1:
             raise ValueError(f"`episode_length` must be >= 1. Got {self.episode_length}.")
         check_image_side("image_size", self.image_size)
@@ -92,7 +101,7 @@ class SutureEnvConfig(EnvConfig):
 
     @property
     def gym_id(self) -> str:
-        return f"lerobot_suture/{self.task}"
+        return task_spec(self.task).gym_id
 
     @property
     def gym_kwargs(self) -> dict:

@@ -20,11 +20,11 @@ from lerobot_suture.datasets.features import (
     REWARD_KEY,
     STATE_KEY,
     SUCCESS_KEY,
-    TASK,
 )
 from lerobot_suture.expert import iter_expert_steps
-from lerobot_suture.registration import ENV_ID
 from lerobot_suture.sim import task
+from lerobot_suture.sim.pickup import grasp_ready_for_throw
+from lerobot_suture.sim.tasks import DEFAULT_TASK, task_spec
 
 
 @dataclass
@@ -42,6 +42,17 @@ class ExpertEpisodeFrames:
     @property
     def length(self) -> int:
         return len(self.frames)
+
+
+def _pickup_failure_reason(info: dict, steps: int) -> tuple[str, str]:
+    """(category, detail) of a failed pickup, from the env's final ``info``."""
+    if not info["needle_grasped"]:
+        return "needle not held", f"the jaw did not hold the needle after {steps} steps"
+    angle, depth, roll = info["grasp_parameters"]
+    detail = f"arc angle {math.degrees(angle):.1f} deg, depth {depth * 1e3:.2f} mm, roll {roll:.3f} rad"
+    if not grasp_ready_for_throw(tuple(info["grasp_parameters"]), reversed_grasp=False):
+        return "grasp off the ranges", detail
+    return "needle not lifted", f"held ({detail}) but not lifted clear within {steps} steps"
 
 
 def _failure_reason(info: dict, steps: int) -> tuple[str, str]:
@@ -65,12 +76,17 @@ def _failure_reason(info: dict, steps: int) -> tuple[str, str]:
 
 
 def make_env(
-    obs_type: str, image_size: int, scenario: str, grasp: str = "narrow", appearance: dict | None = None
+    obs_type: str,
+    image_size: int,
+    scenario: str,
+    grasp: str = "narrow",
+    appearance: dict | None = None,
+    task: str = DEFAULT_TASK,
 ):
-    """The env the dataset is recorded in (``gym.make`` of :data:`~lerobot_suture.ENV_ID`); ``appearance``
-    the fields of an :class:`~lerobot_suture.sim.appearance.AppearanceConfig` (None: all off)."""
+    """The env the dataset is recorded in (``gym.make`` of the task's gym id); ``appearance`` the fields of
+    an :class:`~lerobot_suture.sim.appearance.AppearanceConfig` (None: all off)."""
     return gym.make(
-        ENV_ID,
+        task_spec(task).gym_id,
         obs_type=obs_type,
         image_size=image_size,
         scenario=scenario,
@@ -98,6 +114,7 @@ def expert_episode_frames(
             success only if all of them are recorded and the insertion holds through every one.
     """
     obs, info = env.reset(seed=seed)
+    instruction = env.unwrapped.task_description
     frames = []
     # The needle's place in the image is recorded with the image (a target for the image encoders).
     keypoints = "pixels" in obs
@@ -108,7 +125,7 @@ def expert_episode_frames(
             REWARD_KEY: np.array([step.reward], dtype=np.float32),
             SUCCESS_KEY: np.array([bool(step.info["is_success"])]),
             DONE_KEY: np.array([step.done]),
-            "task": TASK,
+            "task": instruction,
         }
         if "pixels" in step.obs:
             frame[IMAGE_KEY] = step.obs["pixels"]["endoscope"]
@@ -122,7 +139,8 @@ def expert_episode_frames(
     rollout = ExpertEpisodeFrames(seed=seed, frames=frames, success=False, info=info)
     succeeded = [bool(f[SUCCESS_KEY][0]) for f in frames]
     if True not in succeeded:
-        rollout.reason, rollout.detail = _failure_reason(info, len(frames))
+        explain = _pickup_failure_reason if env.unwrapped.task_name == "pickup" else _failure_reason
+        rollout.reason, rollout.detail = explain(info, len(frames))
         return rollout
     first = succeeded.index(True)
     after = len(frames) - 1 - first

@@ -181,7 +181,14 @@ def record(cfg: RecordConfig) -> RecordSummary:
     backend = resolve_video_backend() if cfg.video and cfg.has_images else None
     features = dataset_features(cfg.obs_type, cfg.image_size, cfg.video)
     expert = ScriptedExpert(ExpertConfig(**log["expert"]["config"]))
-    env = make_env(cfg.obs_type, cfg.image_size, cfg.scenario, cfg.grasp, log["env_kwargs"].get("appearance"))
+    env = make_env(
+        cfg.obs_type,
+        cfg.image_size,
+        cfg.scenario,
+        cfg.grasp,
+        log["env_kwargs"].get("appearance"),
+        log["env_kwargs"].get("task", "insertion"),
+    )
     bars_were_enabled = hf_datasets.is_progress_bar_enabled()
     hf_datasets.disable_progress_bars()  # a "Map" bar per saved episode otherwise
 

@@ -14,6 +14,7 @@ from lerobot_suture.expert import ExpertConfig
 from lerobot_suture.sim import suture_env, task
 from lerobot_suture.sim.appearance import AppearanceConfig
 from lerobot_suture.sim.scenarios import SCENARIOS
+from lerobot_suture.sim.tasks import check_scenario
 
 COMMAND = "lerobot-suture record"
 MAX_STEPS_AFTER_SUCCESS = 10
@@ -31,6 +32,8 @@ class RecordConfig:
         root: directory the dataset is written to; None: ``$HF_LEROBOT_HOME/<repo_id>`` (LeRobot's home,
             ``~/.cache/huggingface/lerobot``). It must not exist unless ``resume`` is true.
         num_episodes: successful episodes the dataset holds when done (the paper: 100 train + 33 val).
+        task: the task of the family (``lerobot_suture.sim.tasks.TASKS``) the expert performs:
+            ``insertion`` (the paper's) or ``pickup``.
         val_fraction: fraction of episodes held out for validation, in [0, 1): the last
             ``ceil(num_episodes * val_fraction)`` episodes, LeRobot's ``--dataset.eval_split`` rule. It must
             leave a training episode (0 for a single episode).
@@ -77,6 +80,7 @@ class RecordConfig:
     num_episodes: int = 133  # successful episodes in the finished dataset
     val_fraction: float = 0.25  # held-out validation fraction: the last ceil(n * f) episodes
     # Environment.
+    task: str = "insertion"  # the task recorded: insertion | pickup
     obs_type: str = "pixels_agent_pos"  # pixels_agent_pos | pixels_agent_pos_state | state
     image_size: int = 96  # endoscope image side (px)
     scenario: str = "nominal"  # perturbation scenario the expert is recorded in
@@ -107,6 +111,7 @@ class RecordConfig:
             raise ValueError(f"`image_size` must be in [16, 640] px. Got {self.image_size}.")
         if self.scenario not in SCENARIOS:
             raise ValueError(f"`scenario` must be one of {SCENARIOS}. Got {self.scenario!r}.")
+        check_scenario(self.task, self.scenario)  # also names the tasks when `task` is none of them
         if self.grasp not in task.GRASP_RANGES:
             raise ValueError(f"`grasp` must be one of {list(task.GRASP_RANGES)}. Got {self.grasp!r}.")
         if not 0 <= self.seed < 2**32 - 1_000_000:
@@ -141,6 +146,8 @@ class RecordConfig:
         flags = [f"--repo_id={self.repo_id}"]
         if self.root is not None:
             flags.append(f"--root={self.root}")
+        if self.task != "insertion":
+            flags.append(f"--task={self.task}")
         for name in ("num_episodes", "val_fraction", "obs_type", "image_size", "scenario", "seed", "video"):
             value = getattr(self, name)
             flags.append(f"--{name}={str(value).lower() if isinstance(value, bool) else value}")

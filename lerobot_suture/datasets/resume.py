@@ -9,10 +9,10 @@ import shutil
 from pathlib import Path
 
 from lerobot_suture.datasets import metadata
-from lerobot_suture.datasets.features import FPS, TASK
+from lerobot_suture.datasets.features import FPS
 from lerobot_suture.datasets.record_config import COMMAND, RecordConfig, expert_config
-from lerobot_suture.registration import ENV_ID, MAX_EPISODE_STEPS
 from lerobot_suture.sim.appearance import AppearanceConfig
+from lerobot_suture.sim.tasks import task_spec
 
 # What a recording reports goes to one logger, the recorder's.
 logger = logging.getLogger("lerobot_suture.datasets.record")
@@ -31,22 +31,25 @@ def _versions() -> dict[str, str]:
 
 
 def new_episode_log(cfg: RecordConfig) -> dict:
+    spec = task_spec(cfg.task)
     env_kwargs = {
         "obs_type": cfg.obs_type,
         "image_size": cfg.image_size,
         "scenario": cfg.scenario,
         "grasp": cfg.grasp,
     }
+    if cfg.task != "insertion":
+        env_kwargs["task"] = cfg.task  # absent for insertion: its logs read as before the task family
     if cfg.appearance.enabled:
         # Absent when off: the logs of datasets recorded without it read the same as before it existed.
         env_kwargs["appearance"] = dataclasses.asdict(cfg.appearance)
     return {
         "format_version": metadata.FORMAT_VERSION,
         "repo_id": cfg.repo_id,
-        "task": TASK,
+        "task": spec.instruction,
         "fps": FPS,
-        "gym_id": ENV_ID,
-        "max_episode_steps": MAX_EPISODE_STEPS,
+        "gym_id": spec.gym_id,
+        "max_episode_steps": spec.max_episode_steps,
         "env_kwargs": env_kwargs,
         "expert": {
             "class": "lerobot_suture.expert.ScriptedExpert",
@@ -68,12 +71,13 @@ def new_episode_log(cfg: RecordConfig) -> dict:
     }
 
 
-_RESUME_FIELDS = ("obs_type", "image_size", "scenario", "grasp")
+_RESUME_FIELDS = ("task", "obs_type", "image_size", "scenario", "grasp")
 
 
 def _check_resumable(cfg: RecordConfig, log: dict, root: Path) -> None:
     recorded = {
         "grasp": "narrow",  # absent in logs before it existed
+        "task": "insertion",  # absent in insertion logs
         **{k: v for k, v in log["env_kwargs"].items() if k != "appearance"},
         "video": log["video"],
         "seed": log["seed"],

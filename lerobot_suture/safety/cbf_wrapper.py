@@ -10,7 +10,7 @@ Safe set: the ellipsoid of :class:`~lerobot_suture.safety.cbf_config.CBFConfig`,
 the phantom's current entry and exit markers, with axes (entry->exit, lateral, tissue normal); it is
 rebuilt from the env every control step, so it follows a moving phantom.
 
-Activation (one throw per episode): the filter switches on at the first control step where the
+Activation (one throw per episode; never in a task without a throw, ``pickup``): the filter switches on at the first control step where the
 needle is grasped and its tip is inside the set (inside the margin-tightened set in discrete mode,
 so the discrete-time guarantee holds from the first step), and switches off for the rest of the
 episode when the needle leaves the tissue after having been in it, or is released. ``reset`` starts
@@ -81,7 +81,8 @@ class CBFActionWrapper(gym.Wrapper):
     Args:
         env: an env whose ``unwrapped`` is a ``SutureEnv`` (has ``tip_velocity_filter``,
             ``entry_point``, ``exit_point``, ``phantom_rotation``, ``needle_tip_pos``,
-            ``needle_in_tissue``, ``needle_grasped``, ``control_dt``).
+            ``needle_in_tissue``, ``needle_grasped``, ``control_dt``, and ``task_spec``, whose ``throws``
+            says whether the task has a throw to guard).
         config: the filter's configuration; None means ``CBFConfig(enabled=True)``.
 
     Raises:
@@ -140,6 +141,7 @@ class CBFActionWrapper(gym.Wrapper):
         center, axes, rotation = self.safe_set()
         if (
             self._phase == PHASE_IDLE
+            and base.task_spec.throws > 0
             and bool(base.needle_grasped)
             and ellipsoid_h(x, center, axes, rotation) >= self._activation_level
         ):

@@ -124,6 +124,27 @@ def quat_from_matrix(rotation: np.ndarray) -> np.ndarray:
     return q / np.linalg.norm(q)
 
 
+def step_towards(
+    position: np.ndarray,
+    rotation: np.ndarray,
+    goal_position: np.ndarray,
+    goal_rotation: np.ndarray,
+    max_distance: float,
+    max_angle: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The pose one bounded step from (``position`` (3,) m, ``rotation`` (3, 3)) towards the goal: at most
+    ``max_distance`` (m) of translation and ``max_angle`` (rad) of turn."""
+    delta = goal_position - position
+    distance = float(np.linalg.norm(delta))
+    if distance > max_distance:
+        delta *= max_distance / distance
+    rotvec = rotvec_from_matrix(rotation.T @ goal_rotation)
+    angle = float(np.linalg.norm(rotvec))
+    if angle > max_angle:
+        rotvec *= max_angle / angle
+    return position + delta, rotation @ matrix_from_rotvec(rotvec)
+
+
 def needle_arc_points(n_points: int, radius: float = NEEDLE_RADIUS) -> np.ndarray:
     """Points along the needle in its own frame, from the tip (angle 0) to the tail (pi), (n, 3)."""
     phi = np.linspace(0.0, NEEDLE_ARC, n_points)

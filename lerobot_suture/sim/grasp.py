@@ -1,8 +1,9 @@
-"""The needle in the instrument's jaw: a kinematic grasp, the jaw reading it leaves, and its loss.
+"""The needle in the instrument's jaw: a kinematic grasp, the jaw reading it leaves, its loss and its capture.
 
-While held, the needle moves rigidly with the jaw tip, at a pose in the jaw frame drawn per episode, and
-the wire stops the closing jaw a little open, so the jaw reading shows whether it holds the needle, as a
-real needle driver's does. Released, the needle is a free body under gravity.
+While held, the needle moves rigidly with the jaw tip, at a pose in the jaw frame (drawn per episode, or made
+by the jaw closing on it), and the wire stops the closing jaw a little open, so the jaw reading shows whether
+it holds the needle, as a real needle driver's does. Released, the needle is a free body under gravity. A
+jaw that closes on a free needle catches it by the rule of ``needle_capture``.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from lerobot_suture.sim.geometry import (
     needle_in_world,
     quat_from_matrix,
 )
+from lerobot_suture.sim.needle_capture import seat_needle
 from lerobot_suture.sim.psm import PSM
 from lerobot_suture.sim.task import GRASP_ANGLE
 
@@ -31,7 +33,10 @@ class NeedleGrasp:
     Attributes:
         held: Whether the jaw holds the needle.
         position, rotation: The needle's pose in the jaw-tip frame ((3,) m, (3, 3)).
-        parameters: (arc angle rad, offset along the jaw m, roll rad) the pose was made from.
+        parameters: (arc angle rad, offset along the jaw m, roll rad) the pose was made from, or that
+            describe the grasp the jaw made (``needle_capture.SeatedGrasp``).
+        reversed: The jaw caught the needle the other way round from any grasp a throw starts from.
+        captures: How many times the jaw has caught the needle this episode.
     """
 
     def __init__(self, model: mujoco.MjModel, arm: PSM):
@@ -80,9 +85,15 @@ class NeedleGrasp:
         )
 
     def command_jaw(self, data: mujoco.MjData, closure: float, in_tissue: bool) -> None:
-        """The jaw's position command for ``closure`` in [0, 1] (1 closed); below 0.5 the needle is let go."""
+        """The jaw's position command for ``closure`` in [0, 1] (1 closed); below 0.5 the needle is let go,
+        and a command that rises to 0.5 or more closes the jaw on the needle if it catches it
+        (:meth:`try_capture`)."""
+        closing = closure >= 0.5 and self._last_closure < 0.5
+        self._last_closure = closure
         if closure < 0.5 and self.held:
             self.release(data, in_tissue)
+        elif closing and not self.held:
+            self.try_capture(data)
         target = (1.0 - closure) * JAW_OPEN_ANGLE
         data.ctrl[self.jaw_ctrl] = max(target, self.held_jaw_angle()) if self.held else target
 
@@ -96,6 +107,33 @@ class NeedleGrasp:
         if data.qpos[self.jaw_qpos] < held:
             data.qpos[self.jaw_qpos] = held
             data.qvel[self._jaw_dof] = 0.0
+
+    def try_capture(self, data: mujoco.MjData) -> bool:
+        """Close the jaw on the free needle: held from now on, seated as ``needle_capture.seat_needle``
+        says, if the wire lies between the faces of a jaw open wider than the wire there. Returns whether
+        it caught the needle."""
+        if self.held:
+            return False
+        jaw_pos, jaw_rot = self._arm.jaw_pose(data)
+        centre = data.xpos[self.needle_body]
+        rotation = data.xmat[self.needle_body].reshape(3, 3)
+        seated = seat_needle(jaw_rot.T @ (centre - jaw_pos), jaw_rot.T @ rotation, 0.5 * self._wire_diameter)
+        if seated is None:
+            return False
+        wire_angle = jaw_angle_on_wire(
+            self._wire_diameter, self._jaw_closed_gap, self._jaw_pivot_to_tip + seated.depth
+        )
+        if data.qpos[self.jaw_qpos] <= wire_angle:
+            return False  # the jaw is already too closed for the wire to pass between its faces
+        self.parameters = seated.parameters
+        self.position, self.rotation = seated.position, seated.rotation
+        self.reversed = seated.reversed
+        self.held = True
+        self.captures += 1
+        self._model.body_gravcomp[self.needle_body] = 1.0
+        self.set_pad_collides_with_needle(False)
+        self.snap_needle(data)
+        return True
 
     def snap_needle(self, data: mujoco.MjData) -> None:
         """The held needle moves rigidly with the jaw: put its free body where the grasp says."""
@@ -122,19 +160,35 @@ class NeedleGrasp:
             self.set_pad_collides_with_needle(True)
         self.held = False
 
-    def reset(self) -> None:
-        """Held again with the nominal grasp, weightless while held, and passing through the pad (the
-        insertion model owns the tissue's effect on a held needle)."""
-        self.held = True
+    def reset(self, held: bool = True) -> None:
+        """Start an episode with the nominal grasp parameters. Held (``held``): weightless while held, and
+        passing through the pad (the insertion model owns the tissue's effect on a held needle), the jaw
+        closed. Free: under gravity, resting on the pad, the jaw open."""
+        self.held = bool(held)
+        self.reversed = False
+        self.captures = 0
+        self._last_closure = 1.0 if held else 0.0
         self.set(GRASP_ANGLE, 0.0, 0.0)
-        self._model.body_gravcomp[self.needle_body] = 1.0
-        self.set_pad_collides_with_needle(False)
+        self._model.body_gravcomp[self.needle_body] = 1.0 if held else 0.0
+        self.set_pad_collides_with_needle(not held)
 
     def set_pad_collides_with_needle(self, collides: bool) -> None:
         bit = _NEEDLE_CONTACT_BIT if collides else 0
         self._model.geom_conaffinity[self._pad_geom] = bit
         # MuJoCo's broad phase filters on the per-body union of the geoms' bits too.
         self._model.body_conaffinity[self._model.geom_bodyid[self._pad_geom]] = bit
+
+    @property
+    def wire_diameter(self) -> float:
+        """The needle wire's diameter (m)."""
+        return self._wire_diameter
+
+    def place_free_needle(self, data: mujoco.MjData, centre: np.ndarray, rotation: np.ndarray) -> None:
+        """Put the free (not held) needle at rest at ``centre`` (3,) m, ``rotation`` (3, 3), world."""
+        if self.held:
+            raise RuntimeError("the jaw holds the needle; release it before placing it.")
+        self._set_needle_free_pose(data, centre, rotation)
+        data.qvel[self._needle_dof : self._needle_dof + 6] = 0.0
 
     def _set_needle_free_pose(self, data: mujoco.MjData, centre: np.ndarray, rotation: np.ndarray) -> None:
         q = self._needle_qpos

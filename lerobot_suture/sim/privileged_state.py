@@ -11,6 +11,7 @@ import numpy as np
 
 from lerobot_suture.sim.appearance import AppearanceSample
 from lerobot_suture.sim.geometry import InsertionFrame, grasp_transform, insertion_frame
+from lerobot_suture.sim.pickup import LIFT_HEIGHT, clearance, grasp_ready_for_throw
 from lerobot_suture.sim.task import GRASP_ANGLE, NEEDLE_TILT
 
 
@@ -57,6 +58,19 @@ class PrivilegedState:
         return self._progress.first_in_tissue_step is not None
 
     @property
+    def first_grasp_step(self) -> int | None:
+        """Control step at which the jaw first held the needle this episode (0 when it starts held), or None."""
+        return self._first_grasp_step
+
+    @property
+    def approach_over(self) -> bool:
+        """The approach a ``phantom_servo`` perturbs is over: the needle has touched tissue, or, in
+        ``pickup``, the jaw has caught it."""
+        if self.task_name == "pickup":
+            return self._first_grasp_step is not None
+        return self.needle_touched_tissue
+
+    @property
     def first_in_tissue_step(self) -> int | None:
         return self._progress.first_in_tissue_step
 
@@ -72,6 +86,11 @@ class PrivilegedState:
         return self._grasp.parameters
 
     @property
+    def grasp_reversed(self) -> bool:
+        """The jaw caught the needle the other way round from any grasp a throw starts from."""
+        return self._grasp.reversed
+
+    @property
     def nominal_grasp_in_jaw(self) -> tuple[np.ndarray, np.ndarray]:
         """The grasp before its per-episode randomization: (position (3,) m, rotation (3, 3)) in the jaw."""
         return grasp_transform(GRASP_ANGLE, 0.0, 0.0)
@@ -80,6 +99,19 @@ class PrivilegedState:
     def appearance_sample(self) -> AppearanceSample | None:
         """This episode's draw of ``appearance`` (None when every option is off)."""
         return self._look.sample
+
+    @property
+    def needle_clearance(self) -> float:
+        """Height of the needle's lowest point above the tissue surface (m)."""
+        centre, rotation = self.needle_pose()
+        return clearance(centre + self._arc_local @ rotation.T, self._phantom_pos, self._phantom_rot)
+
+    @property
+    def needle_picked_up(self) -> bool:
+        """The jaw holds the needle ready for a throw, all of it ``pickup.LIFT_HEIGHT`` clear of the tissue:
+        ``pickup``'s success."""
+        held = self._grasp.held and grasp_ready_for_throw(self._grasp.parameters, self._grasp.reversed)
+        return held and self.needle_clearance >= LIFT_HEIGHT
 
     @property
     def needle_tip_pos(self) -> np.ndarray:

@@ -7,14 +7,15 @@ the perturbation begins, so detection delay can be measured from it.
 name                           what happens                                 magnitude (default)
 =============================  ==========================================  ========================
 ``nominal``                    nothing                                      --
-``needle_drop``                the jaw loses the needle at ``onset_step``;   -- (onset 15)
-                               it falls under gravity onto the table
+``needle_drop``                the jaw loses the needle ``onset_step``      -- (onset 15)
+                               steps after it first holds it (at once in
+                               ``insertion``); it falls under gravity
 ``camera_moved``               from ``onset_step`` the endoscope views the   azimuth shift, rad
                                site from outside the training viewpoints     (0.6; onset 0)
 ``phantom_servo``              during the approach the phantom glides to a   displacement, m
                                new pose inside the training range, every     (0.008; onset 8)
-                               ``period_steps`` until the needle touches
-                               tissue
+                               ``period_steps`` until the approach is over
+                               (``approach_over``)
 ``phantom_moved_after_insertion``  ``onset_step`` steps after the needle      displacement, m
                                first enters tissue the phantom glides away   (0.006; onset 5)
 =============================  ==========================================  ========================
@@ -71,7 +72,10 @@ class PerturbableEnv(Protocol):
     def phantom_yaw(self) -> float: ...
 
     @property
-    def needle_touched_tissue(self) -> bool: ...
+    def approach_over(self) -> bool: ...
+
+    @property
+    def first_grasp_step(self) -> int | None: ...
 
     @property
     def first_in_tissue_step(self) -> int | None: ...
@@ -143,7 +147,8 @@ class Scenario:
         cfg = self.config
         step = env.step_index
         if cfg.name == "needle_drop":
-            if step >= cfg.onset_step and not self.perturbed:
+            first = env.first_grasp_step
+            if first is not None and step >= first + cfg.onset_step and not self.perturbed:
                 env.release_needle()
                 self.perturbed = True
         elif cfg.name == "camera_moved":
@@ -154,7 +159,7 @@ class Scenario:
                 )
                 self.perturbed = True
         elif cfg.name == "phantom_servo":
-            if not env.needle_touched_tissue and step >= self._next_move_step and not self._glide:
+            if not env.approach_over and step >= self._next_move_step and not self._glide:
                 self._start_glide(env, within_training_range=True)
                 self._next_move_step = step + cfg.period_steps
                 self.perturbed = True

@@ -1,4 +1,5 @@
-"""Needle insertion with a da Vinci-style instrument arm, in MuJoCo (Gymnasium env).
+"""Needle insertion, and the suturing tasks around it, with a da Vinci-style instrument arm, in MuJoCo
+(Gymnasium env).
 
 ## Description
 A patient-side manipulator (PSM: remote centre of motion at the port, outer yaw and pitch,
@@ -10,6 +11,16 @@ work site. The phantom's pose changes between episodes, so a visuomotor policy m
 
 Physics runs at ``physics_dt`` = 0.002 s; the policy acts at ``control_dt`` = 0.1 s (10 Hz), so
 one env step is 50 physics steps.
+
+## Tasks
+``task`` picks one of ``tasks.TASKS`` (each also registered under its own gym id):
+
+- ``insertion`` (default, the paper's): the needle starts in the jaw; drive it from the entry to the exit
+  point (the rest of this docstring describes it).
+- ``pickup``: the needle lies on the phantom (``pickup``: its pose region) and the jaw starts open. A jaw
+  closing on the needle catches it by the rule of ``needle_capture``; success is a grasp inside the ranges
+  ``insertion`` is tested in, lifted ``pickup.LIFT_HEIGHT`` clear of the tissue (``pickup``). Terminated
+  on success.
 
 ## Action Space
 ``Box(10,)``, float32: the target pose of the needle holder (the jaw tip frame ``jaw_tip``) at the
@@ -82,24 +93,7 @@ Scene options edit the MuJoCo model and are restored and redrawn at every reset;
 are applied to the endoscope observation only (not to ``render()`` frames). The drawn look is
 ``appearance_sample``.
 
-=====================  ==========  ==============  ================================================
-option                 unit        allowed range   per-episode draw (``r`` the option's value)
-=====================  ==========  ==============  ================================================
-``light_intensity``    fraction    [0, 0.9]        every light's colour x ``1 + U(-r, r)``
-``light_direction``    rad         [0, 1.0]        overhead light tilted ``U(-r, r)`` about x and y
-``tissue_hue``         turn        [0, 0.5]        tissue and wound hue shifted ``U(-r, r)``
-``tissue_value``       fraction    [0, 0.9]        tissue and wound colour x ``1 + U(-r, r)``
-``tissue_texture``     fraction    [0, 1]          mottled tissue texture, darkest ``1 - U(0, r)``
-``instrument_value``   fraction    [0, 0.9]        instrument colour x ``1 + U(-r, r)``
-``instrument_tint``    fraction    [0, 1]          instrument grey mixed ``U(0, r)`` to a random hue
-``haze``               fraction    [0, 0.9]        image blended ``U(0, r)`` with a grey veil
-``blur``               fraction    [0, 0.05]       Gaussian blur, sigma ``U(0, r)`` x image side
-``noise``              fraction    [0, 0.25]       pixel noise, std ``U(0, r)`` x 255, every frame
-``camera_position``    m           [0, 0.02]       endoscope moved ``U(-r, r)`` along x, y, z
-``camera_roll``        rad         [0, pi]         endoscope rolled ``U(-r, r)`` about its axis
-=====================  ==========  ==============  ================================================
-
-The needle and the entry and exit markers keep their look. ``lerobot_suture.sim.appearance`` has the
+The options, their ranges and their draws are tabled in ``lerobot_suture.sim.appearance``. The needle and the entry and exit markers keep their look. ``lerobot_suture.sim.appearance`` has the
 details; the dataset card lists a recording's ranges.
 
 ## Arguments
@@ -122,6 +116,8 @@ argument                 default                 meaning
 ``appearance``           ``None``                appearance randomization (see above): an
                                                  ``appearance.AppearanceConfig``, a dict of its
                                                  fields, or None (all off)
+``task``                 ``"insertion"``         the task (``tasks.TASKS``; see Tasks above):
+                                                 ``insertion`` or ``pickup``
 =======================  ======================  ===============================================
 """
 
@@ -151,8 +147,9 @@ from lerobot_suture.sim.geometry import (
     rot6_from_matrix,
     rotation_about_z,
 )
-from lerobot_suture.sim.grasp import NeedleGrasp
+from lerobot_suture.sim.grasp import JAW_OPEN_ANGLE, NeedleGrasp
 from lerobot_suture.sim.insertion import InsertionProgress
+from lerobot_suture.sim.pickup import clearance, resting_needle_pose
 from lerobot_suture.sim.privileged_state import PrivilegedState
 from lerobot_suture.sim.psm import ARM_JOINTS, PSM
 from lerobot_suture.sim.scenarios import Scenario, ScenarioConfig
@@ -167,14 +164,16 @@ from lerobot_suture.sim.task import (
     PHANTOM_NOMINAL,
     PHANTOM_RANGE_XY,
     PHANTOM_YAW_RANGE,
-    TASK,
     WORKSPACE_HIGH,
     WORKSPACE_LOW,
 )
+from lerobot_suture.sim.tasks import DEFAULT_TASK, check_scenario, task_spec
 
 SCENE_XML = Path(__file__).parent / "assets" / "scene.xml"
 
 OBS_TYPES = ("pixels_agent_pos", "state", "pixels_agent_pos_state")
+RESTING_CLEARANCE = 0.001
+"""A free needle whose lowest point is this close to the tissue surface (m) rests on the phantom."""
 IMAGE_SIDE_RANGE = (16, 640)  # px; the upper bound is the offscreen buffer of scene.xml
 
 
@@ -205,7 +204,10 @@ class SutureEnv(PrivilegedState, gym.Env):
         record_tip_trace: bool = False,
         grasp: str = "narrow",
         appearance: AppearanceConfig | dict | None = None,
+        task: str = DEFAULT_TASK,
     ):
+        self.task_spec = task_spec(task)
+        check_scenario(task, scenario)
         if obs_type not in OBS_TYPES:
             raise ValueError(f"`obs_type` must be one of {OBS_TYPES}. Got {obs_type!r}.")
         check_image_side("image_size", image_size)
@@ -220,6 +222,8 @@ class SutureEnv(PrivilegedState, gym.Env):
         self.render_size = int(render_size)
         self.record_tip_trace = bool(record_tip_trace)
         self.grasp = grasp
+        if scenario_onset_step is None:
+            scenario_onset_step = self.task_spec.default_onset(scenario)
         self.scenario = Scenario(
             ScenarioConfig(name=scenario, onset_step=scenario_onset_step, magnitude=scenario_magnitude)
         )
@@ -274,14 +278,19 @@ class SutureEnv(PrivilegedState, gym.Env):
 
     # ------------------------------------------------------------------ what LeRobot reads
     @property
+    def task_name(self) -> str:
+        """Which task of ``tasks.TASKS`` this env simulates."""
+        return self.task_spec.name
+
+    @property
     def task_description(self) -> str:
         """The task in words: ``lerobot-eval`` asks every (async) worker for it through ``env.call``."""
-        return TASK
+        return self.task_spec.instruction
 
     @property
     def task(self) -> str:
         """The task string; LeRobot's fallback when ``task_description`` is missing."""
-        return TASK
+        return self.task_spec.instruction
 
     # ------------------------------------------------------------------ scenario hooks
     def release_needle(self) -> None:
@@ -296,7 +305,16 @@ class SutureEnv(PrivilegedState, gym.Env):
             self._grasp.snap_needle(self.data)
 
     def set_phantom_pose(self, position: np.ndarray, yaw: float) -> None:
-        """Move the phantom (mocap) to ``position`` (3,) m with ``yaw`` rad about the world z axis."""
+        """Move the phantom (mocap) to ``position`` (3,) m with ``yaw`` rad about the world z axis. A free
+        needle resting on it moves with it, as friction would carry it (a mocap body jumps between control
+        steps, and contact alone would toss the needle)."""
+        if not self._grasp.held:
+            centre, rotation = self.needle_pose()
+            arc = centre + self._arc_local @ rotation.T
+            if clearance(arc, self._phantom_pos, self._phantom_rot) < RESTING_CLEARANCE:
+                move = rotation_about_z(float(yaw) - self._phantom_yaw)
+                new_centre = np.asarray(position, dtype=np.float64) + move @ (centre - self._phantom_pos)
+                self._grasp.place_free_needle(self.data, new_centre, move @ rotation)
         self._phantom_pos = np.asarray(position, dtype=np.float64).copy()
         self._phantom_yaw = float(yaw)
         self._phantom_rot = rotation_about_z(self._phantom_yaw)
@@ -348,15 +366,20 @@ class SutureEnv(PrivilegedState, gym.Env):
         self.set_phantom_pose(
             np.array([xy[0], xy[1], PHANTOM_NOMINAL[2]]), rng.uniform(-1, 1) * PHANTOM_YAW_RANGE
         )
-        angle_range, offset_range, roll_range = GRASP_RANGES[self.grasp]
-        angle = GRASP_ANGLE + rng.uniform(-1, 1) * angle_range
-        offset = rng.uniform(-1, 1) * offset_range
-        self._grasp.set(angle, offset, rng.uniform(-1, 1) * roll_range)
+        if self.task_name == "pickup":
+            self._place_resting_needle(rng)
+        else:
+            angle_range, offset_range, roll_range = GRASP_RANGES[self.grasp]
+            angle = GRASP_ANGLE + rng.uniform(-1, 1) * angle_range
+            offset = rng.uniform(-1, 1) * offset_range
+            self._grasp.set(angle, offset, rng.uniform(-1, 1) * roll_range)
         qpos = self._home_qpos + rng.uniform(-1, 1, size=len(ARM_JOINTS)) * ARM_START_NOISE
         self.data.qpos[self._arm.qpos] = qpos
-        self.data.qpos[self._grasp.jaw_qpos] = self._grasp.held_jaw_angle()
+        held = self._grasp.held
+        self.data.qpos[self._grasp.jaw_qpos] = self._grasp.held_jaw_angle() if held else JAW_OPEN_ANGLE
         mujoco.mj_forward(self.model, self.data)
-        self._grasp.snap_needle(self.data)
+        if held:
+            self._grasp.snap_needle(self.data)
         self.scenario.reset(self)
         self._update_tissue_state(first=True)
         return self._observation(), self._info(success=False, v_nominal=np.zeros(3), v_command=np.zeros(3))
@@ -368,14 +391,20 @@ class SutureEnv(PrivilegedState, gym.Env):
             target, self.tip_velocity_filter, self._progress.in_tissue, self.record_tip_trace
         )
         self._step_index += 1
+        if self._first_grasp_step is None and self._grasp.held:
+            self._first_grasp_step = self._step_index
         self._update_tissue_state()
-        throw_over = self._throw_over()
-        success = throw_over and self._on_the_marks()
+        if self.task_name == "pickup":
+            success = self.needle_picked_up
+            terminated = success
+        else:
+            terminated = self._throw_over()
+            success = terminated and self._on_the_marks()
         reward = 1.0 if success else 0.0
         info = self._info(success=success, v_nominal=drive.v_nominal, v_command=drive.v_command)
         if drive.tip_trace is not None:
             info["needle_tip_trace"] = drive.tip_trace
-        return self._observation(), reward, throw_over, False, info
+        return self._observation(), reward, terminated, False, info
 
     def render(self):
         if self.render_mode != "rgb_array":
@@ -388,7 +417,8 @@ class SutureEnv(PrivilegedState, gym.Env):
     # ------------------------------------------------------------------ internals
     def _reset_state(self) -> None:
         self._step_index = 0
-        self._grasp.reset()
+        self._grasp.reset(held=self.task_name != "pickup")
+        self._first_grasp_step = 0 if self._grasp.held else None
         self._progress = InsertionProgress(self._arc_local, self._entry_local, self._exit_local)
         self._phantom_pos = PHANTOM_NOMINAL.copy()
         self._phantom_yaw = 0.0
@@ -418,6 +448,13 @@ class SutureEnv(PrivilegedState, gym.Env):
         self._progress.update(
             *self.needle_pose(), self._phantom_pos, self._phantom_rot, self._step_index, first
         )
+
+    def _place_resting_needle(self, rng: np.random.Generator) -> None:
+        """Lay the free needle on the pad (``pickup.resting_needle_pose``), at rest."""
+        centre, rotation = resting_needle_pose(
+            rng, self._phantom_pos, self._phantom_rot, 0.5 * self._grasp.wire_diameter
+        )
+        self._grasp.place_free_needle(self.data, centre, rotation)
 
     def _throw_over(self) -> bool:
         """The tip protrudes ``MIN_PROTRUSION`` beyond where it emerged, the needle spanning the wound."""
@@ -454,6 +491,7 @@ class SutureEnv(PrivilegedState, gym.Env):
             "needle_tip_pos": self._progress.tip_world.copy(),
             "needle_in_tissue": self._progress.in_tissue,
             "needle_grasped": self._grasp.held,
+            "grasp_parameters": np.array(self._grasp.parameters, dtype=np.float64),
             "perturbed": self.scenario.perturbed,
             "tip_velocity_nominal": np.asarray(v_nominal, dtype=np.float64).copy(),
             "tip_velocity_command": np.asarray(v_command, dtype=np.float64).copy(),
