@@ -1,11 +1,14 @@
-"""Env speed on one core: control steps/s without and with the endoscope image, ms per frame.
+"""Env speed on one core: control steps/s without and with the endoscope image, ms per frame, for one task.
 
 Prints JSON. Targets: >= 1,000 steps/s without images, >= 500 steps/s with the 96 px image.
 Actions are an expert episode's, recorded once and replayed, so only the env is timed.
+
+    python benchmarks/env_speed.py [--task insertion|pickup]
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import platform
@@ -18,23 +21,24 @@ import numpy as np  # noqa: E402
 import lerobot_suture  # noqa: E402,F401
 from lerobot_suture.expert import ScriptedExpert  # noqa: E402
 from lerobot_suture.sim.suture_env import SutureEnv  # noqa: E402
+from lerobot_suture.sim.tasks import TASK_NAMES  # noqa: E402
 
 N_STEPS = 3000
 
 
-def expert_actions(seed: int = 0) -> list[np.ndarray]:
-    env, expert = SutureEnv(obs_type="state"), ScriptedExpert()
+def expert_actions(task: str, seed: int = 0) -> list[np.ndarray]:
+    env, expert = SutureEnv(obs_type="state", task=task), ScriptedExpert()
     env.reset(seed=seed)
     expert.reset(env)
     actions, done = [], False
     while not done:
         actions.append(expert.act(env))
-        done = env.step(actions[-1])[2] or len(actions) >= 100
+        done = env.step(actions[-1])[2] or len(actions) >= env.task_spec.max_episode_steps
     return actions
 
 
-def steps_per_second(obs_type: str, image_size: int, actions: list[np.ndarray]) -> float:
-    env = SutureEnv(obs_type=obs_type, image_size=image_size)
+def steps_per_second(task: str, obs_type: str, image_size: int, actions: list[np.ndarray]) -> float:
+    env = SutureEnv(obs_type=obs_type, image_size=image_size, task=task)
     env.reset(seed=0)
     for a in actions[:10]:  # warm up (renderer creation)
         env.step(a)
@@ -62,12 +66,16 @@ def ms_per_frame(image_size: int) -> float:
 
 
 def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--task", choices=TASK_NAMES, default="insertion")
+    task = parser.parse_args().task
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})  # one core
-    actions = expert_actions()
-    no_image = steps_per_second("state", 96, actions)
+    actions = expert_actions(task)
+    no_image = steps_per_second(task, "state", 96, actions)
     result = {
         "benchmark": "env_speed",
+        "task": task,
         "cores": 1,
         "physics_dt_s": 0.002,
         "control_dt_s": 0.1,
@@ -75,7 +83,7 @@ def main() -> None:
         "ms_per_step_no_image": round(1000 / no_image, 3),
     }
     for size in (96, 64):
-        with_image = steps_per_second("pixels_agent_pos", size, actions)
+        with_image = steps_per_second(task, "pixels_agent_pos", size, actions)
         result[f"steps_per_s_endoscope_{size}px"] = round(with_image, 1)
         result[f"ms_per_frame_{size}px"] = round(ms_per_frame(size), 3)
     result["bar_no_image_1000"] = result["steps_per_s_no_image"] >= 1000

@@ -4,6 +4,10 @@ While held, the needle moves rigidly with the jaw tip, at a pose in the jaw fram
 by the jaw closing on it), and the wire stops the closing jaw a little open, so the jaw reading shows whether
 it holds the needle, as a real needle driver's does. Released, the needle is a free body under gravity. A
 jaw that closes on a free needle catches it by the rule of ``needle_capture``.
+
+A free needle lying still on the phantom rests (:meth:`NeedleGrasp.rest`): static friction holds it and
+nothing else touches it (the jaw has no contacts), so it is held in place kinematically, weightless and
+without contacts, which spares the contact solver every physics step; the phantom carries it when it moves.
 """
 
 from __future__ import annotations
@@ -36,6 +40,7 @@ class NeedleGrasp:
         parameters: (arc angle rad, offset along the jaw m, roll rad) the pose was made from, or that
             describe the grasp the jaw made (``needle_capture.SeatedGrasp``).
         reversed: The jaw caught the needle the other way round from any grasp a throw starts from.
+        resting: The free needle lies still on the phantom, held there kinematically (:meth:`rest`).
         captures: How many times the jaw has caught the needle this episode.
     """
 
@@ -129,6 +134,7 @@ class NeedleGrasp:
         self.position, self.rotation = seated.position, seated.rotation
         self.reversed = seated.reversed
         self.held = True
+        self.resting = False
         self.captures += 1
         self._model.body_gravcomp[self.needle_body] = 1.0
         self.set_pad_collides_with_needle(False)
@@ -159,12 +165,14 @@ class NeedleGrasp:
             # A needle lost above the phantom lands on it (one inside tissue would be expelled).
             self.set_pad_collides_with_needle(True)
         self.held = False
+        self.resting = False
 
     def reset(self, held: bool = True) -> None:
         """Start an episode with the nominal grasp parameters. Held (``held``): weightless while held, and
         passing through the pad (the insertion model owns the tissue's effect on a held needle), the jaw
         closed. Free: under gravity, resting on the pad, the jaw open."""
         self.held = bool(held)
+        self.resting = False
         self.reversed = False
         self.captures = 0
         self._last_closure = 1.0 if held else 0.0
@@ -184,11 +192,22 @@ class NeedleGrasp:
         return self._wire_diameter
 
     def place_free_needle(self, data: mujoco.MjData, centre: np.ndarray, rotation: np.ndarray) -> None:
-        """Put the free (not held) needle at rest at ``centre`` (3,) m, ``rotation`` (3, 3), world."""
+        """Put the free (not held) needle at ``centre`` (3,) m, ``rotation`` (3, 3), world, resting there."""
         if self.held:
             raise RuntimeError("the jaw holds the needle; release it before placing it.")
         self._set_needle_free_pose(data, centre, rotation)
+        self.rest(data)
+
+    def rest(self, data: mujoco.MjData) -> None:
+        """Hold the free needle still where it lies: weightless, no contacts, no velocity."""
         data.qvel[self._needle_dof : self._needle_dof + 6] = 0.0
+        self._model.body_gravcomp[self.needle_body] = 1.0
+        self.set_pad_collides_with_needle(False)
+        self.resting = True
+
+    def needle_speed(self, data: mujoco.MjData) -> float:
+        """Speed of the free needle's centre (m/s)."""
+        return float(np.linalg.norm(data.qvel[self._needle_dof : self._needle_dof + 3]))
 
     def _set_needle_free_pose(self, data: mujoco.MjData, centre: np.ndarray, rotation: np.ndarray) -> None:
         q = self._needle_qpos

@@ -149,7 +149,7 @@ from lerobot_suture.sim.geometry import (
 )
 from lerobot_suture.sim.grasp import JAW_OPEN_ANGLE, NeedleGrasp
 from lerobot_suture.sim.insertion import InsertionProgress
-from lerobot_suture.sim.pickup import clearance, resting_needle_pose
+from lerobot_suture.sim.pickup import resting_needle_pose
 from lerobot_suture.sim.privileged_state import PrivilegedState
 from lerobot_suture.sim.psm import ARM_JOINTS, PSM
 from lerobot_suture.sim.scenarios import Scenario, ScenarioConfig
@@ -173,7 +173,9 @@ SCENE_XML = Path(__file__).parent / "assets" / "scene.xml"
 
 OBS_TYPES = ("pixels_agent_pos", "state", "pixels_agent_pos_state")
 RESTING_CLEARANCE = 0.001
-"""A free needle whose lowest point is this close to the tissue surface (m) rests on the phantom."""
+RESTING_SPEED = 0.001
+"""A dropped needle rests on the phantom (``grasp.NeedleGrasp.rest``) once its lowest point is within
+``RESTING_CLEARANCE`` (m) of the tissue surface and its centre slower than ``RESTING_SPEED`` (m/s)."""
 IMAGE_SIDE_RANGE = (16, 640)  # px; the upper bound is the offscreen buffer of scene.xml
 
 
@@ -305,16 +307,13 @@ class SutureEnv(PrivilegedState, gym.Env):
             self._grasp.snap_needle(self.data)
 
     def set_phantom_pose(self, position: np.ndarray, yaw: float) -> None:
-        """Move the phantom (mocap) to ``position`` (3,) m with ``yaw`` rad about the world z axis. A free
-        needle resting on it moves with it, as friction would carry it (a mocap body jumps between control
-        steps, and contact alone would toss the needle)."""
-        if not self._grasp.held:
+        """Move the phantom (mocap) to ``position`` (3,) m with ``yaw`` rad about the world z axis. A needle
+        resting on it (``grasp``) moves with it, as static friction would carry it."""
+        if self._grasp.resting:
             centre, rotation = self.needle_pose()
-            arc = centre + self._arc_local @ rotation.T
-            if clearance(arc, self._phantom_pos, self._phantom_rot) < RESTING_CLEARANCE:
-                move = rotation_about_z(float(yaw) - self._phantom_yaw)
-                new_centre = np.asarray(position, dtype=np.float64) + move @ (centre - self._phantom_pos)
-                self._grasp.place_free_needle(self.data, new_centre, move @ rotation)
+            move = rotation_about_z(float(yaw) - self._phantom_yaw)
+            new_centre = np.asarray(position, dtype=np.float64) + move @ (centre - self._phantom_pos)
+            self._grasp.place_free_needle(self.data, new_centre, move @ rotation)
         self._phantom_pos = np.asarray(position, dtype=np.float64).copy()
         self._phantom_yaw = float(yaw)
         self._phantom_rot = rotation_about_z(self._phantom_yaw)
@@ -393,6 +392,8 @@ class SutureEnv(PrivilegedState, gym.Env):
         self._step_index += 1
         if self._first_grasp_step is None and self._grasp.held:
             self._first_grasp_step = self._step_index
+        if self.task_name == "pickup" and not self._grasp.held and not self._grasp.resting:
+            self._settle_needle()
         self._update_tissue_state()
         if self.task_name == "pickup":
             success = self.needle_picked_up
@@ -455,6 +456,12 @@ class SutureEnv(PrivilegedState, gym.Env):
             rng, self._phantom_pos, self._phantom_rot, 0.5 * self._grasp.wire_diameter
         )
         self._grasp.place_free_needle(self.data, centre, rotation)
+
+    def _settle_needle(self) -> None:
+        """A dropped needle that has come to lie still on the phantom rests there (``grasp``)."""
+        still = self._grasp.needle_speed(self.data) < RESTING_SPEED
+        if still and self.needle_clearance < RESTING_CLEARANCE:
+            self._grasp.rest(self.data)
 
     def _throw_over(self) -> bool:
         """The tip protrudes ``MIN_PROTRUSION`` beyond where it emerged, the needle spanning the wound."""
