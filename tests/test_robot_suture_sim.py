@@ -227,3 +227,22 @@ def test_at_the_episode_s_end_the_arm_holds_or_continues(episode_end):
 def test_an_unknown_episode_end_is_refused_with_the_choices():
     with pytest.raises(ValueError, match=r"`episode_end` must be one of \('continue', 'hold'\)"):
         SutureSimConfig(episode_end="stop")
+
+
+def test_the_pickup_task_runs_on_the_robot():
+    """``--robot.task=pickup``: the scene of the pickup env, its instruction as the robot's task."""
+    from lerobot_suture.sim.tasks import TASKS
+
+    robot = SutureSim(SutureSimConfig(task="pickup", seed=3, image_size=SIZE, clock="fast"))
+    robot.connect()
+    try:
+        env = gym.make(TASKS["pickup"].gym_id, disable_env_checker=True, image_size=SIZE)
+        obs, _ = env.reset(seed=3)
+        np.testing.assert_array_equal(robot.get_observation()["endoscope"], obs["pixels"]["endoscope"])
+        assert robot.task == TASKS["pickup"].instruction
+        assert robot.get_observation()["jaw.pos"] == pytest.approx(0.0, abs=1e-6)  # the jaw starts open
+        env.close()
+    finally:
+        robot.disconnect()
+    with pytest.raises(ValueError, match="does not apply to task 'pickup'"):
+        SutureSimConfig(task="pickup", scenario="phantom_moved_after_insertion")

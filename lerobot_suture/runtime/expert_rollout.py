@@ -10,7 +10,7 @@ import gymnasium as gym
 import numpy as np
 
 from lerobot_suture.expert import ExpertConfig, ScriptedExpert, iter_expert_steps
-from lerobot_suture.registration import ENV_ID
+from lerobot_suture.sim.tasks import DEFAULT_TASK, task_spec
 
 
 @dataclass
@@ -50,13 +50,18 @@ def run_expert_episode(
     frame_size: int = 160,
     env: gym.Env | None = None,
     expert_config: ExpertConfig | None = None,
+    task: str = DEFAULT_TASK,
 ) -> ExpertEpisode:
-    """Run the expert (default settings unless ``expert_config``) for one episode; keep ``n_frames``
-    evenly spaced endoscope frames."""
+    """Run the expert (default settings unless ``expert_config``) for one episode of ``task`` (unless an
+    ``env`` is given); keep ``n_frames`` evenly spaced endoscope frames."""
     own_env = env is None
     if own_env:
         env = gym.make(
-            ENV_ID, obs_type="state", scenario=scenario, render_size=frame_size, disable_env_checker=True
+            task_spec(task).gym_id,
+            obs_type="state",
+            scenario=scenario,
+            render_size=frame_size,
+            disable_env_checker=True,
         )
     try:
         obs, info = env.reset(seed=seed)

@@ -1,4 +1,4 @@
-"""``SutureSimConfig``: the simulated needle-insertion arm as LeRobot's robot type ``suture_sim``."""
+"""``SutureSimConfig``: the simulated suturing arm as LeRobot's robot type ``suture_sim``."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ from lerobot_suture.sim.appearance import AppearanceConfig
 from lerobot_suture.sim.scenarios import SCENARIOS
 from lerobot_suture.sim.suture_env import check_image_side
 from lerobot_suture.sim.task import GRASP_RANGES
+from lerobot_suture.sim.tasks import check_scenario, task_spec
 
 CAMERA = "endoscope"
 """The camera's name: LeRobot stores it as ``observation.images.endoscope``, the expert data's key."""
@@ -28,9 +29,11 @@ EPISODE_ENDS = ("continue", "hold")
 @RobotConfig.register_subclass("suture_sim")
 @dataclass
 class SutureSimConfig(RobotConfig):
-    """The needle-insertion scene (arm, needle, phantom, endoscope) of ``lerobot_suture.sim.suture_env``.
+    """The suturing scene (arm, needle, phantom, endoscope) of ``lerobot_suture.sim.suture_env``.
 
     Args:
+        task: the task the scene is set for (``lerobot_suture.sim.tasks.TASKS``): ``insertion`` (the needle
+            starts in the jaw) or ``pickup`` (it lies on the phantom, the jaw open).
         seed: seed of the scene at ``connect``; LeRobot's dataset episode ``N`` (``lerobot-record``,
             ``lerobot-rollout --strategy.type=episodic``) plays the scene of ``seed + N``.
         image_size: endoscope image side (px).
@@ -52,6 +55,7 @@ class SutureSimConfig(RobotConfig):
             None: no trace.
     """
 
+    task: str = "insertion"
     seed: int = 0
     image_size: int = 96
     scenario: str = "nominal"
@@ -68,6 +72,7 @@ class SutureSimConfig(RobotConfig):
         super().__post_init__()
         if self.scenario not in SCENARIOS:
             raise ValueError(f"`scenario` must be one of {tuple(SCENARIOS)}. Got {self.scenario!r}.")
+        check_scenario(self.task, self.scenario)
         if self.grasp not in GRASP_RANGES:
             raise ValueError(f"`grasp` must be one of {tuple(GRASP_RANGES)}. Got {self.grasp!r}.")
         if self.clock not in CLOCKS:
@@ -78,8 +83,13 @@ class SutureSimConfig(RobotConfig):
             raise ValueError(f"`seed` must be >= 0. Got {self.seed}.")
         check_image_side("image_size", self.image_size)
 
+    @property
+    def gym_id(self) -> str:
+        """The task's Gymnasium id."""
+        return task_spec(self.task).gym_id
+
     def env_kwargs(self) -> dict:
-        """Arguments of ``gym.make(lerobot_suture.ENV_ID, ...)`` for this scene."""
+        """Arguments of ``gym.make(self.gym_id, ...)`` for this scene."""
         return {
             "obs_type": "pixels_agent_pos",
             "image_size": self.image_size,

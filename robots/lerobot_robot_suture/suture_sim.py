@@ -1,6 +1,7 @@
-"""``SutureSim``: the needle-insertion scene of ``lerobot_suture`` as a LeRobot robot.
+"""``SutureSim``: the suturing scene of ``lerobot_suture`` as a LeRobot robot.
 
-The scene is the Gymnasium env ``lerobot_suture/NeedleInsertion-v0`` (``lerobot_suture.sim.suture_env``),
+The scene is the Gymnasium env of ``--robot.task`` (``lerobot_suture/NeedleInsertion-v0`` by default;
+``lerobot_suture.sim.suture_env``),
 made with ``gym.make`` (behind the CBF safety filter when ``--robot.cbf.enabled=true``): the same physics
 that ``lerobot-eval --env.type=suture`` and the expert recordings run.
 
@@ -27,8 +28,8 @@ from lerobot.lerobot_types import RobotAction, RobotObservation
 from lerobot.robots.robot import Robot
 from lerobot.utils.decorators import check_if_already_connected, check_if_not_connected
 
-import lerobot_suture
-from lerobot_suture.sim.task import CONTROL_DT, TASK
+from lerobot_suture.sim.task import CONTROL_DT
+from lerobot_suture.sim.tasks import task_spec
 
 from . import link
 from .clock import ControlClock
@@ -61,7 +62,7 @@ class SutureSim(Robot):
         super().__init__(config)
         self.config = config
         self.cameras = {CAMERA: SimulatedCamera(config.image_size, config.image_size)}
-        self.task = TASK
+        self.task = task_spec(config.task).instruction
         """The task in words (pass it as ``--dataset.single_task``)."""
         self.env: gym.Env | None = None
         self._lock = threading.RLock()
@@ -104,7 +105,7 @@ class SutureSim(Robot):
     def connect(self, calibrate: bool = True) -> None:
         if not self.is_calibrated and calibrate:
             self.calibrate()
-        self.env = gym.make(lerobot_suture.ENV_ID, disable_env_checker=True, **self.config.env_kwargs())
+        self.env = gym.make(self.config.gym_id, disable_env_checker=True, **self.config.env_kwargs())
         if self.config.trace_path is not None:
             self.config.trace_path.parent.mkdir(parents=True, exist_ok=True)
             self._trace = open(self.config.trace_path, "a", buffering=1)  # noqa: SIM115 - closed at disconnect
