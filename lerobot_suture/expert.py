@@ -1,6 +1,7 @@
-"""A scripted expert that inserts the needle from privileged simulator state.
+"""A scripted expert for every task of the family, from privileged simulator state.
 
-It reads the true needle grasp, the entry and exit points and the needle's pose from the env (as the
+``ScriptedExpert.act`` follows the plan of the env's task: ``pickup_expert.PickupPlan`` for ``pickup``,
+``extraction_expert.ExtractionPlan`` for ``extraction``, and, for ``insertion``, the plan below. It reads the true needle grasp, the entry and exit points and the needle's pose from the env (as the
 paper's demonstrator reads AMBF's state) and emits the same 10-dim pose actions a policy emits:
 
 0. ``detour`` (only with ``approach_detour`` > 0): carry the needle first to a waypoint ``approach_detour``
@@ -15,8 +16,8 @@ paper's demonstrator reads AMBF's state) and emits the same 10-dim pose actions 
 
 Every step re-reads the phantom, so the expert servos to a moving phantom. It also stands in for the
 surgeon after a handover: ``reset`` with the env mid-episode works out the phase from the state (a
-needle already in tissue is driven on from its current angle). A needle the jaw has lost cannot be
-re-grasped by this expert; it then holds the arm still.
+needle already in tissue is driven on from its current angle). A needle the jaw has lost in
+``insertion`` is not re-grasped by this expert; it then holds the arm still.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lerobot_suture.extraction_expert import ExtractionPlan
 from lerobot_suture.pickup_expert import PickupPlan
 from lerobot_suture.sim.geometry import (
     jaw_holding,
@@ -100,7 +102,7 @@ class ScriptedExpert:
         self.phase: str | None = None
         self.drive_angle = 0.0
         self.detour_side = 1.0
-        self._pickup: PickupPlan | None = None
+        self._plan: PickupPlan | ExtractionPlan | None = None
 
     def reset(self, env=None) -> None:
         """Start over; the phase is worked out from the env's state at the next ``act``. With
@@ -109,7 +111,7 @@ class ScriptedExpert:
         scene the seed draws."""
         self.phase = None
         self.drive_angle = 0.0
-        self._pickup: PickupPlan | None = None
+        self._plan: PickupPlan | ExtractionPlan | None = None
         seed = getattr(env.unwrapped, "np_random_seed", None) if env is not None else None
         rng = np.random.default_rng(None if seed is None or seed < 0 else [_SIDE_STREAM, seed])
         self.detour_side = 1.0 if rng.integers(2) else -1.0
@@ -117,10 +119,10 @@ class ScriptedExpert:
     def act(self, env) -> np.ndarray:
         u = env.unwrapped
         cfg = self.config
-        if u.task_name == "pickup":
-            if self._pickup is None:
-                self._pickup = PickupPlan(cfg)
-            return self._pickup.act(env)
+        if u.task_name != "insertion":
+            if self._plan is None:
+                self._plan = (PickupPlan if u.task_name == "pickup" else ExtractionPlan)(cfg)
+            return self._plan.act(env)
         dt = u.control_dt
         jaw_pos, jaw_rot = u.jaw_pose()
         if not u.needle_grasped:

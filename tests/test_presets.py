@@ -132,16 +132,17 @@ def test_variant_presets_are_the_reference_on_other_data(preset, dataset, tmp_pa
         assert set(transforms.tfs) == {"brightness", "contrast", "saturation", "hue", "sharpness"}
 
 
-def test_the_pickup_preset_is_the_reference_on_the_pickup_recipe(tmp_path):
+@pytest.mark.parametrize("task", ["pickup", "extraction"])
+def test_a_task_preset_is_the_reference_on_the_task_s_recipe(task, tmp_path):
     reference = _parse_train_config(PRESETS / "reference.json", tmp_path / "a")
-    pickup = _parse_train_config(PRESETS / "pickup.json", tmp_path / "b")
+    pickup = _parse_train_config(PRESETS / f"{task}.json", tmp_path / "b")
     assert pickup.policy == reference.policy
     for name in PIPELINE_FIELDS:
         assert getattr(pickup, name) == getattr(reference, name), name
     from lerobot_suture.datasets.record_config import parse_config
 
-    recipe = parse_config([f"--config_path={DATASETS / 'suture_pickup.yaml'}"])
-    assert recipe.task == "pickup" and (recipe.repo_id, recipe.root) == (
+    recipe = parse_config([f"--config_path={DATASETS / f'suture_{task}.yaml'}"])
+    assert recipe.task == task and (recipe.repo_id, recipe.root) == (
         pickup.dataset.repo_id,
         pickup.dataset.root,
     )

@@ -76,6 +76,7 @@ def render_description(root: str | Path, template_path: str | Path | None = None
 
     from lerobot_suture.sim import geometry, task, tissue
     from lerobot_suture.sim.appearance import AppearanceConfig, ranges_table
+    from lerobot_suture.sim.extraction import STRAIN_BOUND
     from lerobot_suture.sim.pickup import LIFT_HEIGHT
     from lerobot_suture.sim.scenarios import ScenarioConfig
     from lerobot_suture.sim.suture_env import SCENE_XML
@@ -121,6 +122,7 @@ def render_description(root: str | Path, template_path: str | Path | None = None
         "pickup_offset_mm": f"{task.GRASP_RANGES['narrow'][1] * 1e3:g}",
         "pickup_roll_rad": f"{task.GRASP_RANGES['narrow'][2]:g}",
         "lift_height_mm": f"{LIFT_HEIGHT * 1e3:g}",
+        "extraction_strain_mm": f"{STRAIN_BOUND * 1e3:g}",
         "fps": log["fps"],
         "gym_id": log["gym_id"],
         "max_episode_steps": log["max_episode_steps"],

@@ -23,6 +23,7 @@ from lerobot_suture.datasets.features import (
 )
 from lerobot_suture.expert import iter_expert_steps
 from lerobot_suture.sim import task
+from lerobot_suture.sim.extraction import STRAIN_BOUND
 from lerobot_suture.sim.pickup import grasp_ready_for_throw
 from lerobot_suture.sim.tasks import DEFAULT_TASK, task_spec
 
@@ -53,6 +54,19 @@ def _pickup_failure_reason(info: dict, steps: int) -> tuple[str, str]:
     if not grasp_ready_for_throw(tuple(info["grasp_parameters"]), reversed_grasp=False):
         return "grasp off the ranges", detail
     return "needle not lifted", f"held ({detail}) but not lifted clear within {steps} steps"
+
+
+def _extraction_failure_reason(info: dict, steps: int) -> tuple[str, str]:
+    """(category, detail) of a failed extraction, from the env's final ``info``."""
+    strain = f"tissue strain {info['tissue_strain'] * 1e3:.2f} mm"
+    if info["tissue_strain"] > STRAIN_BOUND:
+        return "tissue strained", f"{strain} > {STRAIN_BOUND * 1e3:g} mm"
+    if info["needle_in_tissue"]:
+        return "needle still in tissue", f"not out within {steps} steps ({strain})"
+    return (
+        "needle not held or out the wrong way",
+        f"out of the tissue but not held, or not by the exit ({strain})",
+    )
 
 
 def _failure_reason(info: dict, steps: int) -> tuple[str, str]:
@@ -139,7 +153,9 @@ def expert_episode_frames(
     rollout = ExpertEpisodeFrames(seed=seed, frames=frames, success=False, info=info)
     succeeded = [bool(f[SUCCESS_KEY][0]) for f in frames]
     if True not in succeeded:
-        explain = _pickup_failure_reason if env.unwrapped.task_name == "pickup" else _failure_reason
+        explain = {"pickup": _pickup_failure_reason, "extraction": _extraction_failure_reason}.get(
+            env.unwrapped.task_name, _failure_reason
+        )
         rollout.reason, rollout.detail = explain(info, len(frames))
         return rollout
     first = succeeded.index(True)

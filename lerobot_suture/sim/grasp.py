@@ -5,9 +5,10 @@ by the jaw closing on it), and the wire stops the closing jaw a little open, so 
 it holds the needle, as a real needle driver's does. Released, the needle is a free body under gravity. A
 jaw that closes on a free needle catches it by the rule of ``needle_capture``.
 
-A free needle lying still on the phantom rests (:meth:`NeedleGrasp.rest`): static friction holds it and
-nothing else touches it (the jaw has no contacts), so it is held in place kinematically, weightless and
-without contacts, which spares the contact solver every physics step; the phantom carries it when it moves.
+A free needle lying still on the phantom, or lodged in its tissue, rests (:meth:`NeedleGrasp.rest`): static
+friction or the tissue holds it and nothing else touches it (the jaw has no contacts), so it is held in
+place kinematically, weightless and without contacts, which spares the contact solver every physics step;
+the phantom carries it when it moves.
 """
 
 from __future__ import annotations
@@ -40,7 +41,8 @@ class NeedleGrasp:
         parameters: (arc angle rad, offset along the jaw m, roll rad) the pose was made from, or that
             describe the grasp the jaw made (``needle_capture.SeatedGrasp``).
         reversed: The jaw caught the needle the other way round from any grasp a throw starts from.
-        resting: The free needle lies still on the phantom, held there kinematically (:meth:`rest`).
+        resting: The free needle lies still on the phantom or is lodged in it, held there kinematically
+            (:meth:`rest`).
         captures: How many times the jaw has caught the needle this episode.
     """
 
@@ -147,11 +149,16 @@ class NeedleGrasp:
         data.qvel[self._needle_dof : self._needle_dof + 6] = 0.0
 
     def release(self, data: mujoco.MjData, in_tissue: bool) -> None:
-        """The jaw loses the needle: it keeps its current velocity and falls under gravity."""
+        """The jaw loses the needle. In tissue, the tissue holds it: it stays lodged where it is, resting
+        (:meth:`rest`). Otherwise it keeps its current velocity and falls under gravity."""
         if not self.held:
             return
         centre, rot = self.needle_pose(data)
         self._set_needle_free_pose(data, centre, rot)
+        if in_tissue:
+            self.held = False
+            self.rest(data)
+            return
         # Carry the jaw's velocity into the needle's free joint.
         vel = np.zeros(6)
         jaw_body = self._arm.jaw_body
@@ -161,9 +168,7 @@ class NeedleGrasp:
         )
         data.qvel[self._needle_dof + 3 : self._needle_dof + 6] = rot.T @ vel[:3]
         self._model.body_gravcomp[self.needle_body] = 0.0
-        if not in_tissue:
-            # A needle lost above the phantom lands on it (one inside tissue would be expelled).
-            self.set_pad_collides_with_needle(True)
+        self.set_pad_collides_with_needle(True)  # a needle lost above the phantom lands on it
         self.held = False
         self.resting = False
 

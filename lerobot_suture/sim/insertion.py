@@ -29,6 +29,8 @@ class InsertionProgress:
         entry_error: Distance in the tissue surface from the entry point to where the tip went in (m);
             inf until it has.
         exit_error: The same for the exit point and where the tip came out (m); inf until it has.
+        tail_exit_error: Distance in the tissue surface from the exit point to where the needle's tail left
+            the tissue (m): the end of an extraction through the exit hole; inf until it has.
         strain: Accumulated off-arc motion of the needle in tissue (m).
         tip_world: (3,) the needle tip in the world frame at the last update (m); None before it.
     """
@@ -41,12 +43,15 @@ class InsertionProgress:
         self.first_in_tissue_step: int | None = None
         self.entry_error = math.inf
         self.exit_error = math.inf
+        self.tail_exit_error = math.inf
         self.strain = 0.0
         self.tip_world: np.ndarray | None = None
         self._tip_inside = False
+        self._tail_inside = False
         self._entry_location: np.ndarray | None = None
         self._exit_location: np.ndarray | None = None
         self._prev_tip_local: np.ndarray | None = None
+        self._prev_tail_local: np.ndarray | None = None
         self._prev_needle_local: tuple[np.ndarray, np.ndarray] | None = None
 
     def update(
@@ -79,6 +84,7 @@ class InsertionProgress:
         if self.in_tissue and self.first_in_tissue_step is None:
             self.first_in_tissue_step = step_index
         tip_inside = bool(inside[0])
+        tail_inside = bool(inside[-1])
         if not first and self._prev_tip_local is not None:
             if tip_inside and not self._tip_inside and self._entry_location is None:
                 self._entry_location = tissue.surface_crossing(self._prev_tip_local, tip_local)
@@ -87,15 +93,25 @@ class InsertionProgress:
                 if self._exit_location is None:
                     self._exit_location = tissue.surface_crossing(self._prev_tip_local, tip_local)
                     self.exit_error = float(np.linalg.norm(self._exit_location[:2] - self._exit_local[:2]))
+            if self._tail_inside and not tail_inside and self._prev_tail_local is not None:
+                crossing = tissue.surface_crossing(self._prev_tail_local, arc[-1])
+                self.tail_exit_error = float(np.linalg.norm(crossing[:2] - self._exit_local[:2]))
             if (self.in_tissue or was_in_tissue) and self._prev_needle_local is not None:
                 translation, rotation_off = tissue.off_arc_motion(
                     *self._prev_needle_local, centre_local, rot_local, NEEDLE_RADIUS
                 )
                 self.strain += translation + rotation_off
         self._tip_inside = tip_inside
+        self._tail_inside = tail_inside
         self._prev_tip_local = tip_local
+        self._prev_tail_local = arc[-1]
         self._prev_needle_local = (centre_local, rot_local)
         self.tip_world = phantom_position + phantom_rotation @ tip_local
+
+    @property
+    def extracted(self) -> bool:
+        """The needle went into the tissue and is all out of it again."""
+        return self.first_in_tissue_step is not None and not self.in_tissue
 
     @property
     def protrusion(self) -> float:

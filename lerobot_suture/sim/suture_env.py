@@ -21,6 +21,9 @@ one env step is 50 physics steps.
   closing on the needle catches it by the rule of ``needle_capture``; success is a grasp inside the ranges
   ``insertion`` is tested in, lifted ``pickup.LIFT_HEIGHT`` clear of the tissue (``pickup``). Terminated
   on success.
+- ``extraction``: the needle starts driven through the tissue, held at its tail (``extraction``). Released,
+  the tissue holds it; success is the needle regrasped and pulled all out along its arc, its tail leaving
+  through the exit hole, the tissue strain within ``extraction.STRAIN_BOUND``. Terminated on success.
 
 ## Action Space
 ``Box(10,)``, float32: the target pose of the needle holder (the jaw tip frame ``jaw_tip``) at the
@@ -117,7 +120,7 @@ argument                 default                 meaning
                                                  ``appearance.AppearanceConfig``, a dict of its
                                                  fields, or None (all off)
 ``task``                 ``"insertion"``         the task (``tasks.TASKS``; see Tasks above):
-                                                 ``insertion`` or ``pickup``
+                                                 ``insertion``, ``pickup`` or ``extraction``
 =======================  ======================  ===============================================
 """
 
@@ -147,35 +150,26 @@ from lerobot_suture.sim.geometry import (
     rot6_from_matrix,
     rotation_about_z,
 )
-from lerobot_suture.sim.grasp import JAW_OPEN_ANGLE, NeedleGrasp
+from lerobot_suture.sim.grasp import NeedleGrasp
 from lerobot_suture.sim.insertion import InsertionProgress
-from lerobot_suture.sim.pickup import resting_needle_pose
 from lerobot_suture.sim.privileged_state import PrivilegedState
-from lerobot_suture.sim.psm import ARM_JOINTS, PSM
+from lerobot_suture.sim.psm import PSM
 from lerobot_suture.sim.scenarios import Scenario, ScenarioConfig
 from lerobot_suture.sim.task import (
-    ARM_START_NOISE,
     CONTROL_DT,
-    ENTRY_TOLERANCE,
-    EXIT_TOLERANCE,
-    GRASP_ANGLE,
     GRASP_RANGES,
-    MIN_PROTRUSION,
     PHANTOM_NOMINAL,
     PHANTOM_RANGE_XY,
     PHANTOM_YAW_RANGE,
     WORKSPACE_HIGH,
     WORKSPACE_LOW,
 )
+from lerobot_suture.sim.task_scenes import TaskScenes
 from lerobot_suture.sim.tasks import DEFAULT_TASK, check_scenario, task_spec
 
 SCENE_XML = Path(__file__).parent / "assets" / "scene.xml"
 
 OBS_TYPES = ("pixels_agent_pos", "state", "pixels_agent_pos_state")
-RESTING_CLEARANCE = 0.001
-RESTING_SPEED = 0.001
-"""A dropped needle rests on the phantom (``grasp.NeedleGrasp.rest``) once its lowest point is within
-``RESTING_CLEARANCE`` (m) of the tissue surface and its centre slower than ``RESTING_SPEED`` (m/s)."""
 IMAGE_SIDE_RANGE = (16, 640)  # px; the upper bound is the offscreen buffer of scene.xml
 
 
@@ -191,7 +185,7 @@ NEEDLE_KEYPOINTS = 3
 """Points of the needle located in the image by ``needle_keypoints_in_image``: tip, middle, tail."""
 
 
-class SutureEnv(PrivilegedState, gym.Env):
+class SutureEnv(TaskScenes, PrivilegedState, gym.Env):
     metadata = {"render_modes": ["rgb_array"], "render_fps": int(round(1.0 / CONTROL_DT))}
 
     def __init__(
@@ -365,20 +359,7 @@ class SutureEnv(PrivilegedState, gym.Env):
         self.set_phantom_pose(
             np.array([xy[0], xy[1], PHANTOM_NOMINAL[2]]), rng.uniform(-1, 1) * PHANTOM_YAW_RANGE
         )
-        if self.task_name == "pickup":
-            self._place_resting_needle(rng)
-        else:
-            angle_range, offset_range, roll_range = GRASP_RANGES[self.grasp]
-            angle = GRASP_ANGLE + rng.uniform(-1, 1) * angle_range
-            offset = rng.uniform(-1, 1) * offset_range
-            self._grasp.set(angle, offset, rng.uniform(-1, 1) * roll_range)
-        qpos = self._home_qpos + rng.uniform(-1, 1, size=len(ARM_JOINTS)) * ARM_START_NOISE
-        self.data.qpos[self._arm.qpos] = qpos
-        held = self._grasp.held
-        self.data.qpos[self._grasp.jaw_qpos] = self._grasp.held_jaw_angle() if held else JAW_OPEN_ANGLE
-        mujoco.mj_forward(self.model, self.data)
-        if held:
-            self._grasp.snap_needle(self.data)
+        self._set_up_task(rng)
         self.scenario.reset(self)
         self._update_tissue_state(first=True)
         return self._observation(), self._info(success=False, v_nominal=np.zeros(3), v_command=np.zeros(3))
@@ -392,15 +373,9 @@ class SutureEnv(PrivilegedState, gym.Env):
         self._step_index += 1
         if self._first_grasp_step is None and self._grasp.held:
             self._first_grasp_step = self._step_index
-        if self.task_name == "pickup" and not self._grasp.held and not self._grasp.resting:
-            self._settle_needle()
+        self._after_physics()
         self._update_tissue_state()
-        if self.task_name == "pickup":
-            success = self.needle_picked_up
-            terminated = success
-        else:
-            terminated = self._throw_over()
-            success = terminated and self._on_the_marks()
+        terminated, success = self._task_outcome()
         reward = 1.0 if success else 0.0
         info = self._info(success=success, v_nominal=drive.v_nominal, v_command=drive.v_command)
         if drive.tip_trace is not None:
@@ -448,29 +423,6 @@ class SutureEnv(PrivilegedState, gym.Env):
     def _update_tissue_state(self, first: bool = False) -> None:
         self._progress.update(
             *self.needle_pose(), self._phantom_pos, self._phantom_rot, self._step_index, first
-        )
-
-    def _place_resting_needle(self, rng: np.random.Generator) -> None:
-        """Lay the free needle on the pad (``pickup.resting_needle_pose``), at rest."""
-        centre, rotation = resting_needle_pose(
-            rng, self._phantom_pos, self._phantom_rot, 0.5 * self._grasp.wire_diameter
-        )
-        self._grasp.place_free_needle(self.data, centre, rotation)
-
-    def _settle_needle(self) -> None:
-        """A dropped needle that has come to lie still on the phantom rests there (``grasp``)."""
-        still = self._grasp.needle_speed(self.data) < RESTING_SPEED
-        if still and self.needle_clearance < RESTING_CLEARANCE:
-            self._grasp.rest(self.data)
-
-    def _throw_over(self) -> bool:
-        """The tip protrudes ``MIN_PROTRUSION`` beyond where it emerged, the needle spanning the wound."""
-        return bool(self._progress.protrusion >= MIN_PROTRUSION and self._progress.in_tissue)
-
-    def _on_the_marks(self) -> bool:
-        """The tip entered and emerged within tolerance of the marked entry and exit points."""
-        return bool(
-            self._progress.entry_error <= ENTRY_TOLERANCE and self._progress.exit_error <= EXIT_TOLERANCE
         )
 
     def _observation(self) -> dict:

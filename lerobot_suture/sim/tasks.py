@@ -66,6 +66,16 @@ TASKS: dict[str, TaskSpec] = {
             # Lost 2 steps after the jaw catches it: while it is being lifted.
             scenario_onsets=(("needle_drop", 2),),
         ),
+        TaskSpec(
+            name="extraction",
+            instruction="Release the needle, regrasp it near its tip and pull it out of the tissue along its arc.",
+            gym_id="lerobot_suture/NeedleExtraction-v0",
+            max_episode_steps=150,
+            throws=0,
+            scenarios=("nominal", "needle_drop", "camera_moved", "phantom_moved_after_insertion"),
+            # The jaw lets go of the tail first: lose the regrasped needle midway through the pull.
+            scenario_onsets=(("needle_drop", 70),),
+        ),
     )
 }
 TASK_NAMES = tuple(TASKS)

@@ -1,0 +1,123 @@
+"""The scripted expert's plan for ``extraction``: let go of the needle's tail, regrasp it near its tip, and
+pull it out along its arc.
+
+From privileged state (the needle's true pose, lodged in the tissue, and the jaw's pose):
+
+1. ``release``: open the jaw; the tissue holds the needle;
+2. ``back_off``: draw the open jaw back along its axis, off the wire;
+3. ``reach``: carry it to ``BACK_OFF`` short of a grasp at ``extraction.REGRASP_ANGLE`` from the tip, turning
+   it about its own axis against the pull's sense (the long way round), so that the instrument's roll has the
+   pull's half turn left; ``advance``: onto the wire;
+4. ``close``: close the jaw (``sim.needle_capture`` decides whether it caught the needle);
+5. ``pull``: turn the needle about its own centre at ``drive_rate``, so every point follows the arc out
+   through the exit hole, until the tail is ``PULL_MARGIN`` past it; ``hold``: stay there.
+
+A jaw that missed, or lost the needle, backs off and reaches again for the needle where it now lies. Every
+step re-reads the phantom, so the pull follows a phantom that moves.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from lerobot_suture.sim.extraction import REGRASP_ANGLE
+from lerobot_suture.sim.geometry import (
+    grasp_transform,
+    jaw_holding,
+    matrix_from_rotvec,
+    pose_vector,
+    step_towards,
+)
+
+EXTRACTION_PHASES = ("release", "back_off", "reach", "advance", "close", "pull", "hold")
+BACK_OFF = 0.006
+"""How far the open jaw draws back along its axis from the wire before and after a grasp (m)."""
+PULL_MARGIN = 0.3
+"""How far past the exit point the expert drives the tail (rad of arc)."""
+
+
+class ExtractionPlan:
+    """One extraction's phases; ``act(env)`` returns a (10,) float32 pose action.
+
+    Args:
+        config: the expert's speeds and tolerances (``expert.ExpertConfig``).
+    """
+
+    def __init__(self, config):
+        self.config = config
+        self.phase = "release"
+        self.drive_angle = 0.0
+        self._goal: np.ndarray | None = None
+
+    def act(self, env) -> np.ndarray:
+        u, cfg = env.unwrapped, self.config
+        dt = u.control_dt
+        jaw_pos, jaw_rot = u.jaw_pose()
+        frame = u.insertion_frame()
+        if self.phase == "close":
+            if u.needle_grasped:
+                self.phase = "pull"
+                relative = frame.start_rotation.T @ u.needle_pose()[1]
+                self.drive_angle = (-math.atan2(relative[1, 0], relative[0, 0])) % (2.0 * math.pi)
+            else:
+                self.phase = "back_off"
+                self._goal = None
+        elif self.phase in ("pull", "hold") and not u.needle_grasped:
+            self.phase, self._goal = "back_off", None  # lost it: reach for it where it lies
+        if self.phase == "release":
+            self.phase = "back_off"
+            return pose_vector(jaw_pos, jaw_rot, 0.0).astype(np.float32)
+        if self.phase == "back_off":
+            if self._goal is None:
+                self._goal = jaw_pos - BACK_OFF * jaw_rot[:, 2]
+            if np.linalg.norm(self._goal - jaw_pos) < cfg.position_tolerance:
+                self.phase = "reach"
+            else:
+                target = step_towards(jaw_pos, jaw_rot, self._goal, jaw_rot, cfg.approach_speed * dt, 0.0)
+                return pose_vector(*target, 0.0).astype(np.float32)
+        if self.phase in ("reach", "advance"):
+            grasp_pos, grasp_rot = jaw_holding(*u.needle_pose(), *grasp_transform(REGRASP_ANGLE, 0.0, 0.0))
+            if self.phase == "reach":
+                short = grasp_pos - BACK_OFF * grasp_rot[:, 2]
+                left = _turn_left(jaw_rot, grasp_rot)
+                if np.linalg.norm(short - jaw_pos) < cfg.position_tolerance and left < cfg.angle_tolerance:
+                    self.phase = "advance"
+                else:
+                    max_turn = cfg.approach_turn_rate * dt
+                    if math.pi / 2 < left < 2.0 * math.pi - 0.5:
+                        # Turn about the jaw's axis in the sense that leaves the pull the instrument's roll;
+                        # the last quarter turn (the shortest way now) aligns every axis.
+                        position, _ = step_towards(
+                            jaw_pos, jaw_rot, short, jaw_rot, cfg.approach_speed * dt, 0.0
+                        )
+                        rotation = matrix_from_rotvec(max_turn * jaw_rot[:, 2]) @ jaw_rot
+                        return pose_vector(position, rotation, 0.0).astype(np.float32)
+                    target = step_towards(
+                        jaw_pos, jaw_rot, short, grasp_rot, cfg.approach_speed * dt, max_turn
+                    )
+                    return pose_vector(*target, 0.0).astype(np.float32)
+            if np.linalg.norm(grasp_pos - jaw_pos) < cfg.position_tolerance:
+                self.phase = "close"
+                return pose_vector(grasp_pos, grasp_rot, 1.0).astype(np.float32)
+            target = step_towards(
+                jaw_pos, jaw_rot, grasp_pos, grasp_rot, cfg.descend_speed * dt, cfg.approach_turn_rate * dt
+            )
+            return pose_vector(*target, 0.0).astype(np.float32)
+        # pull / hold: the needle turns about its centre; the jaw holds it as it was caught.
+        final = math.pi + frame.exit_angle + PULL_MARGIN
+        if self.phase == "pull":
+            self.drive_angle = min(final, self.drive_angle + cfg.drive_rate * dt)
+            if self.drive_angle >= final:
+                self.phase = "hold"
+        target = jaw_holding(frame.centre, frame.needle_rotation(self.drive_angle), *u.grasp_in_jaw)
+        return pose_vector(*target, 1.0).astype(np.float32)
+
+
+def _turn_left(jaw_rot: np.ndarray, goal_rot: np.ndarray) -> float:
+    """How far (rad, in [0, 2 pi)) the jaw must still turn about its own axis, in the positive sense (against
+    the pull's), to reach the goal's heading."""
+    x_goal = jaw_rot.T @ goal_rot[:, 0]
+    angle = math.atan2(x_goal[1], x_goal[0]) % (2.0 * math.pi)
+    return 0.0 if angle > 2.0 * math.pi - 1e-3 else angle

@@ -1,0 +1,50 @@
+"""Needle extraction in numbers: the finished throw an episode starts from, and when an extraction is done.
+
+An episode starts where an insertion ends: the needle through the tissue from the entry point to the exit
+point, its tip protruding an arc of :data:`PROTRUSION_RANGE` beyond the exit point (drawn per episode),
+held at its tail with the episode's grasp. Released, the needle stays lodged in the tissue, which holds it
+(``grasp.NeedleGrasp.rest``). The task: let go, regrasp the needle near its tip, and pull it out along its
+arc, so that the tail follows the tip out through the exit hole.
+
+One instrument arm does it, as a surgeon's needle driver does: the instrument's roll and the wrist turn the
+jaw about the needle's axis through the half turn the pull takes (a second arm would be needed to hand the
+needle back to a grasp at its tail for the next throw, not to extract it).
+
+Success: the jaw holds the needle, all of it is out of the tissue, its tail left through the exit hole
+(within :data:`TAIL_EXIT_TOLERANCE` of the exit point), and the tissue strain of the episode (the needle's
+accumulated off-arc motion in tissue, ``tissue``) stayed within :data:`STRAIN_BOUND`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lerobot_suture.sim.task import EXIT_TOLERANCE
+
+PROTRUSION_RANGE = (0.5, 0.7)
+"""Arc (rad) of the needle beyond the exit point at the start: 5 to 7 mm of a 10 mm radius needle."""
+REGRASP_ANGLE = 0.25
+"""Arc angle from the tip (rad) at which the scripted expert regrasps the needle: 2.5 mm from the tip."""
+TAIL_EXIT_TOLERANCE = EXIT_TOLERANCE
+"""How far from the exit point the tail may leave the tissue (m)."""
+STRAIN_BOUND = 0.002
+"""Largest accumulated off-arc motion of the needle in tissue over an extraction (m)."""
+SWEEP_STEPS = 24
+"""Poses along the finished throw that set up the start's insertion record (entry and exit crossings)."""
+
+
+def start_drive_angle(rng: np.random.Generator, exit_angle: float) -> float:
+    """The needle's drive angle (rad, about its centre from the entry pose) at the start: one draw."""
+    low, high = PROTRUSION_RANGE
+    return exit_angle + float(rng.uniform(low, high))
+
+
+def throw_sweep(start_angle: float) -> np.ndarray:
+    """Drive angles (rad) from just before the tip meets the entry point to ``start_angle``: the throw the
+    start state records as done."""
+    return np.linspace(-0.1, start_angle, SWEEP_STEPS)
+
+
+def extraction_succeeded(held: bool, extracted: bool, tail_exit_error: float, strain: float) -> bool:
+    """Whether an extraction is done (module docstring); lengths in m."""
+    return held and extracted and tail_exit_error <= TAIL_EXIT_TOLERANCE and strain <= STRAIN_BOUND

@@ -1,0 +1,122 @@
+"""The `extraction` task: the finished throw it starts from, the tissue holding a released needle, the
+regrasp and the pull along the arc, what counts as done, and the expert in each scenario."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+from lerobot_suture.expert import ScriptedExpert, iter_expert_steps
+from lerobot_suture.sim.extraction import PROTRUSION_RANGE, STRAIN_BOUND
+from lerobot_suture.sim.geometry import jaw_holding, pose_vector
+from lerobot_suture.sim.suture_env import SutureEnv
+from lerobot_suture.sim.task import ENTRY_TOLERANCE, EXIT_TOLERANCE
+from lerobot_suture.sim.tasks import TASKS
+
+EXTRACTION_ID = TASKS["extraction"].gym_id
+
+
+def make(**kwargs) -> gym.Env:
+    kwargs.setdefault("obs_type", "state")
+    return gym.make(EXTRACTION_ID, disable_env_checker=True, **kwargs)
+
+
+def run_expert(env, seed):
+    obs, _ = env.reset(seed=seed)
+    return list(iter_expert_steps(env, ScriptedExpert(), obs))
+
+
+def test_gymnasium_env_checker():
+    env = SutureEnv(obs_type="pixels_agent_pos", image_size=32, render_size=32, task="extraction")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the checker warns about unbounded observation boxes
+        check_env(env, skip_render_check=False)
+    env.close()
+
+
+def test_an_episode_starts_from_a_finished_throw_held_at_the_tail():
+    env = make()
+    for seed in range(4):
+        _, info = env.reset(seed=seed)
+        u = env.unwrapped
+        assert u.needle_grasped and info["needle_in_tissue"]
+        assert info["entry_error_m"] < ENTRY_TOLERANCE and info["exit_error_m"] < EXIT_TOLERANCE
+        low, high = PROTRUSION_RANGE
+        assert low * 0.01 - 1e-4 <= info["protrusion_m"] <= 2 * 0.01 * math.sin(high / 2) + 1e-4
+        assert info["tissue_strain"] < 1e-9 and not info["is_success"]
+        assert abs(u.grasp_parameters[0] - math.radians(165)) <= math.radians(4) + 1e-9
+
+
+def test_a_released_needle_stays_lodged_and_moves_with_the_phantom():
+    env = make()
+    env.reset(seed=1)
+    u = env.unwrapped
+    jaw = u.jaw_pose()
+    env.step(pose_vector(*jaw, 0.0))  # open: the tissue holds it
+    assert not u.needle_grasped and u.needle_in_tissue
+    centre, rotation = u.needle_pose()
+    away = jaw[0] - 0.008 * jaw[1][:, 2]
+    for _ in range(10):
+        env.step(pose_vector(away, jaw[1], 0.0))
+    np.testing.assert_allclose(u.needle_pose()[0], centre, atol=1e-9)  # no fall, no drift
+    shift = np.array([0.003, -0.002, 0.0])
+    u.set_phantom_pose(u.phantom_position + shift, u.phantom_yaw)
+    env.step(pose_vector(away, jaw[1], 0.0))
+    np.testing.assert_allclose(u.needle_pose()[0], centre + shift, atol=1e-9)
+    np.testing.assert_allclose(u.needle_pose()[1], rotation, atol=1e-9)
+
+
+def test_the_expert_extracts_the_needle_through_the_exit_hole():
+    env = make()
+    for seed in range(4):
+        steps = run_expert(env, seed)
+        last = steps[-1]
+        assert last.terminated and last.info["is_success"], seed
+        assert not last.info["needle_in_tissue"] and last.info["tissue_strain"] < STRAIN_BOUND / 4
+        assert env.unwrapped._progress.tail_exit_error < EXIT_TOLERANCE
+        assert len(steps) < TASKS["extraction"].max_episode_steps
+
+
+@pytest.mark.parametrize("scenario", [s for s in TASKS["extraction"].scenarios if s != "nominal"])
+def test_every_scenario_of_extraction_happens_and_the_expert_still_extracts(scenario):
+    env = make(scenario=scenario)
+    steps = run_expert(env, seed=3)
+    assert any(s.info["perturbed"] for s in steps)
+    assert steps[-1].info["is_success"], scenario
+    if scenario == "needle_drop":
+        # Lost in the middle of the pull, lodged in the tissue, caught again and pulled out.
+        assert env.unwrapped._grasp.captures == 2
+
+
+def test_yanking_the_needle_out_strains_the_tissue_and_is_no_success():
+    env = make()
+    env.reset(seed=2)
+    u = env.unwrapped
+    position, rotation = u.jaw_pose()
+    up = u.phantom_rotation[:, 2]
+    terminated = False
+    for k in range(40):  # straight up, off the arc, holding the tail
+        _, _, terminated, _, info = env.step(pose_vector(position + 0.0005 * (k + 1) * up, rotation, 1.0))
+        if terminated:
+            break
+    assert info["tissue_strain"] > STRAIN_BOUND and not info["is_success"]
+
+
+def test_pulling_it_back_out_through_the_entry_is_no_success():
+    env = make()
+    env.reset(seed=0)
+    u = env.unwrapped
+    frame = u.insertion_frame()
+    relative = frame.start_rotation.T @ u.needle_pose()[1]
+    drive = -math.atan2(relative[1, 0], relative[0, 0])
+    terminated = False
+    while drive > -0.5 and not terminated:  # turn it back along its arc, the tail leading out of the entry
+        drive -= 0.05
+        target = jaw_holding(frame.centre, frame.needle_rotation(drive), *u.grasp_in_jaw)
+        _, _, terminated, _, info = env.step(pose_vector(*target, 1.0))
+    assert not info["needle_in_tissue"] and not info["is_success"]
