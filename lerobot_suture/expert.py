@@ -30,6 +30,7 @@ import numpy as np
 
 from lerobot_suture.extraction_expert import ExtractionPlan
 from lerobot_suture.pickup_expert import PickupPlan
+from lerobot_suture.running_suture_expert import RunningSuturePlan
 from lerobot_suture.sim.geometry import (
     jaw_holding,
     needle_in_world,
@@ -97,12 +98,14 @@ class ExpertConfig:
 class ScriptedExpert:
     """Privileged needle-insertion expert; ``act(env)`` returns a (10,) float32 pose action."""
 
-    def __init__(self, config: ExpertConfig | None = None):
+    def __init__(self, config: ExpertConfig | None = None, task: str | None = None):
         self.config = config or ExpertConfig()
+        self.task = task
+        """The task whose plan it follows; None: the env's (``task_name``)."""
         self.phase: str | None = None
         self.drive_angle = 0.0
         self.detour_side = 1.0
-        self._plan: PickupPlan | ExtractionPlan | None = None
+        self._plan: PickupPlan | ExtractionPlan | RunningSuturePlan | None = None
 
     def reset(self, env=None) -> None:
         """Start over; the phase is worked out from the env's state at the next ``act``. With
@@ -111,7 +114,7 @@ class ScriptedExpert:
         scene the seed draws."""
         self.phase = None
         self.drive_angle = 0.0
-        self._plan: PickupPlan | ExtractionPlan | None = None
+        self._plan: PickupPlan | ExtractionPlan | RunningSuturePlan | None = None
         seed = getattr(env.unwrapped, "np_random_seed", None) if env is not None else None
         rng = np.random.default_rng(None if seed is None or seed < 0 else [_SIDE_STREAM, seed])
         self.detour_side = 1.0 if rng.integers(2) else -1.0
@@ -119,9 +122,13 @@ class ScriptedExpert:
     def act(self, env) -> np.ndarray:
         u = env.unwrapped
         cfg = self.config
-        if u.task_name != "insertion":
+        task = self.task or u.task_name
+        if task != "insertion":
             if self._plan is None:
-                self._plan = (PickupPlan if u.task_name == "pickup" else ExtractionPlan)(cfg)
+                if task == "running_suture":
+                    self._plan = RunningSuturePlan(cfg, lambda: ScriptedExpert(cfg, task="insertion"))
+                else:
+                    self._plan = (PickupPlan if task == "pickup" else ExtractionPlan)(cfg)
             return self._plan.act(env)
         dt = u.control_dt
         jaw_pos, jaw_rot = u.jaw_pose()

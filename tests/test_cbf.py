@@ -404,6 +404,7 @@ class KinematicSutureEnv(gym.Env):
     metadata = {"render_modes": []}
     control_dt, physics_dt = 0.1, 0.002
     task_spec = TASKS["insertion"]
+    throw_index = 0
 
     def __init__(self):
         self.observation_space = gym.spaces.Box(-1, 1, (3,), np.float64)

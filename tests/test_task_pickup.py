@@ -3,20 +3,13 @@ env type, and `insertion` left exactly as it was."""
 
 from __future__ import annotations
 
-import json
 import math
-import os
-import subprocess
-import sys
 import warnings
-from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
-from lerobot.envs.factory import make_env
-from lerobot.utils.import_utils import register_third_party_plugins
 
 from lerobot_suture.expert import ScriptedExpert, iter_expert_steps
 from lerobot_suture.registration import ENV_ID
@@ -182,55 +175,3 @@ def test_insertion_episodes_are_those_of_before_the_task_family():
         assert len(steps) == length, (scenario, seed)
         np.testing.assert_allclose(steps[-1].info["needle_tip_pos"], tip, rtol=0, atol=1e-12)
         env.close()
-
-
-def test_lerobot_env_type_runs_pickup_in_async_workers():
-    register_third_party_plugins()
-    from lerobot_env_suture import SutureEnvConfig
-
-    cfg = SutureEnvConfig(task="pickup", image_size=32, render_size=32)
-    assert cfg.gym_id == PICKUP_ID and cfg.episode_length == TASKS["pickup"].max_episode_steps
-    assert SutureEnvConfig(task="NeedleInsertion-v0").task == "insertion"  # the older name still reads
-    with pytest.raises(ValueError, match="does not apply"):
-        SutureEnvConfig(task="pickup", scenario="phantom_moved_after_insertion")
-    vec = make_env(
-        SutureEnvConfig(task="pickup", image_size=32, render_size=32, episode_length=3),
-        n_envs=2,
-        use_async_envs=True,
-    )["suture"][0]
-    try:
-        instruction = TASKS["pickup"].instruction
-        assert vec.call("task_description") == (instruction, instruction)
-        obs, _ = vec.reset(seed=[0, 1])
-        for _ in range(3):
-            obs, _, _, truncated, info = vec.step(obs["agent_pos"].astype(np.float32))
-        assert truncated.all() and "is_success" in info["final_info"]
-    finally:
-        vec.close()
-
-
-def test_lerobot_eval_runs_pickup_with_async_envs(tiny_policy_dir, tmp_path):
-    """The real `lerobot-eval --env.task=pickup`, two envs in async workers, as a many-core machine runs it."""
-    out = tmp_path / "eval"
-    result = subprocess.run(
-        [
-            str(Path(sys.executable).parent / "lerobot-eval"),
-            f"--policy.path={tiny_policy_dir}",
-            "--policy.device=cpu",
-            "--env.type=suture",
-            "--env.task=pickup",
-            "--env.image_size=32",
-            "--env.episode_length=4",
-            "--eval.n_episodes=2",
-            "--eval.batch_size=2",
-            "--eval.use_async_envs=true",
-            f"--output_dir={out}",
-        ],
-        env={**os.environ, "HF_HUB_OFFLINE": "1"},
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert result.returncode == 0, (result.stdout + result.stderr)[-4000:]
-    metrics = json.loads((out / "eval_info.json").read_text())["per_task"][0]["metrics"]
-    assert len(metrics["successes"]) == 2

@@ -10,7 +10,8 @@ Safe set: the ellipsoid of :class:`~lerobot_suture.safety.cbf_config.CBFConfig`,
 the phantom's current entry and exit markers, with axes (entry->exit, lateral, tissue normal); it is
 rebuilt from the env every control step, so it follows a moving phantom.
 
-Activation (one throw per episode; never in a task without a throw, ``pickup``): the filter switches on at the first control step where the
+Activation (per throw; never in a task without one, ``pickup`` and ``extraction``; in a running suture again
+at each throw, once the needle is held in a grasp a throw starts from): the filter switches on at the first control step where the
 needle is grasped and its tip is inside the set (inside the margin-tightened set in discrete mode,
 so the discrete-time guarantee holds from the first step), and switches off for the rest of the
 episode when the needle leaves the tissue after having been in it, or is released. ``reset`` starts
@@ -81,8 +82,9 @@ class CBFActionWrapper(gym.Wrapper):
     Args:
         env: an env whose ``unwrapped`` is a ``SutureEnv`` (has ``tip_velocity_filter``,
             ``entry_point``, ``exit_point``, ``phantom_rotation``, ``needle_tip_pos``,
-            ``needle_in_tissue``, ``needle_grasped``, ``control_dt``, and ``task_spec``, whose ``throws``
-            says whether the task has a throw to guard).
+            ``needle_in_tissue``, ``needle_grasped``, ``control_dt``, ``throw_index``, ``task_spec``, whose
+            ``throws`` says how many throws the task has to guard, and, with more than one,
+            ``needle_in_throw_grasp``).
         config: the filter's configuration; None means ``CBFConfig(enabled=True)``.
 
     Raises:
@@ -101,6 +103,7 @@ class CBFActionWrapper(gym.Wrapper):
         self._axes = self.config.semi_axes
         self._activation_level = self.config.margin_level if self.config.discrete else 0.0
         self._phase = PHASE_IDLE
+        self._throw_index = 0
         self._seen_in_tissue = False
         self._record: tuple[bool, np.ndarray, np.ndarray, bool] | None = None
         # The step's commanded segment: start (m), end (m), and the filter call's time (s).
@@ -139,10 +142,13 @@ class CBFActionWrapper(gym.Wrapper):
         x = np.asarray(needle_tip_pos, dtype=np.float64)
         v = np.array(v_nominal, dtype=np.float64)
         center, axes, rotation = self.safe_set()
+        if base.throw_index != self._throw_index:
+            self._throw_index, self._phase = base.throw_index, PHASE_IDLE  # the next throw of a running suture
         if (
             self._phase == PHASE_IDLE
             and base.task_spec.throws > 0
             and bool(base.needle_grasped)
+            and (base.task_spec.throws == 1 or base.needle_in_throw_grasp)
             and ellipsoid_h(x, center, axes, rotation) >= self._activation_level
         ):
             self._phase = PHASE_ACTIVE
@@ -199,6 +205,7 @@ class CBFActionWrapper(gym.Wrapper):
 
     def reset(self, **kwargs):
         self._phase = PHASE_IDLE
+        self._throw_index = 0
         self._seen_in_tissue = False
         self._record = None
         self._segment = None

@@ -63,12 +63,32 @@ class PrivilegedState:
         return self._first_grasp_step
 
     @property
+    def wire_diameter(self) -> float:
+        """The needle wire's diameter (m)."""
+        return self._grasp.wire_diameter
+
+    @property
+    def throw_index(self) -> int:
+        """The throw in progress (0-based; the running suture has four, every other task one)."""
+        return self._throw
+
+    @property
+    def needle_in_throw_grasp(self) -> bool:
+        """The jaw holds the needle in a grasp a throw starts from (``pickup.grasp_ready_for_throw``)."""
+        return self._grasp.held and grasp_ready_for_throw(self._grasp.parameters, self._grasp.reversed)
+
+    @property
+    def throw_phase(self) -> str:
+        """``insert`` until the throw is over, then (running suture) ``extract`` until the needle is out."""
+        return self._throw_phase
+
+    @property
     def approach_over(self) -> bool:
         """The approach a ``phantom_servo`` perturbs is over: the needle has touched tissue, or, in
         ``pickup``, the jaw has caught it."""
         if self.task_name == "pickup":
             return self._first_grasp_step is not None
-        return self.needle_touched_tissue
+        return self._throw > 0 or self.needle_touched_tissue
 
     @property
     def first_in_tissue_step(self) -> int | None:
@@ -110,8 +130,7 @@ class PrivilegedState:
     def needle_picked_up(self) -> bool:
         """The jaw holds the needle ready for a throw, all of it ``pickup.LIFT_HEIGHT`` clear of the tissue:
         ``pickup``'s success."""
-        held = self._grasp.held and grasp_ready_for_throw(self._grasp.parameters, self._grasp.reversed)
-        return held and self.needle_clearance >= LIFT_HEIGHT
+        return self.needle_in_throw_grasp and self.needle_clearance >= LIFT_HEIGHT
 
     @property
     def needle_tip_pos(self) -> np.ndarray:

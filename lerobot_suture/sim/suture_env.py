@@ -151,9 +151,9 @@ from lerobot_suture.sim.geometry import (
     rotation_about_z,
 )
 from lerobot_suture.sim.grasp import NeedleGrasp
-from lerobot_suture.sim.insertion import InsertionProgress
 from lerobot_suture.sim.privileged_state import PrivilegedState
 from lerobot_suture.sim.psm import PSM
+from lerobot_suture.sim.running_suture import add_suture_marks
 from lerobot_suture.sim.scenarios import Scenario, ScenarioConfig
 from lerobot_suture.sim.task import (
     CONTROL_DT,
@@ -226,9 +226,12 @@ class SutureEnv(TaskScenes, PrivilegedState, gym.Env):
 
         self.appearance = AppearanceConfig.from_value(appearance)
 
-        if self.appearance.tissue_texture > 0:
+        if self.appearance.tissue_texture > 0 or task == "running_suture":
             spec = mujoco.MjSpec.from_file(str(SCENE_XML))
-            add_tissue_texture(spec)
+            if self.appearance.tissue_texture > 0:
+                add_tissue_texture(spec)
+            if task == "running_suture":
+                add_suture_marks(spec)
             self.model = spec.compile()
         else:
             self.model = mujoco.MjModel.from_xml_path(str(SCENE_XML))
@@ -362,7 +365,9 @@ class SutureEnv(TaskScenes, PrivilegedState, gym.Env):
         self._set_up_task(rng)
         self.scenario.reset(self)
         self._update_tissue_state(first=True)
-        return self._observation(), self._info(success=False, v_nominal=np.zeros(3), v_command=np.zeros(3))
+        info = self._info(success=False, v_nominal=np.zeros(3), v_command=np.zeros(3))
+        info.update(self._task_info())
+        return self._observation(), info
 
     def step(self, action):
         target = self._validated_action(action)
@@ -378,6 +383,7 @@ class SutureEnv(TaskScenes, PrivilegedState, gym.Env):
         terminated, success = self._task_outcome()
         reward = 1.0 if success else 0.0
         info = self._info(success=success, v_nominal=drive.v_nominal, v_command=drive.v_command)
+        info.update(self._task_info())
         if drive.tip_trace is not None:
             info["needle_tip_trace"] = drive.tip_trace
         return self._observation(), reward, terminated, False, info
@@ -395,7 +401,7 @@ class SutureEnv(TaskScenes, PrivilegedState, gym.Env):
         self._step_index = 0
         self._grasp.reset(held=self.task_name != "pickup")
         self._first_grasp_step = 0 if self._grasp.held else None
-        self._progress = InsertionProgress(self._arc_local, self._entry_local, self._exit_local)
+        self._start_throw(0)
         self._phantom_pos = PHANTOM_NOMINAL.copy()
         self._phantom_yaw = 0.0
         self._phantom_rot = np.eye(3)

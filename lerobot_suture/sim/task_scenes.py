@@ -14,8 +14,10 @@ import numpy as np
 from lerobot_suture.sim.extraction import extraction_succeeded, start_drive_angle, throw_sweep
 from lerobot_suture.sim.geometry import jaw_holding
 from lerobot_suture.sim.grasp import JAW_OPEN_ANGLE
+from lerobot_suture.sim.insertion import InsertionProgress
 from lerobot_suture.sim.pickup import resting_needle_pose
 from lerobot_suture.sim.psm import ARM_JOINTS
+from lerobot_suture.sim.running_suture import N_THROWS, pair_points
 from lerobot_suture.sim.task import (
     ARM_START_NOISE,
     ENTRY_TOLERANCE,
@@ -33,6 +35,30 @@ RESTING_SPEED = 0.001
 
 class TaskScenes:
     """The task-dependent part of ``reset`` and ``step``."""
+
+    def _start_throw(self, throw: int) -> None:
+        """Begin throw ``throw`` (0-based): its entry and exit points, a fresh record of the needle's passage."""
+        self._throw = throw
+        self._throw_phase = "insert"
+        self._extraction_strain_start = 0.0
+        if self.task_name == "running_suture":
+            if throw == 0:
+                self._throw_results: list[dict] = []
+            self._entry_local, self._exit_local = pair_points(throw)
+        self._progress = InsertionProgress(self._arc_local, self._entry_local, self._exit_local)
+
+    def _task_info(self) -> dict:
+        """Info entries of the task's own: the running suture's throw and its per-throw record."""
+        if self.task_name != "running_suture":
+            return {}
+        results = self._throw_results
+        return {
+            "throw_index": self._throw,
+            "throw_phase": self._throw_phase,
+            "throws_on_marks": sum(r["on_marks"] for r in results),
+            "throws_extracted": sum(r["extracted"] for r in results),
+            "throw_results": [dict(r) for r in results],
+        }
 
     def _set_up_task(self, rng: np.random.Generator) -> None:
         """Place the needle and the arm for this episode's task (the phantom is placed already)."""
@@ -82,7 +108,8 @@ class TaskScenes:
 
     def _after_physics(self) -> None:
         """After a control step's physics: a dropped needle lying still on the phantom rests there."""
-        if self.task_name == "pickup" and not self._grasp.held and not self._grasp.resting:
+        needs_picking_up = self.task_name in ("pickup", "running_suture")
+        if needs_picking_up and not self._grasp.held and not self._grasp.resting:
             still = self._grasp.needle_speed(self.data) < RESTING_SPEED
             if still and self.needle_clearance < RESTING_CLEARANCE:
                 self._grasp.rest(self.data)
@@ -98,8 +125,44 @@ class TaskScenes:
                 self._grasp.held, progress.extracted, progress.tail_exit_error, progress.strain
             )
             return success, success
+        if self.task_name == "running_suture":
+            return self._running_suture_outcome()
         # insertion: the throw is over once the tip protrudes MIN_PROTRUSION beyond where it emerged, the
         # needle still spanning the wound; on the marks if it entered and emerged within tolerance.
         over = bool(progress.protrusion >= MIN_PROTRUSION and progress.in_tissue)
         on_marks = progress.entry_error <= ENTRY_TOLERANCE and progress.exit_error <= EXIT_TOLERANCE
         return over, bool(over and on_marks)
+
+    def _running_suture_outcome(self) -> tuple[bool, bool]:
+        """(terminated, success) of a running suture: it ends on a throw off the marks or when the last throw
+        is over; it succeeds when all four were on the marks. A throw on the marks goes on to its extraction,
+        and an extraction that is done starts the next throw."""
+        progress = self._progress
+        if self._throw_phase == "insert":
+            if not (progress.protrusion >= MIN_PROTRUSION and progress.in_tissue):
+                return False, False
+            on_marks = bool(progress.entry_error <= ENTRY_TOLERANCE and progress.exit_error <= EXIT_TOLERANCE)
+            self._throw_results.append(
+                {
+                    "throw": self._throw,
+                    "entry_error_m": float(progress.entry_error),
+                    "exit_error_m": float(progress.exit_error),
+                    "on_marks": on_marks,
+                    "over_step": self._step_index,
+                    "extracted": False,
+                }
+            )
+            if not on_marks or self._throw == N_THROWS - 1:
+                return True, on_marks and all(r["on_marks"] for r in self._throw_results)
+            self._throw_phase = "extract"
+            self._extraction_strain_start = progress.strain
+            return False, False
+        strain = progress.strain - self._extraction_strain_start
+        if extraction_succeeded(self._grasp.held, progress.extracted, progress.tail_exit_error, strain):
+            self._throw_results[-1]["extracted"] = True
+            self._throw_results[-1]["extraction_strain_m"] = float(strain)
+            self._start_throw(self._throw + 1)
+            self._progress.update(
+                *self.needle_pose(), self._phantom_pos, self._phantom_rot, self._step_index, True
+            )
+        return False, False

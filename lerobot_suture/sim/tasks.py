@@ -76,6 +76,23 @@ TASKS: dict[str, TaskSpec] = {
             # The jaw lets go of the tail first: lose the regrasped needle midway through the pull.
             scenario_onsets=(("needle_drop", 70),),
         ),
+        TaskSpec(
+            name="running_suture",
+            instruction=(
+                "Run a suture of four throws along the wound: insert the needle at each entry point and out of "
+                "its exit point, extract it and regrasp it, then go on to the next pair."
+            ),
+            gym_id="lerobot_suture/RunningSuture-v0",
+            max_episode_steps=1000,
+            throws=4,
+            scenarios=(
+                "nominal",
+                "needle_drop",
+                "camera_moved",
+                "phantom_servo",
+                "phantom_moved_after_insertion",
+            ),
+        ),
     )
 }
 TASK_NAMES = tuple(TASKS)
