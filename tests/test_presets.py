@@ -132,8 +132,10 @@ def test_variant_presets_are_the_reference_on_other_data(preset, dataset, tmp_pa
         assert set(transforms.tfs) == {"brightness", "contrast", "saturation", "hue", "sharpness"}
 
 
-@pytest.mark.parametrize("task", ["pickup", "extraction"])
-def test_a_task_preset_is_the_reference_on_the_task_s_recipe(task, tmp_path):
+@pytest.mark.parametrize(
+    "task, recipe_name", [("pickup", "pickup"), ("extraction", "extraction"), ("running_suture", "running")]
+)
+def test_a_task_preset_is_the_reference_on_the_task_s_recipe(task, recipe_name, tmp_path):
     reference = _parse_train_config(PRESETS / "reference.json", tmp_path / "a")
     pickup = _parse_train_config(PRESETS / f"{task}.json", tmp_path / "b")
     assert pickup.policy == reference.policy
@@ -141,7 +143,7 @@ def test_a_task_preset_is_the_reference_on_the_task_s_recipe(task, tmp_path):
         assert getattr(pickup, name) == getattr(reference, name), name
     from lerobot_suture.datasets.record_config import parse_config
 
-    recipe = parse_config([f"--config_path={DATASETS / f'suture_{task}.yaml'}"])
+    recipe = parse_config([f"--config_path={DATASETS / f'suture_{recipe_name}.yaml'}"])
     assert recipe.task == task and (recipe.repo_id, recipe.root) == (
         pickup.dataset.repo_id,
         pickup.dataset.root,

@@ -28,7 +28,7 @@ class SutureEnvConfig(EnvConfig):
 
     Args:
         task: which task of the family (``lerobot_suture.sim.tasks.TASKS``): ``insertion`` (the paper's),
-            ``pickup`` or ``extraction``. Its gym id (``NeedleInsertion-v0``, ...) is accepted too.
+            ``pickup``, ``extraction`` or ``running_suture``. Its gym id (``NeedleInsertion-v0``, ...) is accepted too.
         fps: control rate (Hz); fixed by the env at 10.
         episode_length: max control steps per episode; None: the task's own (``TaskSpec.max_episode_steps``).
         obs_type: ``pixels_agent_pos`` (endoscope + state, the paper's), ``state`` (state and

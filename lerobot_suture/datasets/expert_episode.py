@@ -69,6 +69,22 @@ def _extraction_failure_reason(info: dict, steps: int) -> tuple[str, str]:
     )
 
 
+def _running_suture_failure_reason(info: dict, steps: int) -> tuple[str, str]:
+    """(category, detail) of a failed running suture, from the env's final ``info``."""
+    results = info["throw_results"]
+    off = [r for r in results if not r["on_marks"]]
+    if off:
+        r = off[0]
+        return (
+            f"throw {r['throw'] + 1} off the marks",
+            f"entry error {r['entry_error_m'] * 1e3:.2f} mm, exit error {r['exit_error_m'] * 1e3:.2f} mm",
+        )
+    return (
+        "time limit",
+        f"{len(results)} of 4 throws done within {steps} steps (throw phase {info['throw_phase']})",
+    )
+
+
 def _failure_reason(info: dict, steps: int) -> tuple[str, str]:
     """(category, detail) of a failed insertion, from the env's final ``info``."""
     entry, exit_ = info["entry_error_m"], info["exit_error_m"]
@@ -153,9 +169,11 @@ def expert_episode_frames(
     rollout = ExpertEpisodeFrames(seed=seed, frames=frames, success=False, info=info)
     succeeded = [bool(f[SUCCESS_KEY][0]) for f in frames]
     if True not in succeeded:
-        explain = {"pickup": _pickup_failure_reason, "extraction": _extraction_failure_reason}.get(
-            env.unwrapped.task_name, _failure_reason
-        )
+        explain = {
+            "pickup": _pickup_failure_reason,
+            "extraction": _extraction_failure_reason,
+            "running_suture": _running_suture_failure_reason,
+        }.get(env.unwrapped.task_name, _failure_reason)
         rollout.reason, rollout.detail = explain(info, len(frames))
         return rollout
     first = succeeded.index(True)

@@ -33,7 +33,7 @@ class RecordConfig:
             ``~/.cache/huggingface/lerobot``). It must not exist unless ``resume`` is true.
         num_episodes: successful episodes the dataset holds when done (the paper: 100 train + 33 val).
         task: the task of the family (``lerobot_suture.sim.tasks.TASKS``) the expert performs:
-            ``insertion`` (the paper's), ``pickup`` or ``extraction``.
+            ``insertion`` (the paper's), ``pickup``, ``extraction`` or ``running_suture``.
         val_fraction: fraction of episodes held out for validation, in [0, 1): the last
             ``ceil(num_episodes * val_fraction)`` episodes, LeRobot's ``--dataset.eval_split`` rule. It must
             leave a training episode (0 for a single episode).
@@ -80,7 +80,7 @@ class RecordConfig:
     num_episodes: int = 133  # successful episodes in the finished dataset
     val_fraction: float = 0.25  # held-out validation fraction: the last ceil(n * f) episodes
     # Environment.
-    task: str = "insertion"  # the task recorded: insertion | pickup | extraction
+    task: str = "insertion"  # the task recorded: insertion | pickup | extraction | running_suture
     obs_type: str = "pixels_agent_pos"  # pixels_agent_pos | pixels_agent_pos_state | state
     image_size: int = 96  # endoscope image side (px)
     scenario: str = "nominal"  # perturbation scenario the expert is recorded in

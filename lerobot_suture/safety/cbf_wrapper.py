@@ -143,7 +143,10 @@ class CBFActionWrapper(gym.Wrapper):
         v = np.array(v_nominal, dtype=np.float64)
         center, axes, rotation = self.safe_set()
         if base.throw_index != self._throw_index:
-            self._throw_index, self._phase = base.throw_index, PHASE_IDLE  # the next throw of a running suture
+            self._throw_index, self._phase = (
+                base.throw_index,
+                PHASE_IDLE,
+            )  # the next throw of a running suture
         if (
             self._phase == PHASE_IDLE
             and base.task_spec.throws > 0

@@ -24,6 +24,12 @@ one env step is 50 physics steps.
 - ``extraction``: the needle starts driven through the tissue, held at its tail (``extraction``). Released,
   the tissue holds it; success is the needle regrasped and pulled all out along its arc, its tail leaving
   through the exit hole, the tissue strain within ``extraction.STRAIN_BOUND``. Terminated on success.
+- ``running_suture``: four entry-and-exit pairs along the wound (``running_suture``), the needle starting in
+  the jaw. Each throw is scored as an insertion; once over on the marks, the needle must be extracted through
+  the exit hole (as ``extraction`` scores it) before the next throw begins. Terminated on a throw off the marks
+  or when the fourth throw is over; success is all four on the marks. ``info`` adds ``throw_index``,
+  ``throw_phase`` (``insert`` or ``extract``), ``throws_on_marks``, ``throws_extracted`` and ``throw_results``
+  (per throw: entry and exit errors, on the marks, extracted).
 
 ## Action Space
 ``Box(10,)``, float32: the target pose of the needle holder (the jaw tip frame ``jaw_tip``) at the
@@ -120,7 +126,8 @@ argument                 default                 meaning
                                                  ``appearance.AppearanceConfig``, a dict of its
                                                  fields, or None (all off)
 ``task``                 ``"insertion"``         the task (``tasks.TASKS``; see Tasks above):
-                                                 ``insertion``, ``pickup`` or ``extraction``
+                                                 ``insertion``, ``pickup``,
+                                                 ``extraction`` or ``running_suture``
 =======================  ======================  ===============================================
 """
 

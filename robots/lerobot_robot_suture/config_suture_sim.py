@@ -33,8 +33,8 @@ class SutureSimConfig(RobotConfig):
 
     Args:
         task: the task the scene is set for (``lerobot_suture.sim.tasks.TASKS``): ``insertion`` (the needle
-            starts in the jaw), ``pickup`` (it lies on the phantom, the jaw open) or ``extraction`` (it starts
-            driven through the tissue).
+            starts in the jaw), ``pickup`` (it lies on the phantom, the jaw open) ``extraction`` (it starts
+            driven through the tissue) or ``running_suture`` (four throws along the wound).
         seed: seed of the scene at ``connect``; LeRobot's dataset episode ``N`` (``lerobot-record``,
             ``lerobot-rollout --strategy.type=episodic``) plays the scene of ``seed + N``.
         image_size: endoscope image side (px).
