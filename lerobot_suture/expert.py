@@ -1,8 +1,10 @@
 """A scripted expert for every task of the family, from privileged simulator state.
 
-``ScriptedExpert.act`` follows the plan of the env's task: ``pickup_expert.PickupPlan`` for ``pickup``,
-``extraction_expert.ExtractionPlan`` for ``extraction``, and, for ``insertion``, the plan below. It reads the true needle grasp, the entry and exit points and the needle's pose from the env (as the
-paper's demonstrator reads AMBF's state) and emits the same 10-dim pose actions a policy emits:
+``ScriptedExpert.act`` follows the plan of the env's task: ``expert_plans.pickup.PickupPlan``,
+``expert_plans.extraction.ExtractionPlan``, ``expert_plans.running_suture.RunningSuturePlan``, or, for
+``insertion``, the plan below. It reads the true needle grasp, the entry and exit points and the needle's
+pose from the env (as the paper's demonstrator reads AMBF's state) and emits the same 10-dim pose actions a
+policy emits:
 
 0. ``detour`` (only with ``approach_detour`` > 0): carry the needle first to a waypoint ``approach_detour``
    to one side of the entry-exit line, at ``approach_height``; the side is drawn per episode from the env's
@@ -28,9 +30,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lerobot_suture.extraction_expert import ExtractionPlan
-from lerobot_suture.pickup_expert import PickupPlan
-from lerobot_suture.running_suture_expert import RunningSuturePlan
+from lerobot_suture.expert_plans.extraction import ExtractionPlan
+from lerobot_suture.expert_plans.pickup import PickupPlan
+from lerobot_suture.expert_plans.running_suture import RunningSuturePlan
 from lerobot_suture.sim.geometry import (
     jaw_holding,
     needle_in_world,

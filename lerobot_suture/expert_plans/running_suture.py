@@ -6,10 +6,10 @@ It strings the other tasks' plans together, chosen from the env's state at every
 - ``insert``: the needle held in a grasp a throw starts from (``pickup.grasp_ready_for_throw``) and the throw
   not yet over, or the insertion still driving on to its planned protrusion: the insertion expert
   (``expert.ScriptedExpert`` for ``insertion``) at the throw's pair;
-- ``extract``: the throw is over and on the marks: ``extraction_expert.ExtractionPlan``;
+- ``extract``: the throw is over and on the marks: ``expert_plans.extraction.ExtractionPlan``;
 - ``lay_down``: the needle held near its tip after an extraction: carry it flat above the phantom beside the
   wound (``pickup``'s resting place), the jaw pointing down, and open the jaw ``LAY_DOWN_HEIGHT`` above it;
-- ``pick_up``: the needle lies on the phantom: ``pickup_expert.PickupPlan``.
+- ``pick_up``: the needle lies on the phantom: ``expert_plans.pickup.PickupPlan``.
 
 One arm does all of it. Regrasping the needle at its tail by laying it down is slower than handing it to a
 second instrument, as a surgeon would, but needs no second arm.
@@ -19,8 +19,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from lerobot_suture.extraction_expert import ExtractionPlan
-from lerobot_suture.pickup_expert import PickupPlan
+from lerobot_suture.expert_plans.extraction import ExtractionPlan
+from lerobot_suture.expert_plans.pickup import PickupPlan
 from lerobot_suture.sim.geometry import (
     jaw_holding,
     pose_vector,
