@@ -1,7 +1,7 @@
 """The task family's scripted experts: success over seeded episodes of every task in each of its scenarios.
 
 Prints JSON: per task and scenario, the success rate with its 95% Wilson interval, the failed seeds (the first
-ten) and the median episode length. Bar: the expert succeeds in >= 95% of 100 seeds for each task (nominal scene).
+ten), the median episode length and the largest tissue strain. Bar: the expert succeeds in >= 95% of 100 seeds for each task (nominal scene).
 
     python benchmarks/task_family.py [--episodes 100] [--task pickup]
 """
@@ -50,6 +50,7 @@ def main() -> None:
                 "failed": len(episodes) - successes,
                 "failed_seeds_first_10": [e.seed for e in episodes if not e.success][:10],
                 "steps_median": float(np.median([e.steps for e in episodes])),
+                "tissue_strain_max_mm": round(1e3 * max(e.tissue_strain_m for e in episodes), 4),
             }
         result["tasks"][name] = {
             "gym_id": spec.gym_id,
