@@ -216,15 +216,16 @@ def test_episodes_past_success_are_discarded_when_cut_short_or_lost(monkeypatch)
     cut = expert_episode_frames(env, ScriptedExpert(expert_config(5)), seed=0, steps_after_success=5)
     assert not cut.success and cut.reason == "time limit after success" and cut.length == n + 2
     # The insertion stops counting as on the marks 3 steps after success.
-    on_the_marks = SutureEnv._on_the_marks
+    outcome = SutureEnv._task_outcome
     calls = {"after": 0}
 
     def lapsing(self):
-        if self._throw_over():
+        over, on_the_marks = outcome(self)
+        if over:
             calls["after"] += 1
-        return on_the_marks(self) and calls["after"] < 4
+        return over, on_the_marks and calls["after"] < 4
 
-    monkeypatch.setattr(SutureEnv, "_on_the_marks", lapsing)
+    monkeypatch.setattr(SutureEnv, "_task_outcome", lapsing)
     env = make_env("state", 32, "nominal")
     lost = expert_episode_frames(env, ScriptedExpert(expert_config(5)), seed=0, steps_after_success=5)
     env.close()
