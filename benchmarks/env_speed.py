@@ -3,7 +3,7 @@
 Prints JSON. Targets: >= 1,000 steps/s without images, >= 500 steps/s with the 96 px image.
 Actions are an expert episode's, recorded once and replayed, so only the env is timed.
 
-    python benchmarks/env_speed.py [--task insertion|pickup]
+    python benchmarks/env_speed.py [--task insertion|pickup|extraction|running_suture]
 """
 
 from __future__ import annotations
