@@ -103,3 +103,33 @@ def test_lerobot_eval_runs_the_task_with_async_envs(task, tiny_policy_dir, tmp_p
     assert result.returncode == 0, (result.stdout + result.stderr)[-4000:]
     metrics = json.loads((out / "eval_info.json").read_text())["per_task"][0]["metrics"]
     assert len(metrics["successes"]) == 2
+
+
+@pytest.mark.parametrize("task", ["pickup", "extraction"])
+def test_a_task_records_as_a_lerobot_dataset_and_calibrates_on_its_own_task(task, tmp_path):
+    """The expert's episodes of a task record as a LeRobotDataset with the task's instruction, a card that
+    names it, and an episode log from which calibration takes the task."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from lerobot_suture.datasets.record import record
+    from lerobot_suture.datasets.record_config import RecordConfig
+    from lerobot_suture.datasets.video import resolve_video_backend
+    from lerobot_suture.runtime.calibration import dataset_task
+
+    root = tmp_path / task
+    cfg = RecordConfig(
+        repo_id=f"suture-tests/{task}",
+        root=str(root),
+        task=task,
+        num_episodes=2,
+        val_fraction=0.0,
+        image_size=32,
+        obs_type="pixels_agent_pos",
+    )
+    record(cfg)
+    ds = LeRobotDataset(f"suture-tests/{task}", root=root, video_backend=resolve_video_backend())
+    assert ds.num_episodes == 2
+    assert ds[0]["task"] == ds[len(ds) - 1]["task"] == TASKS[task].instruction
+    card = (root / "README.md").read_text()
+    assert f"robotic needle {task}**" in card and f"Task `{task}`:" in card
+    assert dataset_task(root) == {"task": task}

@@ -6,6 +6,9 @@ prediction, fits the in-distribution model on the first ``calibration_episodes``
 the false-alarm rate on the remaining held-out episodes, and writes the calibration into the policy
 directory, where ``from_pretrained`` finds it.
 
+The episodes are of the dataset's task (``--task`` of ``lerobot-suture record``; ``insertion`` without a
+dataset), so a policy trained on a running suture is calibrated on running sutures.
+
 A dataset recorded with appearance randomization (``--appearance.*``) lends its ranges too, so the gate is
 calibrated on the look the policy was trained on: what the randomization made in-distribution is not
 flagged, and what lies beyond its ranges still is.
@@ -127,6 +130,15 @@ def dataset_appearance(dataset_root: Path | None) -> dict:
     return {"appearance": appearance} if appearance else {}
 
 
+def dataset_task(dataset_root: Path | None) -> dict:
+    """``{"task": name}`` when the dataset at ``dataset_root`` was recorded on a task other than
+    ``insertion`` (only those logs name it), else ``{}``."""
+    if dataset_root is None:
+        return {}
+    task = read_episode_log(dataset_root)["env_kwargs"].get("task")
+    return {"task": task} if task else {}
+
+
 def collect_scores(
     runner, env_kwargs: dict, seeds: list[int], desc: str, batch_envs: int = 8
 ) -> tuple[np.ndarray, np.ndarray, list]:
@@ -149,7 +161,11 @@ def run_calibration(cfg: CalibrateConfig) -> dict:
     config = runner.policy.config
     choice = cfg.score_choice()
     apply_score_choice(config, choice)
-    env_kwargs = {**env_kwargs_for_policy(config), **dataset_appearance(cfg.dataset_root)}
+    env_kwargs = {
+        **env_kwargs_for_policy(config),
+        **dataset_appearance(cfg.dataset_root),
+        **dataset_task(cfg.dataset_root),
+    }
     seeds = calibration_seeds(cfg)
     fit_seeds, holdout_seeds = seeds[: cfg.calibration_episodes], seeds[cfg.calibration_episodes :]
     scores, ids, fit_logs = collect_scores(
@@ -174,6 +190,7 @@ def run_calibration(cfg: CalibrateConfig) -> dict:
         "calibration": calibration.to_dict(),
         "calibration_seeds": fit_seeds,
         "calibration_appearance": env_kwargs.get("appearance"),
+        "calibration_task": env_kwargs.get("task", "insertion"),
         "calibration_success_rate": float(np.mean([log.success for log in fit_logs])),
     }
     if holdout_seeds:

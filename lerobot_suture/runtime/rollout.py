@@ -26,8 +26,9 @@ import torch
 from tqdm import tqdm
 
 from lerobot_suture.expert import ScriptedExpert
-from lerobot_suture.registration import ENV_ID, MAX_EPISODE_STEPS
+from lerobot_suture.registration import MAX_EPISODE_STEPS
 from lerobot_suture.sim.shifts import Shift, ShiftWrapper
+from lerobot_suture.sim.tasks import DEFAULT_TASK, task_spec
 
 if TYPE_CHECKING:
     from lerobot_suture.safety.cbf_config import CBFConfig
@@ -51,6 +52,8 @@ class StepLog:
     h: float = math.nan
     cbf_active: bool = False
     cbf_intervened: bool = False
+    h_min_physics: float = math.nan  # over the step's physics steps, when the CBF was active and traced
+    throw_index: int = 0  # the running suture's throw under way (0-based); 0 in the one-throw tasks
 
 
 @dataclass
@@ -64,6 +67,7 @@ class EpisodeLog:
     entry_error_m: float = math.inf  # where the tip entered, from the marked entry point (inf: never)
     exit_error_m: float = math.inf
     h_min_physics: float = math.nan
+    throw_results: list[dict] = field(default_factory=list)  # the running suture's record of each throw
 
     @property
     def scores(self) -> np.ndarray:
@@ -91,9 +95,10 @@ def make_scenario_env(
 ) -> gym.Env:
     """One suture env of ``scenario`` for policy rollouts: ``env_kwargs`` (what the policy reads, from
     :func:`~lerobot_suture.runtime.policy.env_kwargs_for_policy`), the CBF filter, the tip trace, and a
-    distribution shift (:mod:`lerobot_suture.sim.shifts`) over it all."""
+    distribution shift (:mod:`lerobot_suture.sim.shifts`) over it all. The env is made from the id of
+    ``env_kwargs``' task (insertion when it names none), so its episodes run that task's length."""
     env = gym.make(
-        ENV_ID,
+        task_spec(env_kwargs.get("task", DEFAULT_TASK)).gym_id,
         disable_env_checker=True,
         scenario=scenario,
         cbf=cbf,
@@ -151,7 +156,6 @@ def rollout_episodes(
         EpisodeLog(seed=int(seed), scenario=env.unwrapped.scenario.config.name)
         for env, seed in zip(envs, seeds, strict=True)
     ]
-    h_physics: list[list[float]] = [[] for _ in range(n)]
     infos: list[dict] = [{} for _ in range(n)]
     statuses: list[dict] = [{} for _ in range(n)]
     held: list[np.ndarray | None] = [None] * n  # the action in force once the gate released control
@@ -183,14 +187,17 @@ def rollout_episodes(
             infos[i] = info
             log.steps.append(_step_log(statuses[i], controller, info))
             if info.get("cbf_active") and "needle_tip_trace" in info:
-                h_physics[i].append(env.get_wrapper_attr("h_min")(info["needle_tip_trace"]))
+                log.steps[-1].h_min_physics = float(env.get_wrapper_attr("h_min")(info["needle_tip_trace"]))
             done[i] = bool(terminated or truncated)
-    for log, info, h in zip(logs, infos, h_physics, strict=True):
+    for log, info in zip(logs, infos, strict=True):
         log.success = bool(info["is_success"])
         log.tissue_strain = float(info["tissue_strain"])
         log.entry_error_m = float(info["entry_error_m"])
         log.exit_error_m = float(info["exit_error_m"])
-        log.h_min_physics = min(h, default=math.nan)
+        log.h_min_physics = min(
+            (s.h_min_physics for s in log.steps if not math.isnan(s.h_min_physics)), default=math.nan
+        )
+        log.throw_results = list(info.get("throw_results", []))
     return logs
 
 
@@ -236,4 +243,5 @@ def _step_log(status: dict, controller: str, info: dict) -> StepLog:
         h=float(info.get("h", math.nan)),
         cbf_active=bool(info.get("cbf_active", False)),
         cbf_intervened=bool(info.get("cbf_intervened", False)),
+        throw_index=int(info.get("throw_index", 0)),
     )
