@@ -23,6 +23,7 @@ from pathlib import Path
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
+import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 import lerobot_suture  # noqa: E402,F401
@@ -77,7 +78,7 @@ def main() -> None:
         "seeds": [seeds[0], seeds[-1]],
         "gate": {"mode": "report", "calibration_mode": calibration.mode, "alpha": calibration.alpha},
         "cbf": "enabled",
-        "episode_steps_median": float(sorted(len(log.steps) for log in logs)[len(logs) // 2]),
+        "episode_steps_median": float(np.median([len(log.steps) for log in logs])),
         "wall_s": round(time.perf_counter() - start, 1),
         **table,
     }

@@ -20,8 +20,15 @@ from lerobot_suture.runtime.rollout import EpisodeLog, StepLog
 
 
 def _rate(successes: int, n: int) -> dict:
-    low, high = wilson_interval(successes, n) if n else (math.nan, math.nan)
-    return {"count": successes, "of": n, "rate": successes / n if n else math.nan, "wilson_95": [low, high]}
+    """A count out of ``n`` with its rate and 95% Wilson interval (None for both when ``n`` is 0)."""
+    if n == 0:
+        return {"count": successes, "of": 0, "rate": None, "wilson_95": None}
+    return {
+        "count": successes,
+        "of": n,
+        "rate": successes / n,
+        "wilson_95": list(wilson_interval(successes, n)),
+    }
 
 
 def throw_steps(log: EpisodeLog, throw: int) -> list[StepLog]:
@@ -131,19 +138,33 @@ def plot_per_throw(table: dict, out_path: str | Path, title: str) -> Path:
         (-0.2, "on_marks", "of all episodes"),
         (0.2, "on_marks_when_reached", "of those reaching it"),
     ):
-        rates = np.array([t[key]["rate"] for t in throws], dtype=float)
-        bounds = np.array([t[key]["wilson_95"] for t in throws], dtype=float)
+        rates = np.array([t[key]["rate"] if t[key]["of"] else np.nan for t in throws], dtype=float)
+        bounds = np.array([t[key]["wilson_95"] or (np.nan, np.nan) for t in throws], dtype=float)
         err = np.abs(bounds.T - rates)
         left.bar(x + offset, rates, 0.4, yerr=err, capsize=3, label=label)
-    left.set(xticks=x, xlabel="throw", ylabel="on the marks (entry and exit within 2 mm)", ylim=(0, 1.05))
+    left.set(
+        xticks=x,
+        xlim=(0.4, len(throws) + 0.6),
+        xlabel="throw",
+        ylabel="on the marks (entry and exit within 2 mm)",
+        ylim=(0, 1.05),
+    )
     left.legend(fontsize=8)
     for offset, key, label in (
         (-0.2, "alarmed_on_failed_throw", "failed or unfinished throws"),
         (0.2, "alarmed_on_throw_on_marks", "throws on the marks"),
     ):
-        rates = np.nan_to_num(np.array([t["gate"][key]["rate"] for t in throws], dtype=float))
+        rates = np.array(
+            [t["gate"][key]["rate"] if t["gate"][key]["of"] else np.nan for t in throws], dtype=float
+        )
         right.bar(x + offset, rates, 0.4, label=label)
-    right.set(xticks=x, xlabel="throw", ylabel="share with a gate alarm", ylim=(0, 1.05))
+    right.set(
+        xticks=x,
+        xlim=(0.4, len(throws) + 0.6),
+        xlabel="throw",
+        ylabel="share with a gate alarm",
+        ylim=(0, 1.05),
+    )
     right.legend(fontsize=8)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
