@@ -6,7 +6,7 @@ control; its alarms are logged) and the CBF on every step, re-armed for each thr
 per throw, how many episodes reached it, how many put it on the marks (of all, and of those reaching it,
 with 95% Wilson intervals), its entry and exit errors, how often the gate alarmed on failed and on good
 throws, and what the CBF did (active steps, interventions, the smallest barrier value at the physics rate);
-and the whole suture. ``--figure`` draws it.
+and the whole suture. ``--figure`` draws it, ``--markdown`` writes it as a table.
 
     .venv/bin/python benchmarks/running_suture_reference.py --policy-path DIR [--episodes 50] [--out F.json]
 """
@@ -27,7 +27,11 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 import lerobot_suture  # noqa: E402,F401
-from lerobot_suture.experiments.per_throw import per_throw_table, plot_per_throw  # noqa: E402
+from lerobot_suture.experiments.per_throw import (  # noqa: E402
+    per_throw_markdown,
+    per_throw_table,
+    plot_per_throw,
+)
 from lerobot_suture.runtime.policy import env_kwargs_for_policy, reporting_runner  # noqa: E402
 from lerobot_suture.runtime.rollout import make_scenario_env, rollout_seeds  # noqa: E402
 from lerobot_suture.runtime.seeds import episode_seeds  # noqa: E402
@@ -49,6 +53,7 @@ def main() -> None:
     parser.add_argument("--batch-envs", type=int, default=8)
     parser.add_argument("--out", type=Path, help="write the JSON here too")
     parser.add_argument("--figure", type=Path, help="draw the table into this PNG")
+    parser.add_argument("--markdown", type=Path, help="write the table as markdown here")
     args = parser.parse_args()
     if args.episodes < 1:
         parser.error(f"--episodes must be >= 1. Got {args.episodes}.")
@@ -94,6 +99,8 @@ def main() -> None:
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(text + "\n")
+    if args.markdown:
+        args.markdown.write_text(per_throw_markdown(table))
     if args.figure:
         plot_per_throw(table, args.figure, f"running suture, {args.episodes} test seeds: throw by throw")
 

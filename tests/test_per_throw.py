@@ -97,8 +97,8 @@ def test_the_table_counts_every_throw_and_what_the_gate_and_the_cbf_did(tmp_path
     assert table["episodes_with_an_alarm"] == 2
     # The CBF: the smallest barrier value of the first throw, and its violation, counted there only.
     assert first["cbf"]["active_steps"] == 3 and first["cbf"]["steps_with_violation"] == 1
-    assert first["cbf"]["h_min_physics_m"] == pytest.approx(-1e-4)
-    assert third["cbf"]["active_steps"] == 0 and third["cbf"]["h_min_physics_m"] is None
+    assert first["cbf"]["h_min_physics"] == pytest.approx(-1e-4)
+    assert third["cbf"]["active_steps"] == 0 and third["cbf"]["h_min_physics"] is None
     assert second["exit_error_mm"]["max"] == pytest.approx(4.0)
     assert plot_per_throw(table, tmp_path / "per_throw.png", "test").stat().st_size > 0
 
@@ -122,5 +122,5 @@ def test_a_rollout_records_the_throws_and_the_expert_takes_over_the_whole_suture
     assert [t["extracted"] for t in table["throws"]] == [1, 1, 1, 0]
     for throw in table["throws"]:
         assert throw["cbf"]["active_steps"] > 0
-        assert throw["cbf"]["h_min_physics_m"] >= 0.0
+        assert throw["cbf"]["h_min_physics"] >= 0.0
     assert table["throws"][0]["gate"]["first_alarm_here"] == 1

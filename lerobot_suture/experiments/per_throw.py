@@ -59,8 +59,9 @@ def gate_on_throw(log: EpisodeLog, throw: int) -> dict:
 
 
 def cbf_on_throw(logs: Sequence[EpisodeLog], throw: int) -> dict:
-    """The CBF over throw ``throw`` of every episode: steps it was active and filtering, the smallest
-    barrier value at the physics rate (m), and the physics steps with h < 0 counted by control step."""
+    """The CBF over throw ``throw`` of every episode: steps it was active and filtering, the smallest barrier
+    value at the physics rate (``cbf.ellipsoid_h``, dimensionless, >= 0 inside the safe set), and the
+    control steps with a physics step at h < 0."""
     steps = [s for log in logs for s in throw_steps(log, throw)]
     active = [s for s in steps if s.cbf_active]
     h_physics = [s.h_min_physics for s in active if not math.isnan(s.h_min_physics)]
@@ -69,7 +70,7 @@ def cbf_on_throw(logs: Sequence[EpisodeLog], throw: int) -> dict:
         "active_steps": len(active),
         "interventions": int(sum(s.cbf_intervened for s in active)),
         "intervention_rate": float(np.mean([s.cbf_intervened for s in active])) if active else 0.0,
-        "h_min_physics_m": float(min(h_physics)) if h_physics else None,
+        "h_min_physics": float(min(h_physics)) if h_physics else None,
         "steps_with_violation": int(sum(h < 0 for h in h_physics)),
     }
 
@@ -172,3 +173,39 @@ def plot_per_throw(table: dict, out_path: str | Path, title: str) -> Path:
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=120)
     return out
+
+
+def _pct(rate: dict) -> str:
+    if rate["rate"] is None:
+        return "--"
+    low, high = rate["wilson_95"]
+    return f"{rate['count']} of {rate['of']}, {100 * rate['rate']:.0f}% [{100 * low:.1f}, {100 * high:.1f}]"
+
+
+def _share(rate: dict) -> str:
+    return "--" if rate["rate"] is None else f"{rate['count']} of {rate['of']}"
+
+
+def per_throw_markdown(table: dict) -> str:
+    """:func:`per_throw_table`'s result as a markdown table, a row per throw, and the whole suture below it."""
+    lines = [
+        "| throw | reached | on the marks, of all [95% Wilson] | of those reaching it | off the marks / "
+        "unfinished | extracted | gate alarmed: on failed throws / on throws on the marks | CBF: active "
+        "steps, interventions, min h at the physics rate |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for t in table["throws"]:
+        cbf = t["cbf"]
+        h = "--" if cbf["h_min_physics"] is None else f"{cbf['h_min_physics']:.3f}"
+        lines.append(
+            f"| {t['throw']} | {t['reached']} | {_pct(t['on_marks'])} | {_pct(t['on_marks_when_reached'])} | "
+            f"{t['off_marks']} / {t['unfinished']} | {t['extracted']} | "
+            f"{_share(t['gate']['alarmed_on_failed_throw'])} / {_share(t['gate']['alarmed_on_throw_on_marks'])} | "
+            f"{cbf['active_steps']}, {cbf['interventions']}, {h} |"
+        )
+    lines += [
+        "",
+        f"All four throws on the marks: {_pct(table['all_throws_on_marks'])}. Episodes with a gate alarm: "
+        f"{table['episodes_with_an_alarm']} of {table['episodes']}.",
+    ]
+    return "\n".join(lines) + "\n"
