@@ -1,5 +1,6 @@
 """The running suture throw by throw: the per-throw record of a rollout, and the table made of it."""
 
+import json
 import math
 import shutil
 
@@ -124,3 +125,14 @@ def test_a_rollout_records_the_throws_and_the_expert_takes_over_the_whole_suture
         assert throw["cbf"]["active_steps"] > 0
         assert throw["cbf"]["h_min_physics"] >= 0.0
     assert table["throws"][0]["gate"]["first_alarm_here"] == 1
+
+
+def test_the_committed_table_is_the_rendering_of_the_committed_result():
+    from pathlib import Path
+
+    from lerobot_suture.experiments.per_throw import per_throw_markdown
+
+    folder = Path(__file__).resolve().parents[1] / "docs" / "results" / "running_suture"
+    result = json.loads((folder / "per_throw.json").read_text())["result"]
+    assert (folder / "per_throw.md").read_text() == per_throw_markdown(result)
+    assert (folder / "per_throw.md").read_text() in (folder.parents[1] / "results.md").read_text()
