@@ -105,7 +105,7 @@ def test_lerobot_eval_runs_the_task_with_async_envs(task, tiny_policy_dir, tmp_p
     assert len(metrics["successes"]) == 2
 
 
-@pytest.mark.parametrize("task", ["pickup", "extraction"])
+@pytest.mark.parametrize("task", NEW_TASKS)
 def test_a_task_records_as_a_lerobot_dataset_and_calibrates_on_its_own_task(task, tmp_path):
     """The expert's episodes of a task record as a LeRobotDataset with the task's instruction, a card that
     names it, and an episode log from which calibration takes the task."""
@@ -131,5 +131,6 @@ def test_a_task_records_as_a_lerobot_dataset_and_calibrates_on_its_own_task(task
     assert ds.num_episodes == 2
     assert ds[0]["task"] == ds[len(ds) - 1]["task"] == TASKS[task].instruction
     card = (root / "README.md").read_text()
-    assert f"robotic needle {task}**" in card and f"Task `{task}`:" in card
+    what = "running suture" if task == "running_suture" else f"needle {task}"
+    assert f"robotic {what}**" in card and f"Task `{task}`:" in card
     assert dataset_task(root) == {"task": task}
