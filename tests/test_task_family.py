@@ -47,8 +47,10 @@ def test_an_unknown_task_or_a_scenario_a_task_lacks_is_refused_with_the_choices(
         SutureEnvConfig(task="knot_tying")
 
 
-def test_the_running_suture_passes_gymnasium_s_checker():
-    env = SutureEnv(obs_type="pixels_agent_pos", image_size=32, render_size=32, task="running_suture")
+@pytest.mark.parametrize("obs_type", ["state", "pixels_agent_pos"])
+@pytest.mark.parametrize("task", NEW_TASKS)
+def test_every_new_task_passes_gymnasium_s_checker(task, obs_type):
+    env = SutureEnv(obs_type=obs_type, image_size=32, render_size=32, task=task)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the checker warns about unbounded observation boxes
         check_env(env, skip_render_check=False)

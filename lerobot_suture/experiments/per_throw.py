@@ -124,6 +124,18 @@ def per_throw_table(logs: Sequence[EpisodeLog], n_throws: int) -> dict:
     }
 
 
+def _throw_axes(ax, n_throws: int, ylabel: str) -> None:
+    """A panel of shares (0 to 1) over throws 1..n_throws, with its legend."""
+    ax.set(
+        xticks=np.arange(1, n_throws + 1),
+        xlim=(0.4, n_throws + 0.6),
+        xlabel="throw",
+        ylabel=ylabel,
+        ylim=(0, 1.05),
+    )
+    ax.legend(fontsize=8)
+
+
 def plot_per_throw(table: dict, out_path: str | Path, title: str) -> Path:
     """Two panels of :func:`per_throw_table`'s result: each throw on the marks (of all episodes and of those
     that reached it, 95% Wilson bars), and the share of failed and of good throws the gate alarmed on."""
@@ -143,14 +155,7 @@ def plot_per_throw(table: dict, out_path: str | Path, title: str) -> Path:
         bounds = np.array([t[key]["wilson_95"] or (np.nan, np.nan) for t in throws], dtype=float)
         err = np.abs(bounds.T - rates)
         left.bar(x + offset, rates, 0.4, yerr=err, capsize=3, label=label)
-    left.set(
-        xticks=x,
-        xlim=(0.4, len(throws) + 0.6),
-        xlabel="throw",
-        ylabel="on the marks (entry and exit within 2 mm)",
-        ylim=(0, 1.05),
-    )
-    left.legend(fontsize=8)
+    _throw_axes(left, len(throws), "on the marks (entry and exit within 2 mm)")
     for offset, key, label in (
         (-0.2, "alarmed_on_failed_throw", "failed or unfinished throws"),
         (0.2, "alarmed_on_throw_on_marks", "throws on the marks"),
@@ -159,14 +164,7 @@ def plot_per_throw(table: dict, out_path: str | Path, title: str) -> Path:
             [t["gate"][key]["rate"] if t["gate"][key]["of"] else np.nan for t in throws], dtype=float
         )
         right.bar(x + offset, rates, 0.4, label=label)
-    right.set(
-        xticks=x,
-        xlim=(0.4, len(throws) + 0.6),
-        xlabel="throw",
-        ylabel="share with a gate alarm",
-        ylim=(0, 1.05),
-    )
-    right.legend(fontsize=8)
+    _throw_axes(right, len(throws), "share with a gate alarm")
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     out = Path(out_path)

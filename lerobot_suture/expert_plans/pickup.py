@@ -35,7 +35,7 @@ LIFT_MARGIN = 0.003
 
 
 class PickupPlan:
-    """One pickup's phases; ``act(env, config)`` returns a (10,) float32 pose action.
+    """One pickup's phases; ``act(env)`` returns a (10,) float32 pose action.
 
     Args:
         config: the expert's speeds and tolerances (``expert.ExpertConfig``).

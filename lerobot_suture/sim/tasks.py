@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from lerobot_suture.sim import task as insertion
+from lerobot_suture.sim.scenarios import SCENARIOS
 
 
 @dataclass(frozen=True)
@@ -48,13 +49,7 @@ TASKS: dict[str, TaskSpec] = {
             gym_id="lerobot_suture/NeedleInsertion-v0",
             max_episode_steps=100,
             throws=1,
-            scenarios=(
-                "nominal",
-                "needle_drop",
-                "camera_moved",
-                "phantom_servo",
-                "phantom_moved_after_insertion",
-            ),
+            scenarios=SCENARIOS,
         ),
         TaskSpec(
             name="pickup",
@@ -85,13 +80,7 @@ TASKS: dict[str, TaskSpec] = {
             gym_id="lerobot_suture/RunningSuture-v0",
             max_episode_steps=1000,
             throws=4,
-            scenarios=(
-                "nominal",
-                "needle_drop",
-                "camera_moved",
-                "phantom_servo",
-                "phantom_moved_after_insertion",
-            ),
+            scenarios=SCENARIOS,
         ),
     )
 }
