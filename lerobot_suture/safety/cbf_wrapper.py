@@ -6,6 +6,10 @@ inverse kinematics on the velocity it gets back; the velocity is held for the wh
 (``control_dt``, 0.1 s) while physics runs at ``physics_dt`` (2 ms). :class:`CBFActionWrapper` sets
 that hook. Whatever produced the action (policy, scripted surgeon) is filtered the same way.
 
+The wrapper is a thin user of :class:`~lerobot_suture.safety.tip_guard.TipGuard`, the filter and phase rules
+that the robot path's ``suture_cbf`` processor step runs from measured kinematics: here the env supplies the
+tip, its nominal velocity, the wound (its entry and exit markers) and the grasp and tissue signals exactly.
+
 Safe set: the ellipsoid of :class:`~lerobot_suture.safety.cbf_config.CBFConfig`, centred midway between
 the phantom's current entry and exit markers, with axes (entry->exit, lateral, tissue normal); it is
 rebuilt from the env every control step, so it follows a moving phantom.
@@ -20,21 +24,16 @@ over.
 
 from __future__ import annotations
 
-import time
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 
-from lerobot_suture.safety.cbf import ellipsoid_h, suture_ellipsoid_frame
+from lerobot_suture.safety.cbf import ellipsoid_h
 from lerobot_suture.safety.cbf_config import CBFConfig
+from lerobot_suture.safety.tip_guard import PHASE_ACTIVE, PHASE_DONE, PHASE_IDLE, TipGuard, Wound
 
-PHASE_IDLE = "idle"
-"""No throw yet: velocities pass through."""
-PHASE_ACTIVE = "active"
-"""A throw has begun: velocities are filtered."""
-PHASE_DONE = "done"
-"""The throw ended (needle out of the tissue, or released): velocities pass through until reset."""
+__all__ = ["PHASE_ACTIVE", "PHASE_DONE", "PHASE_IDLE", "CBFActionWrapper", "segment_distance"]
 
 _NAN3 = np.full(3, np.nan)
 
@@ -101,10 +100,7 @@ class CBFActionWrapper(gym.Wrapper):
             )
         self.config = CBFConfig(enabled=True) if config is None else config
         self._axes = self.config.semi_axes
-        self._activation_level = self.config.margin_level if self.config.discrete else 0.0
-        self._phase = PHASE_IDLE
-        self._throw_index = 0
-        self._seen_in_tissue = False
+        self._guard = TipGuard(self.config)
         self._record: tuple[bool, np.ndarray, np.ndarray, bool] | None = None
         # The step's commanded segment: start (m), end (m), and the filter call's time (s).
         self._segment: tuple[np.ndarray, np.ndarray, float] | None = None
@@ -113,7 +109,7 @@ class CBFActionWrapper(gym.Wrapper):
     @property
     def phase(self) -> str:
         """``idle``, ``active`` or ``done`` (see the module docstring)."""
-        return self._phase
+        return self._guard.phase
 
     def safe_set(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The current safe ellipsoid from the env's entry/exit markers.
@@ -121,9 +117,7 @@ class CBFActionWrapper(gym.Wrapper):
         Returns:
             (center (3,) m, semi-axes (3,) m, rotation (3, 3) world-from-ellipsoid).
         """
-        base = self.env.unwrapped
-        normal = np.asarray(base.phantom_rotation, dtype=np.float64)[:, 2]
-        center, rotation = suture_ellipsoid_frame(base.entry_point, base.exit_point, normal)
+        center, rotation = self._wound().ellipsoid_frame()
         return center, self._axes, rotation
 
     def h_values(self, points: np.ndarray) -> np.ndarray:
@@ -136,51 +130,32 @@ class CBFActionWrapper(gym.Wrapper):
         center, axes, rotation = self.safe_set()
         return float(np.min(ellipsoid_h(np.asarray(points, dtype=np.float64), center, axes, rotation)))
 
+    def _wound(self) -> Wound:
+        base = self.env.unwrapped
+        normal = np.asarray(base.phantom_rotation, dtype=np.float64)[:, 2]
+        return Wound(base.entry_point, base.exit_point, normal, throw_index=int(base.throw_index))
+
     def _filter_tip_velocity(self, needle_tip_pos: np.ndarray, v_nominal: np.ndarray) -> np.ndarray:
         """The hook SutureEnv calls: (3,) tip position (m), (3,) nominal velocity (m/s) -> (3,) m/s."""
         base = self.env.unwrapped
+        throws = base.task_spec.throws
+        ready = throws > 0 and bool(base.needle_grasped) and (throws == 1 or base.needle_in_throw_grasp)
+        dt = float(base.control_dt)
+        result = self._guard.filter_velocity(
+            needle_tip_pos, v_nominal, self._wound(), ready, bool(base.needle_in_tissue), dt
+        )
         x = np.asarray(needle_tip_pos, dtype=np.float64)
-        v = np.array(v_nominal, dtype=np.float64)
-        center, axes, rotation = self.safe_set()
-        if base.throw_index != self._throw_index:
-            self._throw_index, self._phase = (
-                base.throw_index,
-                PHASE_IDLE,
-            )  # the next throw of a running suture
-        if (
-            self._phase == PHASE_IDLE
-            and base.task_spec.throws > 0
-            and bool(base.needle_grasped)
-            and (base.task_spec.throws == 1 or base.needle_in_throw_grasp)
-            and ellipsoid_h(x, center, axes, rotation) >= self._activation_level
-        ):
-            self._phase = PHASE_ACTIVE
-            self._seen_in_tissue = bool(base.needle_in_tissue)
-        active = self._phase == PHASE_ACTIVE
-        elapsed = 0.0
-        if active and self.config.enabled:
-            start = time.perf_counter()
-            result = self.config.filter(x, v, center, rotation, float(base.control_dt))
-            elapsed = time.perf_counter() - start
-            v_safe, intervened = result.v_safe, result.intervened
-        else:
-            v_safe, intervened = v.copy(), False
-        self._record = (active, v, v_safe, bool(intervened))
-        self._segment = (x, x + v_safe * float(base.control_dt), elapsed) if active else None
-        return v_safe.copy()
+        self._record = (result.active, result.v_nominal, result.v_safe, result.intervened)
+        elapsed = result.filter_time if self.config.enabled else 0.0
+        self._segment = (x, x + result.v_safe * dt, elapsed) if result.active else None
+        return result.v_safe.copy()
 
     def _update_phase(self, info: dict[str, Any]) -> None:
-        if self._phase != PHASE_ACTIVE:
-            return
         base = self.env.unwrapped
-        in_tissue = bool(info.get("needle_in_tissue", base.needle_in_tissue))
-        grasped = bool(info.get("needle_grasped", base.needle_grasped))
-        if in_tissue:
-            self._seen_in_tissue = True
-        elif self._seen_in_tissue:
-            self._phase = PHASE_DONE
-        if not grasped:
-            self._phase = PHASE_DONE
+        self._guard.observe(
+            bool(info.get("needle_grasped", base.needle_grasped)),
+            bool(info.get("needle_in_tissue", base.needle_in_tissue)),
+        )
 
     def _cbf_info(self, info: dict[str, Any]) -> dict[str, Any]:
         tip = info.get("needle_tip_pos", self.env.unwrapped.needle_tip_pos)
@@ -207,9 +182,7 @@ class CBFActionWrapper(gym.Wrapper):
         }
 
     def reset(self, **kwargs):
-        self._phase = PHASE_IDLE
-        self._throw_index = 0
-        self._seen_in_tissue = False
+        self._guard.reset()
         self._record = None
         self._segment = None
         obs, info = self.env.reset(**kwargs)

@@ -79,34 +79,38 @@ class InstrumentDrive:
         tip_velocity_filter: TipVelocityFilter | None,
         in_tissue: bool,
         record_trace: bool,
+        tip_tracking: bool = False,
     ) -> DriveResult:
         """Run one control step towards ``target`` (10,) (the action's layout; already validated).
 
         ``in_tissue``: whether the needle is in tissue as the step begins (the tissue resists then).
+        ``tip_tracking``: while the needle is held, drive its tip in a straight line to where the target pose
+        puts it (speed-limited along that line), with the tip-first solve and segment feedback a filter gets:
+        the Cartesian controller a safety step outside the env (the robot path's ``suture_cbf``) relies on.
         Raises ``ValueError`` when the filter returns anything but a finite (3,) velocity.
         """
         m, d, grasp = self._model, self._data, self._grasp
         grasp.command_jaw(d, float(target[9]), in_tissue=in_tissue)
 
-        filtered = grasp.held and tip_velocity_filter is not None
+        filtered = grasp.held and (tip_velocity_filter is not None or tip_tracking)
         if filtered:
             # MuJoCo's stored kinematics are one physics step old after mj_step; the filter must see
             # where the tip is, since its segment starts there.
             mujoco.mj_kinematics(m, d)
             mujoco.mj_comPos(m, d)
         jaw_pos, jaw_rot = self._arm.jaw_pose(d)
+        target_rot = matrix_from_rot6(target[3:9])
         linear, angular = controller.pose_velocity_command(
-            jaw_pos,
-            jaw_rot,
-            target[:3],
-            matrix_from_rot6(target[3:9]),
-            TIME_TO_TARGET,
-            MAX_LINEAR_SPEED,
-            MAX_ANGULAR_SPEED,
+            jaw_pos, jaw_rot, target[:3], target_rot, TIME_TO_TARGET, MAX_LINEAR_SPEED, MAX_ANGULAR_SPEED
         )
         if grasp.held:
             point = self._held_tip(jaw_pos, jaw_rot)
-            v_nominal = controller.point_velocity(linear, angular, jaw_pos, point)
+            if tip_tracking:
+                v_nominal = controller.limit_speed(
+                    (self._held_tip(target[:3], target_rot) - point) / TIME_TO_TARGET, MAX_LINEAR_SPEED
+                )
+            else:
+                v_nominal = controller.point_velocity(linear, angular, jaw_pos, point)
             v_command = v_nominal
             if tip_velocity_filter is not None:
                 v_command = np.asarray(tip_velocity_filter(point.copy(), v_nominal.copy()), dtype=np.float64)

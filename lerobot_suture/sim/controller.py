@@ -64,6 +64,12 @@ def pose_velocity_command(
     return linear, angular
 
 
+def limit_speed(velocity: np.ndarray, max_speed: float) -> np.ndarray:
+    """``velocity`` (3,) scaled down along its own direction to at most ``max_speed`` (same units)."""
+    speed = float(np.linalg.norm(velocity))
+    return velocity * (max_speed / speed) if speed > max_speed else velocity
+
+
 def point_velocity(linear: np.ndarray, angular: np.ndarray, origin: np.ndarray, point: np.ndarray):
     """Velocity (3,) m/s of ``point`` rigidly attached to a frame at ``origin`` moving with the twist."""
     return linear + cross3(angular, point - origin)

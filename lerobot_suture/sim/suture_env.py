@@ -119,6 +119,10 @@ argument                 default                 meaning
 ``record_tip_trace``     ``False``               step physics one at a time and return the needle
                                                  tip after every physics step in
                                                  ``info["needle_tip_trace"]`` (slower)
+``tip_tracking``         ``False``               while the needle is held, drive its tip in a
+                                                 straight line to where the target pose puts
+                                                 it, tip-first (the controller a CBF outside
+                                                 the env, on the robot path, relies on)
 ``grasp``                ``"narrow"``            grasp randomization (``task.GRASP_RANGES``): ``narrow``
                                                  (the test scenes) or ``wide`` (demonstrations
                                                  that make the needle's pose matter)
@@ -205,6 +209,7 @@ class SutureEnv(TaskScenes, PrivilegedState, gym.Env):
         scenario_onset_step: int | None = None,
         scenario_magnitude: float | None = None,
         record_tip_trace: bool = False,
+        tip_tracking: bool = False,
         grasp: str = "narrow",
         appearance: AppearanceConfig | dict | None = None,
         task: str = DEFAULT_TASK,
@@ -224,6 +229,7 @@ class SutureEnv(TaskScenes, PrivilegedState, gym.Env):
         self.render_mode = render_mode
         self.render_size = int(render_size)
         self.record_tip_trace = bool(record_tip_trace)
+        self.tip_tracking = bool(tip_tracking)
         self.grasp = grasp
         if scenario_onset_step is None:
             scenario_onset_step = self.task_spec.default_onset(scenario)
@@ -380,7 +386,11 @@ class SutureEnv(TaskScenes, PrivilegedState, gym.Env):
         target = self._validated_action(action)
         self.scenario.before_step(self)
         drive = self._drive.step(
-            target, self.tip_velocity_filter, self._progress.in_tissue, self.record_tip_trace
+            target,
+            self.tip_velocity_filter,
+            self._progress.in_tissue,
+            self.record_tip_trace,
+            self.tip_tracking,
         )
         self._step_index += 1
         if self._first_grasp_step is None and self._grasp.held:

@@ -3,9 +3,10 @@ behind LeRobot's ``Robot`` interface, and ``--teleop.type=suture_keyboard`` / ``
 keyboard and gamepad driving it.
 
 LeRobot's commands import this package at start-up (``register_third_party_plugins``: the distribution's
-name starts with ``lerobot_robot_``), which registers the three types.
+name starts with ``lerobot_robot_``), which registers the three types and the ``suture_cbf`` robot-action processor step.
 """
 
+from .cbf_step import REGISTRATION_FEATURES, SutureCBFStep
 from .config_suture_sim import CAMERA, POSE_FEATURES, SutureSimConfig
 from .config_suture_teleop import SutureGamepadConfig, SutureKeyboardConfig
 from .suture_sim import FPS, SutureSim
@@ -15,6 +16,8 @@ __all__ = [
     "CAMERA",
     "FPS",
     "POSE_FEATURES",
+    "REGISTRATION_FEATURES",
+    "SutureCBFStep",
     "SutureGamepad",
     "SutureGamepadConfig",
     "SutureKeyboard",

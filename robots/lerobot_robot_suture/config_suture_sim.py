@@ -51,6 +51,16 @@ class SutureSimConfig(RobotConfig):
             10 s limit came): ``continue`` (it keeps following the commands in the finished scene: a person
             at the controls) or ``hold`` (it holds its last pose until the next scene, as ``lerobot-eval``
             stops an env at its episode's end: evaluation).
+        tip_tracking: while the needle is held, the arm's controller drives its tip in a straight line to where
+            the target pose puts it (tip-first; ``SutureEnv(tip_tracking=True)``): the controller the robot path's
+            ``suture_cbf`` processor step relies on. Off: the env's pose controller, as ``lerobot-eval`` runs it.
+        registration: report the registered wound (``entry_point.*``, ``exit_point.*``, ``surface_normal.*``,
+            ``throw.index``; tasks with a throw) and the needle in the jaw (``needle_grasp.*``) as observation
+            features, as a registration and a needle tracker would: what ``suture_cbf`` reads. ``lerobot-rollout``
+            keeps them out of the policy's state and the dataset (only ``*.pos`` scalars go there); leave it off
+            for ``lerobot-record``, which would stack them into ``observation.state``.
+        tip_trace: record the needle tip after every physics step (``last_info["needle_tip_trace"]``), to read
+            the barrier at the physics rate (benchmarks; slower).
         trace_path: append one JSON line per executed control step to this file: the scene's seed, the
             step, the needle tip (m), the measured pose, the env's outcome and the step's wall time (s).
             None: no trace.
@@ -67,6 +77,9 @@ class SutureSimConfig(RobotConfig):
     cbf: CBFConfig = field(default_factory=CBFConfig)
     clock: str = "realtime"
     episode_end: str = "continue"
+    tip_tracking: bool = False
+    registration: bool = False
+    tip_trace: bool = False
     trace_path: Path | None = None
 
     def __post_init__(self):
@@ -101,4 +114,6 @@ class SutureSimConfig(RobotConfig):
             "grasp": self.grasp,
             "appearance": self.appearance,
             "cbf": self.cbf if self.cbf.enabled else None,
+            "tip_tracking": self.tip_tracking,
+            "record_tip_trace": self.tip_trace,
         }

@@ -32,6 +32,7 @@ from lerobot_suture.sim.task import CONTROL_DT
 from lerobot_suture.sim.tasks import task_spec
 
 from . import link
+from .cbf_step import GRASP_FEATURES, THROW_FEATURE, WOUND_FEATURES
 from .clock import ControlClock
 from .config_suture_sim import CAMERA, POSE_FEATURES, SutureSimConfig
 from .episode_cues import EpisodeCues
@@ -90,7 +91,14 @@ class SutureSim(Robot):
     @cached_property
     def observation_features(self) -> dict[str, type | tuple]:
         size = self.config.image_size
-        return {**dict.fromkeys(POSE_FEATURES, float), CAMERA: (size, size, 3)}
+        return {**dict.fromkeys(POSE_FEATURES, float), CAMERA: (size, size, 3), **self._registration_features}
+
+    @cached_property
+    def _registration_features(self) -> dict[str, type]:
+        if not self.config.registration:
+            return {}
+        wound = (*WOUND_FEATURES, THROW_FEATURE) if task_spec(self.config.task).throws > 0 else ()
+        return dict.fromkeys((*wound, *GRASP_FEATURES), float)
 
     @cached_property
     def action_features(self) -> dict[str, type]:
@@ -147,6 +155,7 @@ class SutureSim(Robot):
             pose = self._obs["agent_pos"]
             observation: dict = {name: float(v) for name, v in zip(POSE_FEATURES, pose, strict=True)}
             observation[CAMERA] = self._obs["pixels"]["endoscope"]
+            observation.update(self._registration())
             return observation
 
     @check_if_not_connected
@@ -185,6 +194,20 @@ class SutureSim(Robot):
             self._reset_scene(seed)
 
     # ------------------------------------------------------------------ internals
+    def _registration(self) -> dict[str, float]:
+        """The registered wound and the needle in the jaw, where ``registration`` is on (exact here)."""
+        features = self._registration_features
+        if not features:
+            return {}
+        base = self.env.unwrapped
+        values = {
+            **dict(zip(GRASP_FEATURES, base.grasp_parameters, strict=True)),
+            THROW_FEATURE: base.throw_index,
+        }
+        wound = np.concatenate([base.entry_point, base.exit_point, base.phantom_rotation[:, 2]])
+        values.update(zip(WOUND_FEATURES, wound, strict=True))
+        return {key: float(values[key]) for key in features}
+
     @staticmethod
     def _target(action: RobotAction) -> np.ndarray:
         missing = [name for name in POSE_FEATURES if name not in action]
