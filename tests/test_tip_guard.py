@@ -178,14 +178,19 @@ def test_step_reads_the_registration_and_names_missing_features():
         step(robot_action_observation_to_transition((action, observation)))
 
 
-@pytest.mark.parametrize("latency", [0, 3])
-def test_robot_path_attacks_never_leave_the_set(latency):
-    """One episode of every family through the pipeline, the step's observation ``latency`` steps old."""
+@pytest.mark.parametrize(
+    "faults",
+    [{}, {"observation_latency": 3}, {"command_latency": 3}],
+    ids=["none", "observation3", "command3"],
+)
+def test_robot_path_attacks_never_leave_the_set(faults):
+    """One episode of every family through the pipeline, with the robot's ``faults``."""
     from lerobot_robot_suture.attacks import make_robot_path, run_robot_attack_episode
+    from lerobot_robot_suture.faults import FaultConfig
 
     from lerobot_suture.experiments.cbf_attacks import FAMILIES
 
-    robot_path = make_robot_path(image_size=32, observation_latency=latency)
+    robot_path = make_robot_path(image_size=32, faults=FaultConfig(**faults))
     try:
         episodes = [run_robot_attack_episode(robot_path, family, seed=11) for family in FAMILIES]
     finally:
@@ -202,7 +207,7 @@ def test_expert_throws_on_the_robot_path_are_left_alone():
 
     from lerobot_suture.expert import ScriptedExpert
 
-    robot, pipeline, step, _ = make_robot_path(image_size=32)
+    robot, pipeline, step = make_robot_path(image_size=32)
     try:
         for seed in range(3):
             robot.reset_scene(seed)

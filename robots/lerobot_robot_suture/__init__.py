@@ -3,14 +3,21 @@ behind LeRobot's ``Robot`` interface, and ``--teleop.type=suture_keyboard`` / ``
 keyboard and gamepad driving it.
 
 LeRobot's commands import this package at start-up (``register_third_party_plugins``: the distribution's
-name starts with ``lerobot_robot_``), which registers the three types and the ``suture_cbf`` robot-action processor step.
+name starts with ``lerobot_robot_``), which registers the robot and teleoperator types and the ``suture_cbf`` robot-action processor step. Inside
+``lerobot-rollout`` (``lerobot.rollout`` is imported before plugins are) it also registers the
+``gated_dagger`` strategy (:mod:`.rollout_seam`); elsewhere, ``import lerobot_robot_suture.rollout_seam``.
 """
+
+import sys
 
 from .cbf_step import REGISTRATION_FEATURES, SutureCBFStep
 from .config_suture_sim import CAMERA, POSE_FEATURES, SutureSimConfig
-from .config_suture_teleop import SutureGamepadConfig, SutureKeyboardConfig
+from .config_suture_teleop import SutureGamepadConfig, SutureKeyboardConfig, SutureScriptedConfig
 from .suture_sim import FPS, SutureSim
-from .suture_teleop import SutureGamepad, SutureKeyboard
+from .suture_teleop import SutureGamepad, SutureKeyboard, SutureScripted
+
+if "lerobot.rollout" in sys.modules:
+    from . import rollout_seam  # noqa: F401  (installs the strategies)
 
 __all__ = [
     "CAMERA",
@@ -22,6 +29,8 @@ __all__ = [
     "SutureGamepadConfig",
     "SutureKeyboard",
     "SutureKeyboardConfig",
+    "SutureScripted",
+    "SutureScriptedConfig",
     "SutureSim",
     "SutureSimConfig",
 ]

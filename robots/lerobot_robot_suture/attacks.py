@@ -3,7 +3,8 @@
 The same attack families as the env-path benchmark (``lerobot_suture.experiments.cbf_attacks``), sent the way
 ``lerobot-rollout`` sends a policy's actions: robot observation -> robot action pipeline (``suture_cbf``) ->
 ``SutureSim.send_action``. The arm runs ``tip_tracking`` and reports its registration; the step sees only the
-robot's observation, delayed by ``observation_latency`` control steps when asked (a :class:`FaultInjector`).
+robot's observation, through the robot's faults when asked (``--robot.faults.*``: observation and command
+latency, an arm that lags).
 h is read from the needle tip after every physics step against the wound where it really is; a violation is a
 physics step with h < 0 during a control step whose action the step filtered.
 """
@@ -11,7 +12,7 @@ physics step with h < 0 during a control step whose action the step filtered.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 from lerobot.processor import RobotProcessorPipeline
@@ -25,7 +26,7 @@ from lerobot_suture.safety.tip_guard import PHASE_ACTIVE, PHASE_IDLE, Wound
 
 from .cbf_step import SutureCBFStep
 from .config_suture_sim import POSE_FEATURES, SutureSimConfig
-from .faults import FaultConfig, FaultInjector
+from .faults import FaultConfig
 from .suture_sim import SutureSim
 
 
@@ -34,7 +35,7 @@ class RobotAttackEpisode:
     """One attacked episode on the robot path.
 
     Attributes:
-        family, seed: what was run. observation_latency: control steps the step's observation lagged.
+        family, seed: what was run. faults: the robot's fault settings that are on.
         active_steps: control steps whose action the step filtered (lead-in included).
         attack_steps: control steps the attacker commanded.
         violation_steps: physics steps with h < 0 during active control steps.
@@ -44,7 +45,7 @@ class RobotAttackEpisode:
 
     family: str
     seed: int
-    observation_latency: int = 0
+    faults: dict = field(default_factory=dict)
     active_steps: int = 0
     attack_steps: int = 0
     violation_steps: int = 0
@@ -52,10 +53,11 @@ class RobotAttackEpisode:
     interventions: int = 0
 
 
-def make_robot_path(cbf: CBFConfig | None = None, image_size: int = 64, observation_latency: int = 0):
-    """A connected ``SutureSim`` (fast clock, tip tracking, registration, physics-rate tip trace), the robot
-    action pipeline holding ``suture_cbf``, and the fault injector that delays what the step sees."""
+def make_robot_path(cbf: CBFConfig | None = None, image_size: int = 64, faults: FaultConfig | None = None):
+    """A connected ``SutureSim`` (fast clock, tip tracking, registration, physics-rate tip trace, ``faults``),
+    the robot action pipeline holding ``suture_cbf``, and the step."""
     config = SutureSimConfig(
+        faults=faults or FaultConfig(),
         image_size=image_size,
         clock="fast",
         episode_end="hold",
@@ -72,8 +74,7 @@ def make_robot_path(cbf: CBFConfig | None = None, image_size: int = 64, observat
         to_output=transition_to_robot_action,
         name="robot_action_processor",
     )
-    faults = FaultInjector(FaultConfig(observation_latency=observation_latency))
-    return robot, pipeline, step, faults
+    return robot, pipeline, step
 
 
 def _true_h(robot: SutureSim, cbf: CBFConfig) -> np.ndarray:
@@ -83,11 +84,9 @@ def _true_h(robot: SutureSim, cbf: CBFConfig) -> np.ndarray:
     return np.asarray(ellipsoid_h(robot.last_info["needle_tip_trace"], center, cbf.semi_axes, rotation))
 
 
-def _send(
-    robot, pipeline, step, faults, action: np.ndarray, episode: RobotAttackEpisode, cbf: CBFConfig
-) -> bool:
+def _send(robot, pipeline, step, action: np.ndarray, episode: RobotAttackEpisode, cbf: CBFConfig) -> bool:
     """One control step through the pipeline; returns whether the scene's episode is over."""
-    observation = faults.observe(robot.get_observation())
+    observation = robot.get_observation()
     command = dict(zip(POSE_FEATURES, np.asarray(action, dtype=float).tolist(), strict=True))
     robot.send_action(pipeline((command, observation)))
     result = step.last_result
@@ -115,15 +114,14 @@ def run_robot_attack_episode(
     The expert leads in through the pipeline until the step has been active ``0..max_start_delay`` control
     steps (drawn from the seed), then the attacker commands the arm for up to ``attack_steps``.
     """
-    robot, pipeline, step, faults = robot_path
+    robot, pipeline, step = robot_path
     cbf = step.cbf
     rng = np.random.default_rng([seed, FAMILIES.index(family)])
     attacker = Attacker(family, rng)
-    episode = RobotAttackEpisode(
-        family=family, seed=seed, observation_latency=faults.config.observation_latency
-    )
+    defaults = asdict(FaultConfig())
+    faults = {k: v for k, v in asdict(robot.config.faults).items() if v != defaults[k]}
+    episode = RobotAttackEpisode(family=family, seed=seed, faults=faults)
     robot.reset_scene(seed)
-    faults.reset(seed)
     pipeline.reset()
     expert = ScriptedExpert()
     expert.reset(robot.env)
@@ -133,7 +131,7 @@ def run_robot_attack_episode(
             if delay >= start_delay:
                 break
             delay += 1
-        over = _send(robot, pipeline, step, faults, expert.act(robot.env), episode, cbf)
+        over = _send(robot, pipeline, step, expert.act(robot.env), episode, cbf)
         steps += 1
         if over or step.phase not in (PHASE_IDLE, PHASE_ACTIVE):
             return episode
@@ -142,6 +140,6 @@ def run_robot_attack_episode(
     attacker.begin(robot.env)
     for k in range(min(attack_steps, max_steps - steps)):
         episode.attack_steps += 1
-        if _send(robot, pipeline, step, faults, attacker.act(robot.env, k), episode, cbf):
+        if _send(robot, pipeline, step, attacker.act(robot.env, k), episode, cbf):
             break
     return episode

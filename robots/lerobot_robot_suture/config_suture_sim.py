@@ -15,6 +15,8 @@ from lerobot_suture.sim.suture_env import check_image_side
 from lerobot_suture.sim.task import GRASP_RANGES
 from lerobot_suture.sim.tasks import check_scenario, task_spec
 
+from .faults import FaultConfig
+
 CAMERA = "endoscope"
 """The camera's name: LeRobot stores it as ``observation.images.endoscope``, the expert data's key."""
 POSE_FEATURES = [f"{name}.pos" for name in POSE_NAMES]
@@ -59,6 +61,8 @@ class SutureSimConfig(RobotConfig):
             features, as a registration and a needle tracker would: what ``suture_cbf`` reads. ``lerobot-rollout``
             keeps them out of the policy's state and the dataset (only ``*.pos`` scalars go there); leave it off
             for ``lerobot-record``, which would stack them into ``observation.state``.
+        faults: faults a real arm has, injected on this robot's I/O (``faults.FaultConfig``; all off by default):
+            a frozen or dropping endoscope, observation and command latency (control steps), an arm that lags.
         tip_trace: record the needle tip after every physics step (``last_info["needle_tip_trace"]``), to read
             the barrier at the physics rate (benchmarks; slower).
         trace_path: append one JSON line per executed control step to this file: the scene's seed, the
@@ -79,6 +83,7 @@ class SutureSimConfig(RobotConfig):
     episode_end: str = "continue"
     tip_tracking: bool = False
     registration: bool = False
+    faults: FaultConfig = field(default_factory=FaultConfig)
     tip_trace: bool = False
     trace_path: Path | None = None
 

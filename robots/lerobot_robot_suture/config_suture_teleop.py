@@ -1,5 +1,6 @@
 """Teleoperator types ``suture_keyboard`` and ``suture_gamepad``: LeRobot's keyboard and gamepad driving
-``suture_sim`` through the surgeon's mapping of ``lerobot-suture teleop``."""
+``suture_sim`` through the surgeon's mapping of ``lerobot-suture teleop``; ``suture_scripted``: the scripted
+surgeon stand-in."""
 
 from __future__ import annotations
 
@@ -42,3 +43,11 @@ class SutureGamepadConfig(TeleoperatorConfig):
 
     mapping: TeleopMappingConfig = field(default_factory=TeleopMappingConfig)
     script: Path | None = None
+
+
+@TeleoperatorConfig.register_subclass("suture_scripted")
+@dataclass
+class SutureScriptedConfig(TeleoperatorConfig):
+    """The scripted surgeon stand-in (``lerobot_suture.expert.ScriptedExpert``) as a teleoperator: it plans from
+    the connected ``suture_sim``'s simulator state and takes over wherever the arm is, so a DAgger correction
+    or a gate's handover runs without a person (tests, CI, benchmarks)."""

@@ -36,6 +36,7 @@ from .cbf_step import GRASP_FEATURES, THROW_FEATURE, WOUND_FEATURES
 from .clock import ControlClock
 from .config_suture_sim import CAMERA, POSE_FEATURES, SutureSimConfig
 from .episode_cues import EpisodeCues
+from .faults import FaultInjector
 
 logger = logging.getLogger(__name__)
 
@@ -71,6 +72,8 @@ class SutureSim(Robot):
         self._cues = EpisodeCues(self._on_episode, self._on_reset_phase)
         self._trace = None
         self._obs: dict | None = None
+        self._faults = FaultInjector(config.faults, camera_key=CAMERA, pose_keys=tuple(POSE_FEATURES))
+        self._observed: dict | None = None
         self.last_info: dict = {}
         """The env's ``info`` of the last reset or step (``is_success``, ``needle_tip_pos``, ...)."""
         self.scene_seed: int | None = None
@@ -152,11 +155,7 @@ class SutureSim(Robot):
     def get_observation(self) -> RobotObservation:
         with self._lock:
             self._cues.raise_pending()
-            pose = self._obs["agent_pos"]
-            observation: dict = {name: float(v) for name, v in zip(POSE_FEATURES, pose, strict=True)}
-            observation[CAMERA] = self._obs["pixels"]["endoscope"]
-            observation.update(self._registration())
-            return observation
+            return dict(self._observed)
 
     @check_if_not_connected
     def send_action(self, action: RobotAction) -> RobotAction:
@@ -168,8 +167,10 @@ class SutureSim(Robot):
             space = self.env.unwrapped.action_space
             sent = np.clip(target, space.low, space.high)
             self._clock.tick()
-            obs, _reward, terminated, truncated, info = self.env.step(target)
+            executed = self._faults.command(sent, np.asarray(self._obs["agent_pos"], dtype=np.float64))
+            obs, _reward, terminated, truncated, info = self.env.step(executed)
             self._obs, self.last_info = obs, info
+            self._observe()
             self.scene_steps += 1
             self.total_steps += 1
             self.scene_over = self.config.episode_end == "hold" and bool(terminated or truncated)
@@ -194,6 +195,14 @@ class SutureSim(Robot):
             self._reset_scene(seed)
 
     # ------------------------------------------------------------------ internals
+    def _observe(self) -> None:
+        """What the arm reports for the state it is in now, through the configured faults (once per step)."""
+        pose = self._obs["agent_pos"]
+        observation: dict = {name: float(v) for name, v in zip(POSE_FEATURES, pose, strict=True)}
+        observation[CAMERA] = self._obs["pixels"]["endoscope"]
+        observation.update(self._registration())
+        self._observed = self._faults.observe(observation)
+
     def _registration(self) -> dict[str, float]:
         """The registered wound and the needle in the jaw, where ``registration`` is on (exact here)."""
         features = self._registration_features
@@ -223,6 +232,8 @@ class SutureSim(Robot):
 
     def _reset_scene(self, seed: int) -> None:
         self._obs, self.last_info = self.env.reset(seed=int(seed))
+        self._faults.reset(int(seed))
+        self._observe()
         self.scene_seed = int(seed)
         self.scene_steps = 0
         self.scene_over = False

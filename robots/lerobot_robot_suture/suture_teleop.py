@@ -26,7 +26,7 @@ from lerobot.teleoperators.teleoperator import Teleoperator
 
 from . import link
 from .config_suture_sim import POSE_FEATURES
-from .config_suture_teleop import SutureGamepadConfig, SutureKeyboardConfig
+from .config_suture_teleop import SutureGamepadConfig, SutureKeyboardConfig, SutureScriptedConfig
 
 
 def load_script(path: Path) -> dict:
@@ -174,3 +174,64 @@ class SutureGamepad(_SurgeonTeleop):
             teleop.disconnect()
             raise ValueError("suture_gamepad found no gamepad (pygame sees none). Connect one and rerun.")
         self.surgeon = GamepadSurgeon(teleop, self.config.mapping)
+
+
+class SutureScripted(Teleoperator):
+    """The scripted surgeon stand-in: ``ScriptedExpert`` re-planned from the connected arm's simulator state
+    whenever it takes control (a new scene, or the arm driven by someone else since its last command)."""
+
+    config_class = SutureScriptedConfig
+    name = "suture_scripted"
+
+    def __init__(self, config: SutureScriptedConfig):
+        super().__init__(config)
+        self.config = config
+        self.expert = None
+        self._anchor: tuple | None = None
+        self._commanded_at = 0
+
+    @cached_property
+    def action_features(self) -> dict:
+        return dict.fromkeys(POSE_FEATURES, float)
+
+    @cached_property
+    def feedback_features(self) -> dict:
+        return {}
+
+    @property
+    def is_connected(self) -> bool:
+        return self.expert is not None
+
+    @property
+    def is_calibrated(self) -> bool:
+        return True
+
+    def connect(self, calibrate: bool = True) -> None:
+        from lerobot_suture.expert import ScriptedExpert
+
+        self.expert = ScriptedExpert()
+
+    def calibrate(self) -> None:
+        pass
+
+    def configure(self) -> None:
+        pass
+
+    def send_feedback(self, feedback: dict[str, Any]) -> None:
+        pass
+
+    def get_action(self) -> RobotAction:
+        if self.expert is None:
+            raise RuntimeError(f"{self} is not connected.")
+        robot = link.connected_robot()
+        anchor = (id(robot), robot.scene_count)
+        if anchor != self._anchor or robot.total_steps > self._commanded_at + 1:
+            self.expert.reset(robot.env)
+            self._anchor = anchor
+        self._commanded_at = robot.total_steps
+        target = self.expert.act(robot.env)
+        return {name: float(value) for name, value in zip(POSE_FEATURES, target, strict=True)}
+
+    def disconnect(self) -> None:
+        self.expert = None
+        self._anchor = None

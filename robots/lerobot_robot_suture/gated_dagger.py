@@ -1,0 +1,250 @@
+"""``lerobot-rollout --strategy.type=gated_dagger``: LeRobot's DAgger where the O.O.D. gate, and not only a key,
+hands control to the teleoperator; the CBF step filters every action, the policy's and the teleoperator's.
+
+Episode by episode (``--strategy.num_episodes``, each at most ``--dataset.episode_time_s``, or until a
+``suture_sim`` scene ends): the policy drives; after every action the gate
+(:class:`~.rollout_gate.RolloutGate`: the ensemble's own, or STAC for any chunking policy, plus the camera
+watchdog) is read, and on its first O.O.D. decision the policy is paused and the teleoperator corrects until the
+episode ends. LeRobot's keys still work (``pause_resume``, ``correction``, Esc), with LeRobot's smooth handovers.
+Every frame is recorded with LeRobot's ``intervention`` label and the gate's ``ood_score``, ``ood_threshold``
+and ``ood_decision``; between episodes LeRobot's "Reset the environment" phase runs
+(``--dataset.reset_time_s``). With ``--teleop.type=suture_scripted`` the scripted surgeon stand-in corrects.
+
+The CBF (``suture_cbf``, :mod:`.cbf_step`) is appended to the robot action pipeline that ``lerobot-rollout`` built
+(``--strategy.cbf.enabled=false`` leaves it out).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from lerobot.datasets.io_utils import write_info
+from lerobot.processor import RobotProcessorPipeline
+from lerobot.rollout.configs import DAggerStrategyConfig, RolloutStrategyConfig
+from lerobot.rollout.strategies.core import send_next_action
+from lerobot.rollout.strategies.dagger import DAggerPhase, DAggerStrategy
+from lerobot.utils.constants import ACTION, OBS_STR
+from lerobot.utils.feature_utils import build_dataset_frame
+from lerobot.utils.robot_utils import precise_sleep
+from lerobot.utils.utils import log_say
+
+from lerobot_suture.safety.camera_watchdog import CameraWatchdogConfig
+from lerobot_suture.safety.cbf_config import CBFConfig
+from lerobot_suture.safety.tip_guard import GraspModel
+
+from .cbf_step import SutureCBFStep
+from .rollout_gate import GATE_KINDS, GateReading, RolloutGate
+
+logger = logging.getLogger(__name__)
+
+GATE_FEATURES = {
+    "ood_score": {"dtype": "float32", "shape": (1,), "names": None},
+    "ood_threshold": {"dtype": "float32", "shape": (1,), "names": None},
+    "ood_decision": {"dtype": "bool", "shape": (1,), "names": None},
+}
+"""Per frame: the gate's last score, its threshold (NaN without one) and its (latched) O.O.D. decision."""
+
+
+@RolloutStrategyConfig.register_subclass("gated_dagger")
+@dataclass
+class GatedDAggerStrategyConfig(DAggerStrategyConfig):
+    """LeRobot's DAgger configuration (keys, smooth handover, uploads) plus the gate and the CBF.
+
+    Args:
+        gate: ``auto`` (the ensemble's gate for a calibrated ``ensemble_diffusion``, else STAC when the policy has
+            a ``stac_calibration.json``, else the camera watchdog alone), ``ensemble``, ``stac`` or ``none``.
+        camera_watchdog: flag a frozen or dropped endoscope frame (``watchdog.*`` tunes it).
+        cbf: the ``suture_cbf`` step's filter (``--strategy.cbf.enabled=false``: no CBF step).
+        grasp: the grasp model the CBF step uses where the arm reports none.
+        record_autonomous: record the policy's frames too (default here), not only the corrections.
+        smooth_handover: LeRobot's smooth handover (off by default here: the suture teleoperators take control
+            from the arm's measured pose, so there is no jump to smooth, and the slide would move the arm
+            between recorded frames).
+    """
+
+    gate: str = "auto"
+    camera_watchdog: bool = True
+    watchdog: CameraWatchdogConfig = field(default_factory=CameraWatchdogConfig)
+    cbf: CBFConfig = field(default_factory=lambda: CBFConfig(enabled=True))
+    grasp: GraspModel = field(default_factory=GraspModel)
+    record_autonomous: bool = True
+    smooth_handover: bool = False
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.gate not in GATE_KINDS:
+            raise ValueError(f"`gate` must be one of {GATE_KINDS}. Got {self.gate!r}.")
+
+
+def add_gate_features(dataset) -> None:
+    """Give a new rollout dataset the gate's features (LeRobot created it with ``intervention`` only).
+
+    Raises:
+        ValueError: the dataset already holds episodes without them (``--resume`` of another strategy's data).
+    """
+    missing = {k: v for k, v in GATE_FEATURES.items() if k not in dataset.meta.features}
+    if not missing:
+        return
+    if dataset.meta.total_episodes > 0:
+        raise ValueError(
+            f"The dataset at {dataset.root} has episodes without the gate's features {sorted(missing)}; record "
+            "gated DAgger into a new --dataset.repo_id."
+        )
+    dataset.meta.info.features.update(missing)
+    write_info(dataset.meta.info, dataset.meta.root)
+    dataset.clear_episode_buffer(delete_images=False)
+
+
+def with_cbf_step(pipeline: RobotProcessorPipeline, step: SutureCBFStep) -> RobotProcessorPipeline:
+    """The robot action pipeline with ``step`` appended."""
+    return RobotProcessorPipeline(
+        steps=[*pipeline.steps, step],
+        name=pipeline.name,
+        to_transition=pipeline.to_transition,
+        to_output=pipeline.to_output,
+    )
+
+
+class GatedDAggerStrategy(DAggerStrategy):
+    """See the module docstring."""
+
+    config: GatedDAggerStrategyConfig
+
+    def setup(self, ctx) -> None:
+        super().setup(ctx)
+        self.cbf_step = None
+        if self.config.cbf.enabled:
+            self.cbf_step = SutureCBFStep(cbf=self.config.cbf, grasp=self.config.grasp)
+            processors = ctx.processors
+            processors.robot_action_processor = with_cbf_step(
+                processors.robot_action_processor, self.cbf_step
+            )
+        watchdog = self.config.watchdog if self.config.camera_watchdog else None
+        self.gate = RolloutGate(
+            ctx.policy.policy, self.config.gate, ctx.runtime.cfg.policy.pretrained_path, watchdog
+        )
+        add_gate_features(ctx.data.dataset)
+        self.handovers: list[int | None] = []
+        """Per recorded episode: the frame at which the gate handed control over (None: it did not)."""
+        logger.info("Gated DAgger: gate %s, CBF %s", self.gate.kind, "on" if self.cbf_step else "off")
+
+    def run(self, ctx) -> None:
+        cfg = ctx.runtime.cfg
+        dataset = ctx.data.dataset
+        start = time.perf_counter()
+        for _ in range(self.config.num_episodes):
+            if self._events.stop_recording.is_set() or ctx.runtime.shutdown_event.is_set():
+                break
+            if cfg.duration > 0 and time.perf_counter() - start >= cfg.duration:
+                break
+            log_say(f"Recording episode {dataset.num_episodes}", cfg.play_sounds)
+            handover = self._run_episode(ctx)
+            if dataset.has_pending_frames():
+                with self._episode_lock:
+                    dataset.save_episode()
+                self._needs_push.set()
+                self.handovers.append(handover)
+                logger.info("Episode %d saved (handover at frame %s)", dataset.num_episodes - 1, handover)
+            if len(self.handovers) < self.config.num_episodes and cfg.dataset.reset_time_s > 0:
+                log_say("Reset the environment", cfg.play_sounds)
+                self._hold_for(ctx, cfg.dataset.reset_time_s)
+
+    def teardown(self, ctx) -> None:
+        if getattr(self, "gate", None) is not None:
+            self.gate.close()
+        super().teardown(ctx)
+
+    # ------------------------------------------------------------------
+    def _run_episode(self, ctx) -> int | None:
+        """One episode: the policy until the gate (or a key) hands over, then the teleoperator."""
+        cfg, events, engine, interpolator = ctx.runtime.cfg, self._events, self._engine, self._interpolator
+        robot = ctx.hardware.robot_wrapper
+        control_interval = interpolator.get_control_interval(cfg.fps)
+        task = cfg.dataset.single_task if cfg.dataset else cfg.task
+        engine.reset()
+        interpolator.reset()
+        events.reset()
+        engine.resume()
+        self.gate.reset()
+        if self.cbf_step is not None:
+            self.cbf_step.reset()
+        reading = GateReading(float("nan"), float("nan"), False, False, False)
+        last_action, handover, frame_index = None, None, 0
+        episode_start = time.perf_counter()
+        while not (events.stop_recording.is_set() or ctx.runtime.shutdown_event.is_set()):
+            loop_start = time.perf_counter()
+            if loop_start - episode_start >= cfg.dataset.episode_time_s or getattr(
+                robot.inner, "scene_over", False
+            ):
+                break
+            transition = events.consume_transition()
+            if transition is not None:
+                self._apply_transition(*transition, engine, interpolator, ctx, last_action)
+            obs = robot.get_observation()
+            if events.phase == DAggerPhase.AUTONOMOUS:
+                obs_processed = self._process_observation_and_notify(ctx.processors, obs)
+                action = send_next_action(obs_processed, obs, ctx, interpolator)
+                if action is None:
+                    continue
+                last_action = ctx.processors.robot_action_processor((action, obs))
+                reading = self.gate.read(obs)
+                self._record(ctx, obs_processed, action, task, False, reading)
+                if reading.decision:
+                    handover = frame_index + 1
+                    logger.info(
+                        "Gate: O.O.D. (score %.4g, threshold %.4g): handing over",
+                        reading.score,
+                        reading.threshold,
+                    )
+                    self._hand_over(ctx, last_action)
+                frame_index += 1
+            elif events.phase == DAggerPhase.CORRECTING:
+                obs_processed = ctx.processors.robot_observation_processor(obs)
+                teleop_action = ctx.processors.teleop_action_processor(
+                    (ctx.hardware.teleop.get_action(), obs)
+                )
+                last_action = ctx.processors.robot_action_processor((teleop_action, obs))
+                robot.send_action(last_action)
+                if handover is None:
+                    handover = frame_index
+                self._record(ctx, obs_processed, teleop_action, task, True, reading)
+                frame_index += 1
+            elif last_action:
+                robot.send_action(last_action)
+            if (sleep := control_interval - (time.perf_counter() - loop_start)) > 0:
+                precise_sleep(sleep)
+        engine.pause()
+        return handover
+
+    def _hand_over(self, ctx, last_action) -> None:
+        """The gate's decision does what LeRobot's pause and correction keys do, at once."""
+        events = self._events
+        self._apply_transition(
+            DAggerPhase.AUTONOMOUS, DAggerPhase.PAUSED, self._engine, self._interpolator, ctx, last_action
+        )
+        self._apply_transition(
+            DAggerPhase.PAUSED, DAggerPhase.CORRECTING, self._engine, self._interpolator, ctx, last_action
+        )
+        events.phase = DAggerPhase.CORRECTING
+
+    def _record(self, ctx, obs_processed, action, task, intervention: bool, reading: GateReading) -> None:
+        features = ctx.data.dataset_features
+        frame = {
+            **build_dataset_frame(features, obs_processed, prefix=OBS_STR),
+            **build_dataset_frame(features, action, prefix=ACTION),
+            "task": task,
+            "intervention": np.array([intervention], dtype=bool),
+            "ood_score": np.array([reading.score], dtype=np.float32),
+            "ood_threshold": np.array([reading.threshold], dtype=np.float32),
+            "ood_decision": np.array([reading.decision], dtype=bool),
+        }
+        ctx.data.dataset.add_frame(frame)
+
+    def _hold_for(self, ctx, seconds: float) -> None:
+        """LeRobot's reset phase: the arm holds while the scene is reset (a person's job on a real arm)."""
+        end = time.perf_counter() + seconds
+        while time.perf_counter() < end and not ctx.runtime.shutdown_event.is_set():
+            precise_sleep(min(0.05, max(end - time.perf_counter(), 0.0)))
