@@ -2,10 +2,11 @@
 hands control to the teleoperator; the CBF step filters every action, the policy's and the teleoperator's.
 
 Episode by episode (``--strategy.num_episodes``, each at most ``--dataset.episode_time_s``, or until a
-``suture_sim`` scene ends): the policy drives; after every action the gate
+``suture_sim`` scene ends): the policy drives; each of its actions is held back until the gate
 (:class:`~.rollout_gate.RolloutGate`: the ensemble's own, or STAC for any chunking policy, plus the camera
-watchdog) is read, and on its first O.O.D. decision the policy is paused and the teleoperator corrects until the
-episode ends. LeRobot's keys still work (``pause_resume``, ``correction``, Esc), with LeRobot's smooth handovers.
+watchdog) has read the prediction, and on its first O.O.D. decision that action is dropped, the policy paused
+and the teleoperator acts from that control step on until the episode ends (the env path's enforced gate hands
+over at the same step). LeRobot's keys still work (``pause_resume``, ``correction``, Esc), with LeRobot's smooth handovers.
 Every frame is recorded with LeRobot's ``intervention`` label and the gate's ``ood_score``, ``ood_threshold``
 and ``ood_decision``; between episodes LeRobot's "Reset the environment" phase runs
 (``--dataset.reset_time_s``). With ``--teleop.type=suture_scripted`` the scripted surgeon stand-in corrects.
@@ -21,10 +22,10 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+import torch
 from lerobot.datasets.io_utils import write_info
 from lerobot.processor import RobotProcessorPipeline
 from lerobot.rollout.configs import DAggerStrategyConfig, RolloutStrategyConfig
-from lerobot.rollout.strategies.core import send_next_action
 from lerobot.rollout.strategies.dagger import DAggerPhase, DAggerStrategy
 from lerobot.utils.constants import ACTION, OBS_STR
 from lerobot.utils.feature_utils import build_dataset_frame
@@ -98,6 +99,19 @@ def add_gate_features(dataset) -> None:
     dataset.clear_episode_buffer(delete_images=False)
 
 
+def next_policy_action(obs_processed: dict, ctx, interpolator) -> dict | None:
+    """The policy's next action as a robot action dict, not yet sent (``send_next_action`` without the send)."""
+    if interpolator.needs_new_action():
+        obs_frame = build_dataset_frame(ctx.data.dataset_features, obs_processed, prefix=OBS_STR)
+        action_tensor = ctx.policy.inference.get_action(obs_frame)
+        if action_tensor is not None:
+            interpolator.add(action_tensor.cpu())
+    interp = interpolator.get()
+    if interp is None:
+        return None
+    return {key: interp[i].item() for i, key in enumerate(ctx.data.ordered_action_keys)}
+
+
 def with_cbf_step(pipeline: RobotProcessorPipeline, step: SutureCBFStep) -> RobotProcessorPipeline:
     """The robot action pipeline with ``step`` appended."""
     return RobotProcessorPipeline(
@@ -169,6 +183,10 @@ class GatedDAggerStrategy(DAggerStrategy):
         events.reset()
         engine.resume()
         self.gate.reset()
+        scene_seed = getattr(robot.inner, "scene_seed", None)
+        if scene_seed is not None:
+            # The simulated arm's scene: the policy's noise seeded as the env path's runs of that seed are.
+            torch.manual_seed(int(scene_seed))
         if self.cbf_step is not None:
             self.cbf_step.reset()
         reading = GateReading(float("nan"), float("nan"), False, False, False)
@@ -186,22 +204,27 @@ class GatedDAggerStrategy(DAggerStrategy):
             obs = robot.get_observation()
             if events.phase == DAggerPhase.AUTONOMOUS:
                 obs_processed = self._process_observation_and_notify(ctx.processors, obs)
-                action = send_next_action(obs_processed, obs, ctx, interpolator)
+                action = next_policy_action(obs_processed, ctx, interpolator)
                 if action is None:
                     continue
-                last_action = ctx.processors.robot_action_processor((action, obs))
+                # The gate reads the prediction before it reaches the arm: a chunk it flags is never executed,
+                # as with the ensemble's enforced gate on the env path.
                 reading = self.gate.read(obs)
-                self._record(ctx, obs_processed, action, task, False, reading)
-                if reading.decision:
-                    handover = frame_index + 1
+                if not reading.decision:
+                    last_action = ctx.processors.robot_action_processor((action, obs))
+                    robot.send_action(last_action)
+                    self._record(ctx, obs_processed, action, task, False, reading)
+                    frame_index += 1
+                else:
+                    handover = frame_index
                     logger.info(
-                        "Gate: O.O.D. (score %.4g, threshold %.4g): handing over",
+                        "Gate: O.O.D. (score %.4g, threshold %.4g, camera stale %s): handing over",
                         reading.score,
                         reading.threshold,
+                        reading.camera_stale,
                     )
                     self._hand_over(ctx, last_action)
-                frame_index += 1
-            elif events.phase == DAggerPhase.CORRECTING:
+            if events.phase == DAggerPhase.CORRECTING:
                 obs_processed = ctx.processors.robot_observation_processor(obs)
                 teleop_action = ctx.processors.teleop_action_processor(
                     (ctx.hardware.teleop.get_action(), obs)
@@ -212,7 +235,7 @@ class GatedDAggerStrategy(DAggerStrategy):
                     handover = frame_index
                 self._record(ctx, obs_processed, teleop_action, task, True, reading)
                 frame_index += 1
-            elif last_action:
+            elif events.phase == DAggerPhase.PAUSED and last_action:
                 robot.send_action(last_action)
             if (sleep := control_interval - (time.perf_counter() - loop_start)) > 0:
                 precise_sleep(sleep)

@@ -1,0 +1,88 @@
+"""``lerobot-rollout --strategy.type=gated_dagger`` on the simulated arm, run as LeRobot's console script: the
+gate hands over to the scripted surgeon teleoperator, every action goes through the ``suture_cbf`` step, and
+the episodes carry LeRobot's ``intervention`` label and the gate's score and decision."""
+
+import numpy as np
+import pytest
+from robot_commands import dataset_args, episode_frames, load_dataset, read_trace, robot_args, run_command
+
+from lerobot_suture.safety.cbf import ellipsoid_h
+from lerobot_suture.safety.cbf_config import CBFConfig
+
+FROZEN_AT = 4
+
+
+@pytest.fixture(scope="module")
+def frozen_camera_run(tiny_policy_dir, tmp_path_factory):
+    """Two episodes; the endoscope freezes at control step 4 of each scene, and the camera watchdog (the only
+    gate an uncalibrated policy has) hands over."""
+    directory = tmp_path_factory.mktemp("gated_dagger")
+    root, trace = directory / "dataset", directory / "trace.jsonl"
+    log = run_command(
+        "lerobot-rollout",
+        [
+            "--strategy.type=gated_dagger",
+            "--strategy.gate=none",
+            f"--policy.path={tiny_policy_dir}",
+            "--teleop.type=suture_scripted",
+            "--device=cpu",
+            "--fps=200",
+            "--return_to_initial_position=false",
+            *robot_args(
+                trace,
+                "--robot.seed=7",
+                "--robot.clock=fast",
+                "--robot.episode_end=hold",
+                "--robot.tip_tracking=true",
+                "--robot.registration=true",
+                f"--robot.faults.frozen_camera_step={FROZEN_AT}",
+            ),
+            *dataset_args(root, "local/rollout_gated", episodes=2, episode_s=60, reset_s=0),
+        ],
+        timeout=600,
+    )
+    return root, read_trace(trace), log
+
+
+def test_the_gate_hands_over_and_the_frames_carry_the_labels(frozen_camera_run):
+    root, trace, log = frozen_camera_run
+    assert "Gated DAgger: gate none, CBF on" in log
+    dataset = load_dataset(root, "local/rollout_gated")
+    assert dataset.meta.total_episodes == 2
+    for key in ("intervention", "ood_score", "ood_threshold", "ood_decision"):
+        assert key in dataset.features
+    for episode in range(2):
+        frames = episode_frames(dataset, episode)
+        intervention = np.array([bool(f["intervention"]) for f in frames])
+        decision = np.array([bool(f["ood_decision"]) for f in frames])
+        # The policy drives until the watchdog sees the frozen frame while the arm moves, then the surgeon.
+        handover = int(np.argmax(intervention))
+        assert intervention.any() and not intervention[:handover].any() and intervention[handover:].all()
+        assert FROZEN_AT < handover <= FROZEN_AT + 6
+        assert decision[handover:].all() and not decision[:handover].any()
+        # One frame per executed control step of the scene of seed 7 + episode, which the surgeon finished.
+        steps = [line for line in trace if line["seed"] == 7 + episode]
+        assert len(frames) == len(steps) and steps[-1]["throw_over"] and steps[-1]["is_success"]
+
+
+def test_every_action_went_through_the_cbf(frozen_camera_run):
+    """The scripted surgeon's throw, through the CBF step: the tip stays in the safe set while it is held."""
+    import gymnasium as gym
+
+    _, trace, _ = frozen_camera_run
+    cbf = CBFConfig(enabled=True)
+    env = gym.make("lerobot_suture/NeedleInsertion-v0", obs_type="state")
+    for seed in (7, 8):
+        env.reset(seed=seed)
+        base = env.unwrapped
+        from lerobot_suture.safety.tip_guard import Wound
+
+        center, rotation = Wound(
+            base.entry_point, base.exit_point, base.phantom_rotation[:, 2]
+        ).ellipsoid_frame()
+        tips = np.array(
+            [line["needle_tip"] for line in trace if line["seed"] == seed and line["needle_in_tissue"]]
+        )
+        assert len(tips) > 5
+        assert np.all(ellipsoid_h(tips, center, cbf.semi_axes, rotation) >= 0.0)
+    env.close()
