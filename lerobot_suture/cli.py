@@ -25,6 +25,10 @@ SUBCOMMANDS = {
         "lerobot_suture.commands.calibrate",
         "fit the O.O.D. gate of a trained ensemble on nominal rollouts",
     ),
+    "calibrate-stac": (
+        "lerobot_suture.commands.calibrate_stac",
+        "fit the STAC gate of any chunking policy (ACT, diffusion) on nominal rollouts",
+    ),
     # Lives in the policy plugin; imported by name only when run (the core never imports a plugin).
     "assemble": (
         "lerobot_policy_ensemble_diffusion.assemble",

@@ -22,7 +22,12 @@ from pathlib import Path
 import numpy as np
 
 from lerobot_suture.safety.camera_watchdog import CameraWatchdog, CameraWatchdogConfig
-from lerobot_suture.safety.ood.chunk_consistency import ChunkCapture, ChunkConsistencyMonitor, StacCalibration
+from lerobot_suture.safety.ood.chunk_consistency import (
+    ChunkCapture,
+    ChunkConsistencyMonitor,
+    StacCalibration,
+    chunk_source,
+)
 
 from .config_suture_sim import CAMERA, POSE_FEATURES
 
@@ -46,18 +51,6 @@ class GateReading:
     decision: bool
     camera_stale: bool
     new_prediction: bool
-
-
-def _chunk_target(policy):
-    """Where a policy's full chunks come from: (object, method name, index of the first executed step).
-
-    LeRobot's diffusion returns only the executed steps from ``predict_action_chunk``; its full horizon comes
-    from ``diffusion.conditional_sample``. Others (ACT, ...) return the whole chunk from ``predict_action_chunk``.
-    """
-    inner = getattr(policy, "diffusion", None)
-    if inner is not None and callable(getattr(inner, "conditional_sample", None)):
-        return inner, "conditional_sample", int(policy.config.n_obs_steps) - 1
-    return policy, "predict_action_chunk", 0
 
 
 class RolloutGate:
@@ -102,7 +95,7 @@ class RolloutGate:
                     "`gate=stac` needs the policy's directory to read stac_calibration.json."
                 )
             self._calibration = StacCalibration.load(policy_dir)
-            owner, name, start = _chunk_target(policy)
+            owner, name, start = chunk_source(policy)
             self._capture = ChunkCapture(owner, name)
             shift = int(getattr(policy.config, "n_action_steps", self._calibration.n_action_steps))
             self._monitor = ChunkConsistencyMonitor(shift, start, self._calibration.bandwidth)

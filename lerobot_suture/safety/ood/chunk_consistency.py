@@ -105,6 +105,18 @@ class ChunkCapture:
         setattr(self._owner, self._method, self._inner)
 
 
+def chunk_source(policy) -> tuple[object, str, int]:
+    """Where a policy's full chunks come from: (object, method name, index in the chunk of the first executed step).
+
+    LeRobot's diffusion returns only the executed steps from ``predict_action_chunk``; its whole horizon comes
+    from ``diffusion.conditional_sample``. Others (ACT, ...) return the whole chunk from ``predict_action_chunk``.
+    """
+    inner = getattr(policy, "diffusion", None)
+    if inner is not None and callable(getattr(inner, "conditional_sample", None)):
+        return inner, "conditional_sample", int(policy.config.n_obs_steps) - 1
+    return policy, "predict_action_chunk", 0
+
+
 class ChunkConsistencyMonitor:
     """STAC between each new chunk and the one before it, over one episode (batch element 0).
 
