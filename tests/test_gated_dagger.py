@@ -86,3 +86,26 @@ def test_every_action_went_through_the_cbf(frozen_camera_run):
         assert len(tips) > 5
         assert np.all(ellipsoid_h(tips, center, cbf.semi_axes, rotation) >= 0.0)
     env.close()
+
+
+def test_the_recording_merges_with_the_demonstrations(frozen_camera_run, tmp_path):
+    """Expert demonstrations in the recording's layout, merged with it by LeRobot's merge: one dataset that
+    loads, with the labels the demonstrations never had filled (no intervention, no score, no decision)."""
+    from robot_commands import load_dataset
+
+    from lerobot_suture.datasets.record import record
+    from lerobot_suture.datasets.record_config import RecordConfig
+    from lerobot_suture.datasets.robot_path_merge import merge_with_demonstrations
+
+    root, _, _ = frozen_camera_run
+    demo_root = tmp_path / "demonstrations"
+    record(RecordConfig(repo_id="suture-tests/demo", root=str(demo_root), num_episodes=2, val_fraction=0.5))
+    demonstrations = load_dataset(demo_root, "suture-tests/demo")
+    recording = load_dataset(root, "local/rollout_gated")
+    merged = merge_with_demonstrations(demonstrations, recording, tmp_path / "merged", "local/merged")
+    assert merged.meta.total_episodes == 4 and merged.meta.robot_type == "suture_sim"
+    assert merged.meta.total_frames == demonstrations.meta.total_frames + recording.meta.total_frames
+    assert set(merged.features) == set(recording.features)
+    first, last = merged[0], merged[merged.meta.total_frames - 1]
+    assert not bool(first["intervention"]) and np.isnan(float(first["ood_score"]))
+    assert bool(last["intervention"]) and bool(last["ood_decision"])
