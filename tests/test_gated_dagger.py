@@ -109,3 +109,64 @@ def test_the_recording_merges_with_the_demonstrations(frozen_camera_run, tmp_pat
     first, last = merged[0], merged[merged.meta.total_frames - 1]
     assert not bool(first["intervention"]) and np.isnan(float(first["ood_score"]))
     assert bool(last["intervention"]) and bool(last["ood_decision"])
+
+
+HANDOVER_SEEDS = (5_000_004, 5_000_005)
+"""Seeds on which the tiny policy's gate at threshold 1.995 hands over at step 12, and at once."""
+
+
+@pytest.fixture(scope="module")
+def calibrated_tiny_policy(tiny_policy_dir, tmp_path_factory):
+    """The tiny policy with a gate whose threshold sits at 1.995, among its own scores."""
+    import shutil
+
+    from lerobot_suture.safety.ood.calibration import fit_calibration
+    from lerobot_suture.safety.ood.calibration_file import save_calibration
+
+    directory = tmp_path_factory.mktemp("gated_tiny") / "policy"
+    shutil.copytree(tiny_policy_dir, directory)
+    scores = 1.995 * (1 + 1e-4 * np.random.default_rng(0).standard_normal(100))
+    save_calibration(fit_calibration(scores, model="normal"), directory, filename="ood_calibration.json")
+    return directory
+
+
+def test_handovers_fall_where_the_env_path_s_enforced_gate_hands_over(calibrated_tiny_policy, tmp_path):
+    """The ensemble's own gate on the robot path hands over at the step the env path's enforced gate does."""
+    from lerobot_suture.runtime.policy import GateMode, PolicyRunner, env_kwargs_for_policy
+    from lerobot_suture.runtime.rollout import make_scenario_env, rollout_episode
+
+    runner = PolicyRunner.from_pretrained(calibrated_tiny_policy, GateMode.ENFORCE)
+    env = make_scenario_env(env_kwargs_for_policy(runner.policy.config), "nominal")
+    expected = [rollout_episode(env, runner, seed, surgeon="expert").handover_step for seed in HANDOVER_SEEDS]
+    env.close()
+    assert expected[0] > 4  # mid-episode: not the first prediction
+    root = tmp_path / "dataset"
+    log = run_command(
+        "lerobot-rollout",
+        [
+            "--strategy.type=gated_dagger",
+            "--strategy.gate=ensemble",
+            "--strategy.cbf.enabled=false",
+            f"--policy.path={calibrated_tiny_policy}",
+            "--teleop.type=suture_scripted",
+            "--device=cpu",
+            "--fps=200",
+            "--return_to_initial_position=false",
+            *robot_args(
+                tmp_path / "trace.jsonl",
+                f"--robot.seed={HANDOVER_SEEDS[0]}",
+                "--robot.clock=fast",
+                "--robot.episode_end=hold",
+            ),
+            *dataset_args(root, "local/rollout_gated_ensemble", episodes=2, episode_s=60, reset_s=0),
+        ],
+        timeout=600,
+    )
+    assert "Gated DAgger: gate ensemble, CBF off" in log
+    dataset = load_dataset(root, "local/rollout_gated_ensemble")
+    for episode, step in enumerate(expected):
+        intervention = np.array([bool(f["intervention"]) for f in episode_frames(dataset, episode)])
+        handover = int(np.argmax(intervention)) if intervention.any() else None
+        assert (handover is None) == (step is None), (episode, handover, step)
+        if step is not None:
+            assert abs(handover - step) <= 2, (episode, handover, step)
