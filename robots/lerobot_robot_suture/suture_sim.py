@@ -9,6 +9,9 @@ that ``lerobot-eval --env.type=suture`` and the expert recordings run.
   endoscope image and the measured pose of the needle holder (the env's ``agent_pos``).
 - ``send_action({"x.pos": ..., ..., "jaw.pos": ...})``: the target pose of the needle holder; the env steps
   one control period (0.1 s, 50 physics steps) towards it. Returns the target clipped to the action space.
+- ``--robot.registration=true`` adds the registered wound and the needle in the jaw to the observation (what
+  the ``suture_cbf`` step reads); ``--robot.faults.*`` passes the observation and the command through the faults
+  of :mod:`.faults` (computed once per control step, so any number of ``get_observation`` calls agree).
 - Episodes: at LeRobot's "Recording episode N" the scene is that of ``seed + N``; at "Reset the
   environment" it is reset to the next seed and held (see :mod:`.episode_cues` and ``docs/robot.md``).
 """
