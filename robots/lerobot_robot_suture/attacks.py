@@ -6,7 +6,7 @@ The same attack families as the env-path benchmark (``lerobot_suture.experiments
 robot's observation, through the robot's faults when asked (``--robot.faults.*``: observation and command
 latency, an arm that lags).
 h is read from the needle tip after every physics step against the wound where it really is; a violation is a
-physics step with h < 0 during a control step whose action the step filtered.
+physics step with h < 0 during a control step whose action the step filtered, before the jaw let the needle go.
 """
 
 from __future__ import annotations
@@ -41,6 +41,7 @@ class RobotAttackEpisode:
         violation_steps: physics steps with h < 0 during active control steps.
         h_min: smallest h over those physics steps (nan if never active).
         interventions: active control steps in which the step changed the command.
+        released: the jaw has let the needle go (no step after it counts).
     """
 
     family: str
@@ -51,6 +52,7 @@ class RobotAttackEpisode:
     violation_steps: int = 0
     h_min: float = math.nan
     interventions: int = 0
+    released: bool = False
 
 
 def make_robot_path(cbf: CBFConfig | None = None, image_size: int = 64, faults: FaultConfig | None = None):
@@ -90,8 +92,12 @@ def _send(robot, pipeline, step, action: np.ndarray, episode: RobotAttackEpisode
     command = dict(zip(POSE_FEATURES, np.asarray(action, dtype=float).tolist(), strict=True))
     robot.send_action(pipeline((command, observation)))
     result = step.last_result
-    # A released needle falls freely: nothing guards it (as on the env path, where the filter is not called).
-    if result is not None and result.active and robot.last_info["needle_grasped"]:
+    # The guarantee ends when the jaw lets the needle go, as on the env path: a released needle falls freely,
+    # and one the jaw catches again sits in a new grasp. Under observation latency the step learns of the
+    # release late, so the release is read from the simulator here, for the measurement only.
+    if not robot.last_info["needle_grasped"]:
+        episode.released = True
+    if result is not None and result.active and not episode.released:
         h = _true_h(robot, cbf)
         episode.active_steps += 1
         episode.violation_steps += int(np.sum(h < 0.0))
