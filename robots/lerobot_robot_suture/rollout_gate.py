@@ -1,7 +1,7 @@
 """The O.O.D. gate on the robot path, for the policy ``lerobot-rollout`` loaded, and the endoscope's health.
 
 - ``ensemble``: an ``ensemble_diffusion`` policy with a calibration reads its own gate (its members'
-  covariance, calibrated per episode: ``lerobot-suture calibrate``) after every action, ``policy.ood_status()``.
+  covariance, calibrated per episode: ``lerobot-suture calibrate``) after every prediction, ``policy.ood_status()``.
 - ``stac``: any other policy that predicts chunks (ACT, diffusion, ...): the temporal consistency of its
   successive chunks, tested against ``stac_calibration.json`` beside the policy
   (:mod:`lerobot_suture.safety.ood.chunk_consistency`; ``lerobot-suture calibrate-stac``).
@@ -9,8 +9,9 @@
   frame while the arm moves flags too. A frozen frame is an in-distribution image, so no score on the image
   alone sees it.
 
-:class:`RolloutGate` ``.read(observation)`` after each action gives a :class:`GateReading`; the decision is
-latched for the episode, as the ensemble's gate releases control once.
+:class:`RolloutGate` ``.read(observation)``, once the policy has predicted its action and before the action is
+sent, gives a :class:`GateReading`; the decision is latched for the episode, as the ensemble's gate releases
+control once.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import numpy as np
 
 from lerobot_suture.safety.camera_watchdog import CameraWatchdog, CameraWatchdogConfig
 from lerobot_suture.safety.ood.chunk_consistency import (
+    STAC_CALIBRATION_FILE,
     ChunkCapture,
     ChunkConsistencyMonitor,
     StacCalibration,
@@ -80,7 +82,7 @@ class RolloutGate:
         self.policy = policy
         ensemble = callable(getattr(policy, "ood_status", None)) and getattr(policy, "ood_calibration", None)
         if kind == "auto":
-            has_stac = policy_dir is not None and (Path(policy_dir) / "stac_calibration.json").is_file()
+            has_stac = policy_dir is not None and (Path(policy_dir) / STAC_CALIBRATION_FILE).is_file()
             kind = "ensemble" if ensemble else "stac" if has_stac else "none"
         if kind == "ensemble" and not ensemble:
             raise ValueError(
@@ -92,12 +94,18 @@ class RolloutGate:
         if kind == "stac":
             if policy_dir is None:
                 raise FileNotFoundError(
-                    "`gate=stac` needs the policy's directory to read stac_calibration.json."
+                    f"`gate=stac` needs the policy's directory to read {STAC_CALIBRATION_FILE}."
                 )
             self._calibration = StacCalibration.load(policy_dir)
             owner, name, start = chunk_source(policy)
             self._capture = ChunkCapture(owner, name)
             shift = int(getattr(policy.config, "n_action_steps", self._calibration.n_action_steps))
+            if shift != self._calibration.n_action_steps:
+                raise ValueError(
+                    f"The STAC calibration in {policy_dir} was fitted with n_action_steps="
+                    f"{self._calibration.n_action_steps}; the policy runs {shift}, so successive chunks overlap "
+                    "differently. Run `lerobot-suture calibrate-stac` again with these settings."
+                )
             self._monitor = ChunkConsistencyMonitor(shift, start, self._calibration.bandwidth)
         self._watchdog = CameraWatchdog(camera) if camera is not None else None
         self.reset()
@@ -117,7 +125,8 @@ class RolloutGate:
             self._capture.release()
 
     def read(self, observation: dict) -> GateReading:
-        """The gate after the action just taken; ``observation`` is the robot's raw observation it acted on."""
+        """The gate once the policy has predicted its action for ``observation`` (the robot's raw observation),
+        before that action is sent. STAC assumes one policy call per control step (synchronous inference)."""
         stale = False
         if self._watchdog is not None and CAMERA in observation:
             pose = np.array([float(observation[k]) for k in POSE_FEATURES])
