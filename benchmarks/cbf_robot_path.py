@@ -5,9 +5,9 @@ Every scripted attack family of ``benchmarks/cbf_adversary.py`` (``--episodes-pe
 ``suture_cbf`` (measured pose, grasp model, registered wound; no simulator state) -> ``send_action``; the arm
 runs its tip-tracking controller (``lerobot_robot_suture.attacks``). Each fault setting is one block:
 
-- ``none``; ``observation_latency`` 1 and 3 control steps (pose and image 0.1 and 0.3 s old); ``command_latency``
-  3 (the arm executes the command sent 0.3 s earlier): the bar, 0 violations in >= 1,000 episodes each;
-- ``arm_lag`` 0.2 and 0.5 (``--lag-episodes-per-family``): an arm that falls short of its target in pose space,
+- ``none``; ``observation_latency`` 3 control steps (pose and image 0.3 s old); ``command_latency`` 3 (the arm
+  executes the command sent 0.3 s earlier): the bar, 0 violations in >= 1,000 episodes each;
+- ``arm_lag`` 0.2 (``--lag-episodes-per-family``): an arm that falls short of its target in pose space,
   rotation included, which leaves the straight tip segment the guarantee assumes: measured, not a bar.
 
 Prints one JSON object (per block: episodes, active steps, violations, min h, intervention rate; per family).
@@ -37,10 +37,10 @@ from lerobot_suture.experiments.cbf_attacks import FAMILIES  # noqa: E402
 BAR_EPISODES = 1000
 BAR_BLOCKS = {
     "none": {},
-    **{f"observation_latency_{k}": {"observation_latency": k} for k in (1, 3)},
+    "observation_latency_3": {"observation_latency": 3},
     "command_latency_3": {"command_latency": 3},
 }
-LAG_BLOCKS = {f"arm_lag_{lag}": {"arm_lag": lag} for lag in (0.2, 0.5)}
+LAG_BLOCKS = {"arm_lag_0.2": {"arm_lag": 0.2}}
 
 
 def summarize(episodes: list[RobotAttackEpisode]) -> dict:
