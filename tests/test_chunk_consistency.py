@@ -82,3 +82,29 @@ def test_calibration_file_round_trips_and_rejects_bad_values(tmp_path):
         StacCalibration(threshold=float("nan"))
     with pytest.raises(ValueError, match="alpha"):
         StacCalibration(threshold=0.1, alpha=0.7)
+
+
+def test_the_rollout_gate_watches_an_act_with_stac(tmp_path):
+    """``RolloutGate`` picks STAC for an ACT with a calibration beside it, and flags once the episode's
+    running maximum crosses the threshold; a calibration fitted at another chunk shift is refused."""
+    from lerobot_robot_suture.config_suture_sim import CAMERA, POSE_FEATURES
+    from lerobot_robot_suture.rollout_gate import RolloutGate
+
+    policy = tiny_act()
+    StacCalibration(threshold=1e-12, policy_type="act", n_action_steps=4).save(tmp_path)
+    gate = RolloutGate(policy, "auto", tmp_path, camera=None)
+    assert gate.kind == "stac"
+    observation = {**dict.fromkeys(POSE_FEATURES, 0.0), CAMERA: np.zeros((32, 32, 3), np.uint8)}
+    readings = []
+    with torch.inference_mode():
+        for step in range(9):
+            policy.select_action(batch(step))
+            readings.append(gate.read(observation))
+    assert [r.new_prediction for r in readings] == [True, False, False, False] * 2 + [True]
+    assert not readings[0].decision and readings[4].decision and readings[8].decision  # latched
+    gate.reset()
+    assert not gate.read(observation).decision
+    gate.close()
+    StacCalibration(threshold=0.1, policy_type="act", n_action_steps=2).save(tmp_path)
+    with pytest.raises(ValueError, match="n_action_steps"):
+        RolloutGate(tiny_act(), "stac", tmp_path)
