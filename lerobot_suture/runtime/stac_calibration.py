@@ -12,12 +12,13 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
+from lerobot_suture.runtime.config import PolicyCommandConfig
 from lerobot_suture.runtime.seeds import fresh_seeds
 from lerobot_suture.safety.ood.calibration import conformal_episode_threshold
 from lerobot_suture.safety.ood.chunk_consistency import (
@@ -33,33 +34,23 @@ SEED_OFFSET = 400_000
 
 
 @dataclass
-class StacPolicyConfig:
-    path: Path | None = None
-
-
-@dataclass
-class CalibrateStacConfig:
-    """``lerobot-suture calibrate-stac`` flags.
+class CalibrateStacConfig(PolicyCommandConfig):
+    """``lerobot-suture calibrate-stac`` flags, besides ``--policy.path`` (a chunking policy) and ``--device``.
 
     Args:
-        policy: ``--policy.path=DIR``, a ``lerobot-train`` ``pretrained_model`` directory of a chunking policy.
         calibration_episodes: nominal episodes the threshold is fitted on (>= 20 at alpha 0.05).
         holdout_episodes: further nominal episodes the false-alarm rate is measured on.
         alpha: per-episode false-alarm rate the threshold is set for, in (0, 0.5).
         bandwidth: STAC's kernel bandwidth per dimension (normalized action units, > 0).
-        device: torch device.
     """
 
-    policy: StacPolicyConfig = field(default_factory=StacPolicyConfig)
     calibration_episodes: int = 100
     holdout_episodes: int = 20
     alpha: float = 0.05
     bandwidth: float = 0.5
-    device: str = "cpu"
 
     def __post_init__(self):
-        if self.policy.path is None:
-            raise ValueError("`--policy.path` is required: a trained policy's pretrained_model directory.")
+        super().__post_init__()
         if self.calibration_episodes < 1 or self.holdout_episodes < 0:
             raise ValueError(
                 f"`calibration_episodes` must be >= 1 and `holdout_episodes` >= 0. Got "
