@@ -51,7 +51,7 @@ reproduce: install
 	$(BIN)/lerobot-suture reproduce
 
 bench: install
-	for b in benchmarks/*.py; do echo "== $$b"; $(BIN)/python $$b; done
+	for b in benchmarks/[!_]*.py; do echo "== $$b"; $(BIN)/python $$b; done
 
 lint: install
 	$(BIN)/ruff check lerobot_suture envs policies robots tests benchmarks

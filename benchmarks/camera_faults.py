@@ -22,7 +22,6 @@ Ctrl-C stops early and still prints what was finished.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -32,6 +31,7 @@ from pathlib import Path
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 import numpy as np  # noqa: E402
+from _report import emit, machine  # noqa: E402
 from lerobot_robot_suture.faults import POSE_KEYS, FaultConfig, FaultInjector  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
@@ -175,12 +175,8 @@ def main() -> None:
         e.seed for e in episodes if e.frozen_delay is None or not 0 <= e.frozen_delay <= WITHIN_STEPS
     ]
     report["wall_s"] = round(time.perf_counter() - start, 1)
-    report["machine"] = {"cpu_count": os.cpu_count(), "load_average_1min": round(os.getloadavg()[0], 2)}
-    text = json.dumps(report, indent=2)
-    print(text)
-    if args.output is not None:
-        args.output.parent.mkdir(parents=True, exist_ok=True)
-        args.output.write_text(text + "\n")
+    report["machine"] = machine()
+    emit(report, args.output)
 
 
 if __name__ == "__main__":

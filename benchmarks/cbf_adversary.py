@@ -16,7 +16,6 @@ Ctrl-C stops early and still prints what was finished.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import tempfile
@@ -26,6 +25,7 @@ from pathlib import Path
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 import numpy as np  # noqa: E402
+from _report import emit, machine  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from lerobot_suture.experiments.cbf_attacks import (  # noqa: E402
@@ -34,6 +34,7 @@ from lerobot_suture.experiments.cbf_attacks import (  # noqa: E402
     AttackEpisode,
     run_attack_episode,
     run_policy_attack_episode,
+    summarize_attacks,
 )
 from lerobot_suture.safety.cbf_config import CBFConfig  # noqa: E402
 
@@ -62,20 +63,9 @@ def quantiles_mm(values: list[float]) -> dict[str, float]:
 
 
 def summarize(episodes: list[AttackEpisode], config: CBFConfig) -> dict:
-    active = sum(e.active_steps for e in episodes)
-    h_mins = [e.h_min for e in episodes if np.isfinite(e.h_min)]
     times = [t for e in episodes for t in e.filter_times if np.isfinite(t)]
     return {
-        "episodes": len(episodes),
-        "episodes_active": sum(e.active_steps > 0 for e in episodes),
-        "active_steps": active,
-        "attack_steps": sum(e.attack_steps for e in episodes),
-        "violations": {
-            "episodes": sum(e.violation_steps > 0 for e in episodes),
-            "physics_steps": sum(e.violation_steps for e in episodes),
-        },
-        "h_min": round(min(h_mins), 5) if h_mins else None,
-        "intervention_rate": round(sum(e.interventions for e in episodes) / active, 4) if active else None,
+        **summarize_attacks(episodes),
         "tracking_error_mm": quantiles_mm([x for e in episodes for x in e.tracking_errors]),
         "segment_deviation_mm": quantiles_mm([x for e in episodes for x in e.segment_deviations]),
         "margin_mm": config.margin * 1e3,
@@ -138,12 +128,8 @@ def main() -> None:
     )
     report["policy_scenario"] = args.scenario
     report["wall_s"] = round(time.perf_counter() - start, 1)
-    report["machine"] = {"cpu_count": os.cpu_count(), "load_average_1min": round(os.getloadavg()[0], 2)}
-    text = json.dumps(report, indent=2)
-    print(text)
-    if args.output is not None:
-        args.output.parent.mkdir(parents=True, exist_ok=True)
-        args.output.write_text(text + "\n")
+    report["machine"] = machine()
+    emit(report, args.output)
 
 
 if __name__ == "__main__":

@@ -20,7 +20,6 @@ Ctrl-C stops early and still prints what was finished.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -28,11 +27,12 @@ from pathlib import Path
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
+from _report import emit, machine  # noqa: E402
 from lerobot_robot_suture.attacks import RobotAttackEpisode, make_robot_path, run_robot_attack_episode  # noqa: E402
 from lerobot_robot_suture.faults import FaultConfig  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from lerobot_suture.experiments.cbf_attacks import FAMILIES  # noqa: E402
+from lerobot_suture.experiments.cbf_attacks import FAMILIES, summarize_attacks  # noqa: E402
 
 BAR_EPISODES = 1000
 BAR_BLOCKS = {
@@ -41,23 +41,6 @@ BAR_BLOCKS = {
     "command_latency_3": {"command_latency": 3},
 }
 LAG_BLOCKS = {"arm_lag_0.2": {"arm_lag": 0.2}}
-
-
-def summarize(episodes: list[RobotAttackEpisode]) -> dict:
-    active = sum(e.active_steps for e in episodes)
-    h_mins = [e.h_min for e in episodes if e.h_min == e.h_min]
-    return {
-        "episodes": len(episodes),
-        "episodes_active": sum(e.active_steps > 0 for e in episodes),
-        "active_steps": active,
-        "attack_steps": sum(e.attack_steps for e in episodes),
-        "violations": {
-            "episodes": sum(e.violation_steps > 0 for e in episodes),
-            "physics_steps": sum(e.violation_steps for e in episodes),
-        },
-        "h_min": round(min(h_mins), 5) if h_mins else None,
-        "intervention_rate": round(sum(e.interventions for e in episodes) / active, 4) if active else None,
-    }
 
 
 def run_block(faults: dict, seeds: range, attack_steps: int, episodes: list, progress: tqdm) -> None:
@@ -94,10 +77,10 @@ def main() -> None:
             run_block(faults, seeds, args.attack_steps, episodes, progress)
         except KeyboardInterrupt:
             print(f"interrupted in block {name}", file=sys.stderr)
-            report["blocks"][name] = {"faults": faults, **summarize(episodes), "interrupted": True}
+            report["blocks"][name] = {"faults": faults, **summarize_attacks(episodes), "interrupted": True}
             break
-        block = {"faults": faults, **summarize(episodes)}
-        block["families"] = {f: summarize([e for e in episodes if e.family == f]) for f in FAMILIES}
+        block = {"faults": faults, **summarize_attacks(episodes)}
+        block["families"] = {f: summarize_attacks([e for e in episodes if e.family == f]) for f in FAMILIES}
         if name in BAR_BLOCKS:
             block["bar"] = {
                 "episodes_min": BAR_EPISODES,
@@ -108,12 +91,8 @@ def main() -> None:
     bar_blocks = [b for n, b in report["blocks"].items() if n in BAR_BLOCKS]
     report["bar_pass"] = len(bar_blocks) == len(BAR_BLOCKS) and all(b["bar"]["pass"] for b in bar_blocks)
     report["wall_s"] = round(time.perf_counter() - start, 1)
-    report["machine"] = {"cpu_count": os.cpu_count(), "load_average_1min": round(os.getloadavg()[0], 2)}
-    text = json.dumps(report, indent=2)
-    print(text)
-    if args.output is not None:
-        args.output.parent.mkdir(parents=True, exist_ok=True)
-        args.output.write_text(text + "\n")
+    report["machine"] = machine()
+    emit(report, args.output)
 
 
 if __name__ == "__main__":

@@ -17,7 +17,6 @@ path. Bar: handovers within 2 control steps of each other. Prints one JSON objec
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import subprocess
 import sys
@@ -28,6 +27,7 @@ from pathlib import Path
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 import numpy as np  # noqa: E402
+from _report import emit  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from lerobot_suture.experiments.metrics import wilson_interval  # noqa: E402
@@ -145,11 +145,7 @@ def main() -> None:
     }
     report["tolerance_steps"] = TOLERANCE_STEPS
     report["wall_s"] = round(time.perf_counter() - start, 1)
-    text = json.dumps(report, indent=2)
-    print(text)
-    if args.output is not None:
-        args.output.parent.mkdir(parents=True, exist_ok=True)
-        args.output.write_text(text + "\n")
+    emit(report, args.output)
 
 
 if __name__ == "__main__":

@@ -13,7 +13,6 @@ episodes whose maximum crosses the calibrated threshold. Bars: AUROC >= 0.9 on `
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -22,6 +21,7 @@ from pathlib import Path
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 import numpy as np  # noqa: E402
+from _report import emit  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from lerobot_suture.experiments.metrics import auroc, auroc_interval, wilson_interval  # noqa: E402
@@ -106,11 +106,7 @@ def main() -> None:
         ),
     }
     report["wall_s"] = round(time.perf_counter() - start, 1)
-    text = json.dumps(report, indent=2)
-    print(text)
-    if args.output is not None:
-        args.output.parent.mkdir(parents=True, exist_ok=True)
-        args.output.write_text(text + "\n")
+    emit(report, args.output)
 
 
 if __name__ == "__main__":

@@ -179,6 +179,25 @@ class AttackEpisode:
         self.filter_times.append(float(info["cbf_filter_time"]))
 
 
+def summarize_attacks(episodes) -> dict:
+    """The counts every attack benchmark reports, over episodes with ``active_steps``, ``attack_steps``,
+    ``violation_steps``, ``h_min`` and ``interventions`` (:class:`AttackEpisode`, or the robot path's)."""
+    active = sum(e.active_steps for e in episodes)
+    h_mins = [e.h_min for e in episodes if np.isfinite(e.h_min)]
+    return {
+        "episodes": len(episodes),
+        "episodes_active": sum(e.active_steps > 0 for e in episodes),
+        "active_steps": active,
+        "attack_steps": sum(e.attack_steps for e in episodes),
+        "violations": {
+            "episodes": sum(e.violation_steps > 0 for e in episodes),
+            "physics_steps": sum(e.violation_steps for e in episodes),
+        },
+        "h_min": round(min(h_mins), 5) if h_mins else None,
+        "intervention_rate": round(sum(e.interventions for e in episodes) / active, 4) if active else None,
+    }
+
+
 def lead_in(env: CBFActionWrapper, seed: int, start_delay: int, episode: AttackEpisode, max_steps: int = 100):
     """Reset and run the expert until the filter has been active for ``start_delay`` control steps.
 
