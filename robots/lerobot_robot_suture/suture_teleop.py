@@ -37,17 +37,13 @@ def load_script(path: Path) -> dict:
     return {int(step): held for step, held in script.items()}
 
 
-class _SurgeonTeleop(Teleoperator):
-    """A surgeon of ``lerobot_suture.surgeon.surgeons`` as a LeRobot teleoperator of target poses."""
+class _ArmTeleop(Teleoperator):
+    """A teleoperator of ``suture_sim`` target poses: the pose features, no calibration or feedback, and the rule
+    for when it takes control of the arm connected in its process."""
 
     def __init__(self, config):
         super().__init__(config)
         self.config = config
-        self.surgeon = None
-        self.script = None
-        self.step = 0
-        """``get_action`` calls so far: the control step a script is read at."""
-        self.last_events: dict = {}
         self._anchor: tuple | None = None
         self._commanded_at = 0
 
@@ -58,10 +54,6 @@ class _SurgeonTeleop(Teleoperator):
     @cached_property
     def feedback_features(self) -> dict:
         return {}
-
-    @property
-    def is_connected(self) -> bool:
-        return self.surgeon is not None and self.surgeon.teleop.is_connected
 
     @property
     def is_calibrated(self) -> bool:
@@ -76,17 +68,38 @@ class _SurgeonTeleop(Teleoperator):
     def send_feedback(self, feedback: dict[str, Any]) -> None:
         pass
 
+    def _takes_control(self, robot) -> bool:
+        """Whether this command starts a new spell of control: the arm started a new scene, or executed more
+        than one step since this teleoperator's last command (someone else drove it). Call once per command."""
+        anchor = (id(robot), robot.scene_count)
+        # The arm executes at most one step per command; more since the last one: someone else drove it.
+        taking = anchor != self._anchor or robot.total_steps > self._commanded_at + 1
+        self._anchor = anchor
+        self._commanded_at = robot.total_steps
+        return taking
+
+
+class _SurgeonTeleop(_ArmTeleop):
+    """A surgeon of ``lerobot_suture.surgeon.surgeons`` as a LeRobot teleoperator of target poses."""
+
+    def __init__(self, config):
+        super().__init__(config)
+        self.surgeon = None
+        self.script = None
+        self.step = 0
+        """``get_action`` calls so far: the control step a script is read at."""
+        self.last_events: dict = {}
+
+    @property
+    def is_connected(self) -> bool:
+        return self.surgeon is not None and self.surgeon.teleop.is_connected
+
     def get_action(self) -> RobotAction:
         if self.surgeon is None:
             raise RuntimeError(f"{self} is not connected.")
         robot = link.connected_robot()
-        anchor = (id(robot), robot.scene_count)
-        # The arm executes at most one step per command; more since the last one: someone else drove it.
-        driven_by_others = robot.total_steps > self._commanded_at + 1
-        if anchor != self._anchor or driven_by_others:  # take control from the measured pose
+        if self._takes_control(robot):  # from the measured pose
             self.surgeon.take_control(None, {"agent_pos": robot.measured_pose()})
-            self._anchor = anchor
-        self._commanded_at = robot.total_steps
         if self.script is not None:
             self.script.before_poll(self.step)
         try:
@@ -176,7 +189,7 @@ class SutureGamepad(_SurgeonTeleop):
         self.surgeon = GamepadSurgeon(teleop, self.config.mapping)
 
 
-class SutureScripted(Teleoperator):
+class SutureScripted(_ArmTeleop):
     """The scripted surgeon stand-in: ``ScriptedExpert`` re-planned from the connected arm's simulator state
     whenever it takes control (a new scene, or the arm driven by someone else since its last command)."""
 
@@ -185,50 +198,23 @@ class SutureScripted(Teleoperator):
 
     def __init__(self, config: SutureScriptedConfig):
         super().__init__(config)
-        self.config = config
         self.expert = None
-        self._anchor: tuple | None = None
-        self._commanded_at = 0
-
-    @cached_property
-    def action_features(self) -> dict:
-        return dict.fromkeys(POSE_FEATURES, float)
-
-    @cached_property
-    def feedback_features(self) -> dict:
-        return {}
 
     @property
     def is_connected(self) -> bool:
         return self.expert is not None
-
-    @property
-    def is_calibrated(self) -> bool:
-        return True
 
     def connect(self, calibrate: bool = True) -> None:
         from lerobot_suture.expert import ScriptedExpert
 
         self.expert = ScriptedExpert()
 
-    def calibrate(self) -> None:
-        pass
-
-    def configure(self) -> None:
-        pass
-
-    def send_feedback(self, feedback: dict[str, Any]) -> None:
-        pass
-
     def get_action(self) -> RobotAction:
         if self.expert is None:
             raise RuntimeError(f"{self} is not connected.")
         robot = link.connected_robot()
-        anchor = (id(robot), robot.scene_count)
-        if anchor != self._anchor or robot.total_steps > self._commanded_at + 1:
+        if self._takes_control(robot):
             self.expert.reset(robot.env)
-            self._anchor = anchor
-        self._commanded_at = robot.total_steps
         target = self.expert.act(robot.env)
         return {name: float(value) for name, value in zip(POSE_FEATURES, target, strict=True)}
 
