@@ -78,13 +78,13 @@ class Wound:
         object.__setattr__(self, "entry_point", entry)
         object.__setattr__(self, "exit_point", exit_)
         object.__setattr__(self, "surface_normal", normal / np.linalg.norm(normal))
-        suture_ellipsoid_frame(
-            entry, exit_, normal
-        )  # raises when entry and exit are not apart on the surface
+        # Computed once (it raises when entry and exit are not apart on the surface): the guard and the
+        # env wrapper read it several times per control step.
+        object.__setattr__(self, "_frame", suture_ellipsoid_frame(entry, exit_, normal))
 
     def ellipsoid_frame(self) -> tuple[np.ndarray, np.ndarray]:
         """(centre (3,) m, world-from-ellipsoid rotation (3, 3)) of the throw's safe set."""
-        return suture_ellipsoid_frame(self.entry_point, self.exit_point, self.surface_normal)
+        return self._frame
 
     def depth(self, points: np.ndarray) -> np.ndarray:
         """Depth (m) of ``points`` (..., 3) below the tissue surface plane (negative above it)."""
