@@ -54,6 +54,10 @@ SUBCOMMANDS = {
         "lerobot_suture.commands.reproduce",
         "record, train, calibrate and run the experiments of a recipe (reference, robust, two_sided)",
     ),
+    "leaderboard": (
+        "lerobot_suture.commands.leaderboard",
+        "rank LeRobot's ACT and diffusion and the ensemble on every task, 50 episodes a cell; add your own",
+    ),
     "dagger": (
         "lerobot_suture.commands.dagger",
         "learn from the surgeon in rounds: uncertainty-gated DAgger beside ungated DAgger and plain BC",

@@ -191,7 +191,7 @@ class _GateThatReleasesMidThrow:
         self.policy = self
         self.reset()
 
-    def reset(self) -> None:
+    def reset(self, seeds=None) -> None:
         self.expert, self.in_tissue_steps, self.off_steps, self.released = ScriptedExpert(), 0, 0, False
         self.expert.reset(self.env)
 

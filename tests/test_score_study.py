@@ -80,7 +80,7 @@ class _StubRunner:
         self.policy = _StubPolicy()
         self.gate = GateMode.REPORT
 
-    def reset(self):
+    def reset(self, seeds=None):
         self.policy.calls = 0
 
     def act_batch(self, observations):

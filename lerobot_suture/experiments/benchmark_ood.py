@@ -169,9 +169,9 @@ class CapturingRunner:
         self._calls = 0
         self.batches: list[list[tuple[int, dict[str, np.ndarray]]]] = []
 
-    def reset(self) -> None:
+    def reset(self, seeds=None) -> None:
         self._close_batch()
-        self.runner.reset()
+        self.runner.reset(seeds=seeds)
 
     def act_batch(self, observations: list[dict]) -> np.ndarray:
         actions = self.runner.act_batch(observations)

@@ -103,9 +103,9 @@ class RescoringRunner:
         self._calls: list[np.ndarray] = []  # per act_batch call: (B, C)
         self.batches: list[np.ndarray] = []  # per rollout batch: (calls, B, C)
 
-    def reset(self) -> None:
+    def reset(self, seeds=None) -> None:
         self._close_batch()
-        self.runner.reset()
+        self.runner.reset(seeds=seeds)
 
     def act_batch(self, observations: list[dict]) -> np.ndarray:
         actions = self.runner.act_batch(observations)

@@ -37,8 +37,8 @@ class PolicyCommandConfig:
 @dataclass
 class RolloutCommandConfig(PolicyCommandConfig):
     """Args:
-    batch_envs: envs run in lockstep with one batched policy call per control step, >= 1 (the same seeds
-        and ``batch_envs`` give the same episodes).
+    batch_envs: envs run in lockstep with one batched policy call per control step, >= 1 (a seed gives
+        the same episode at any ``batch_envs``: each episode's noise comes from its own seed).
     """
 
     batch_envs: int = 8

@@ -8,6 +8,7 @@ postprocessor).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from enum import Enum
 from pathlib import Path
 
@@ -99,6 +100,13 @@ class PolicyRunner:
     The runner owns the gate's mode: it is applied to the policy before every call, so two runners
     sharing one policy (:meth:`with_gate`) each act in their own mode. A policy without a gate (any
     other LeRobot policy) ignores it.
+
+    Episode noise: after ``reset(seeds=...)`` the diffusion noise of batch row i comes from its own
+    generator, seeded with ``seeds[i]``, and is handed to ``select_action(batch, noise)`` at every call
+    (a policy that predicts no chunk at that call ignores it). An episode's noise then depends on its seed
+    alone, not on which other episodes share its batch: the same seed gives the same episode at any
+    ``batch_envs``. Policies with a deterministic scheduler's noise only (DDIM) are covered; ACT samples
+    nothing at inference.
     """
 
     def __init__(self, policy, preprocessor, postprocessor, gate: GateMode):
@@ -108,6 +116,8 @@ class PolicyRunner:
         self.preprocessor = preprocessor
         self.postprocessor = postprocessor
         self.gate = gate
+        self._generators: list[torch.Generator] | None = None
+        self._noise_shape = noise_shape(policy.config)
         self._apply_gate()
 
     @classmethod
@@ -135,11 +145,27 @@ class PolicyRunner:
         if ood is not None:
             ood.enforce = self.gate is GateMode.ENFORCE
 
-    def reset(self) -> None:
+    def reset(self, seeds: Sequence[int] | None = None) -> None:
+        """Start new episodes; with ``seeds`` (one per batch row), each row's noise from its own seed."""
         self._apply_gate()
         self.policy.reset()
         for pipeline in (self.preprocessor, self.postprocessor):
             pipeline.reset()
+        self._generators = None
+        if seeds is not None and self._noise_shape is not None:
+            self._generators = [torch.Generator().manual_seed(int(seed)) for seed in seeds]
+
+    def _episode_noise(self, batch_size: int) -> torch.Tensor | None:
+        """(B, *noise_shape) noise, row i from episode i's generator; None without seeded episodes."""
+        if self._generators is None:
+            return None
+        if batch_size != len(self._generators):
+            raise ValueError(
+                f"The runner was reset with {len(self._generators)} episode seeds but got {batch_size} "
+                "observations: call reset(seeds=...) with one seed per env of the batch."
+            )
+        noise = torch.stack([torch.randn(self._noise_shape, generator=g) for g in self._generators])
+        return noise.to(next(self.policy.parameters()).device)
 
     def act(self, observation: dict) -> np.ndarray:
         """(10,) float32: the action for one env's observation."""
@@ -157,10 +183,28 @@ class PolicyRunner:
         """(B, 10) float32: the actions for B envs' observations, in one policy call (row i is env i)."""
         batch = self.preprocess(observations)
         self._apply_gate()
+        noise = self._episode_noise(len(observations))
         with torch.inference_mode():
-            action = self.policy.select_action(batch)
+            action = self.policy.select_action(batch, *(() if noise is None else (noise,)))
         action = self.postprocessor(action)
         return action.to("cpu").numpy().astype(np.float32)
+
+
+def noise_shape(config) -> tuple[int, ...] | None:
+    """The per-row shape of the initial diffusion noise ``select_action(batch, noise)`` takes, or None for
+    a policy that takes none (ACT, and schedulers that draw noise at every step: DDPM).
+
+    ``ensemble_diffusion``: (members, samples per member, horizon, action dim); LeRobot's ``diffusion``:
+    (horizon, action dim).
+    """
+    if getattr(config, "noise_scheduler_type", None) != "DDIM":
+        return None
+    action_dim = config.action_feature.shape[0]
+    if config.type == "ensemble_diffusion":
+        return (config.n_members, config.uncertainty_samples_per_member, config.horizon, action_dim)
+    if config.type == "diffusion":
+        return (config.horizon, action_dim)
+    return None
 
 
 def reporting_runner(

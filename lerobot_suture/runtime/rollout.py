@@ -135,8 +135,8 @@ def rollout_episodes(
     per control step (much cheaper per episode than one call each), one O.O.D. gate per env.
 
     An env whose episode has ended is not stepped again; its last observation keeps its row of the
-    batch. The diffusion noise is seeded from ``seeds[0]``, so the same seeds in the same batches give
-    the same episodes.
+    batch. Each episode's diffusion noise comes from its own seed (:class:`PolicyRunner`), so a seed gives
+    the same episode in any batch; torch's global RNG is seeded from ``seeds[0]`` for anything else.
     """
     if surgeon not in SURGEONS:
         raise ValueError(f"`surgeon` must be one of {SURGEONS}. Got {surgeon!r}.")
@@ -149,7 +149,7 @@ def rollout_episodes(
         max_steps = spec.max_episode_steps if spec and spec.max_episode_steps else MAX_EPISODE_STEPS
     torch.manual_seed(int(seeds[0]))
     observations = [env.reset(seed=int(seed))[0] for env, seed in zip(envs, seeds, strict=True)]
-    runner.reset()
+    runner.reset(seeds=[int(seed) for seed in seeds])
     n = len(envs)
     experts = [ScriptedExpert() for _ in range(n)]
     logs = [
@@ -170,7 +170,7 @@ def rollout_episodes(
                 continue
             if log.handover_step is None:
                 action, controller = actions[i], POLICY
-                statuses[i] = runner.policy.ood_status(i)
+                statuses[i] = gate_status(runner.policy, i)
                 if statuses[i]["released"]:
                     log.handover_step = len(log.steps)
                     held[i] = action  # the policy's hold action at the release
@@ -228,6 +228,20 @@ def rollout_seeds(
         for env in envs:
             env.close()
     return logs
+
+
+def gate_status(policy, row: int) -> dict:
+    """The O.O.D. gate's status for batch row ``row`` (``ood_status``); a policy without a gate (ACT,
+    LeRobot's diffusion) reports NaN scores and never decides O.O.D. or releases control."""
+    if hasattr(policy, "ood_status"):
+        return policy.ood_status(row)
+    return {
+        "score": math.nan,
+        "threshold": math.nan,
+        "decision": False,
+        "released": False,
+        "new_prediction": False,
+    }
 
 
 def _step_log(status: dict, controller: str, info: dict) -> StepLog:

@@ -1,0 +1,16 @@
+"""``lerobot-suture leaderboard``: LeRobot's ACT and diffusion and the ensemble on every task, fifty
+episodes a cell (:mod:`lerobot_suture.pipelines.leaderboard` says what runs); ``--policy.path=DIR`` adds a
+user's checkpoint to the board."""
+
+from __future__ import annotations
+
+import draccus
+
+from lerobot_suture.pipelines.leaderboard import LeaderboardConfig, run_leaderboard
+
+
+def main(argv: list[str] | None = None) -> None:
+    cfg = draccus.parse(config_class=LeaderboardConfig, args=argv, exit_on_error=False)
+    run_leaderboard(cfg)
+    print((cfg.results_dir / "leaderboard.md").read_text())
+    print(f"leaderboard.json, leaderboard.md and leaderboard.png in {cfg.results_dir}.")

@@ -1,0 +1,183 @@
+"""The leaderboard's cells: one policy on one task under one condition, its summary, the table and the figure.
+
+A cell is ``episodes`` closed-loop episodes on the cell's own test seeds (the same seeds for every policy),
+with the CBF filtering every action at the env step and the policy's O.O.D. gate, when it has one,
+reporting (it never stops a run: the success rate is the policy's own). A condition is ``nominal``, one of
+the task's perturbation scenarios, or a distribution shift (``shift:NAME@MAGNITUDE``) in the nominal scene.
+
+Its summary holds the success rate with its 95% Wilson interval, what the gate did (episodes with an
+O.O.D. decision: false alarms on ``nominal``, detections under a perturbation) and what the CBF did
+(steps it was active on, the share of those it changed the action, episodes whose needle tip left the safe
+set at any physics step, the smallest barrier value).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from lerobot_suture.experiments.metrics import wilson_interval
+from lerobot_suture.runtime.rollout import EpisodeLog, make_scenario_env, rollout_seeds
+from lerobot_suture.runtime.seeds import episode_seeds
+from lerobot_suture.safety.cbf_config import CBFConfig
+from lerobot_suture.sim.shifts import SHIFTS, Shift
+from lerobot_suture.sim.tasks import TASK_NAMES, task_spec
+
+SHIFT_PREFIX = "shift:"
+SHIFT_SEED_GROUP = 100
+"""Test-seed group of the first shift condition (the scenarios take groups 0 onwards)."""
+
+
+def conditions(task: str, shifts: Sequence[str]) -> list[str]:
+    """A task's conditions: its scenarios (``nominal`` first), then ``shift:LABEL`` for each shift."""
+    spec = task_spec(task)
+    return list(spec.scenarios) + [SHIFT_PREFIX + Shift.parse(s).label for s in shifts]
+
+
+def condition_seeds(base: int, task: str, condition: str, n: int) -> list[int]:
+    """The test seeds of one condition: the same for every policy, disjoint across tasks and conditions."""
+    spec = task_spec(task)
+    if condition.startswith(SHIFT_PREFIX):
+        group = SHIFT_SEED_GROUP + _shift_index(condition)
+    else:
+        group = spec.scenarios.index(condition)
+    return episode_seeds(base + TASK_NAMES.index(task) * 1000 * 10_000, group, n)
+
+
+def _shift_index(condition: str) -> int:
+    return SHIFTS.index(Shift.parse(condition[len(SHIFT_PREFIX) :]).name)
+
+
+def run_cell(
+    runner, env_kwargs: dict, task: str, condition: str, seeds: Sequence[int], batch_envs: int
+) -> dict:
+    """Roll ``runner`` out on ``seeds`` under ``condition`` of ``task``; returns the cell's summary."""
+    scenario, shift = condition, None
+    if condition.startswith(SHIFT_PREFIX):
+        scenario, shift = "nominal", Shift.parse(condition[len(SHIFT_PREFIX) :])
+    kwargs = {**env_kwargs, "task": task}
+    start = time.perf_counter()
+    logs = rollout_seeds(
+        lambda: make_scenario_env(kwargs, scenario, CBFConfig(enabled=True), trace=True, shift=shift),
+        runner,
+        seeds,
+        batch_envs,
+        desc=f"{task}, {condition}",
+    )
+    return summarize_cell(logs, time.perf_counter() - start)
+
+
+def summarize_cell(logs: Sequence[EpisodeLog], seconds: float) -> dict:
+    """A cell's figures from its episodes (see the module docstring)."""
+    n = len(logs)
+    successes = sum(log.success for log in logs)
+    low, high = wilson_interval(successes, n)
+    has_gate = any(not math.isnan(s.score) for log in logs for s in log.steps)
+    flagged = [log for log in logs if log.first_alarm_step is not None]
+    active = [s for log in logs for s in log.steps if s.cbf_active]
+    h_mins = [log.h_min_physics for log in logs if not math.isnan(log.h_min_physics)]
+    return {
+        "episodes": n,
+        "successes": int(successes),
+        "success_rate": successes / n if n else math.nan,
+        "success_interval": [low, high],
+        "gate": {
+            "flagged": len(flagged),
+            "flagged_rate": len(flagged) / n if n else math.nan,
+            "flagged_failures": sum(not log.success for log in flagged),
+            "failures": n - int(successes),
+        }
+        if has_gate
+        else None,
+        "cbf": {
+            "active_steps": len(active),
+            "intervention_rate": float(np.mean([s.cbf_intervened for s in active])) if active else 0.0,
+            "violating_episodes": int(sum(h < 0 for h in h_mins)),
+            "h_min": float(min(h_mins)) if h_mins else None,
+        },
+        "mean_steps": float(np.mean([len(log.steps) for log in logs])) if logs else math.nan,
+        "seconds": round(seconds, 1),
+        "per_episode": [[log.seed, bool(log.success), len(log.steps), log.first_alarm_step] for log in logs],
+    }
+
+
+def _percent(x: float) -> str:
+    return "n/a" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{100 * x:.0f}"
+
+
+def render(board: dict) -> str:
+    """The leaderboard as markdown: per task, success % [95% interval] of each policy under each condition,
+    then the gate's and the CBF's rows."""
+    lines = [
+        "# Leaderboard",
+        "",
+        f"{board['episodes']} episodes a cell, the same test seeds for every policy; the CBF filters every "
+        "action; gates report and never stop a run. Success % [95% Wilson interval]; `gate` is the share of "
+        "episodes the policy's O.O.D. gate flagged (false alarms on nominal); `CBF` is the share of its "
+        "active steps the filter changed and the episodes that left the safe set.",
+        "",
+    ]
+    for task, rows in board["tasks"].items():
+        policies = list(rows)
+        conds = list(next(iter(rows.values())).keys()) if rows else []
+        lines += [f"## {task}", "", "| condition | " + " | ".join(policies) + " |"]
+        lines.append("|---|" + "---|" * len(policies))
+        for cond in conds:
+            cells = []
+            for policy in policies:
+                cell = rows[policy].get(cond)
+                if cell is None:
+                    cells.append("-")
+                    continue
+                low, high = cell["success_interval"]
+                text = f"{_percent(cell['success_rate'])} [{_percent(low)}, {_percent(high)}]"
+                if cell["gate"] is not None:
+                    text += f", gate {_percent(cell['gate']['flagged_rate'])}"
+                cbf = cell["cbf"]
+                text += f", CBF {_percent(cbf['intervention_rate'])} / {cbf['violating_episodes']}"
+                cells.append(text)
+            lines.append(f"| {cond} | " + " | ".join(cells) + " |")
+        lines.append("")
+    if board.get("timings"):
+        lines += ["## Time (2 cores unless noted)", "", "| stage | seconds |", "|---|---|"]
+        lines += [f"| {k} | {v:.0f} |" for k, v in board["timings"].items()]
+        lines.append("")
+    return "\n".join(lines)
+
+
+def plot(board: dict, path: Path) -> Path:
+    """Success rate with its 95% interval, per condition, one bar per policy; one panel per task."""
+    tasks = [t for t, rows in board["tasks"].items() if rows]
+    fig = Figure(figsize=(12, 3.2 * max(1, len(tasks))), constrained_layout=True)
+    FigureCanvasAgg(fig)
+    for k, task in enumerate(tasks):
+        ax = fig.add_subplot(len(tasks), 1, k + 1)
+        rows = board["tasks"][task]
+        policies = list(rows)
+        conds = list(dict.fromkeys(c for r in rows.values() for c in r))  # the order they ran in
+        width = 0.8 / max(1, len(policies))
+        for j, policy in enumerate(policies):
+            x = np.arange(len(conds)) + (j - (len(policies) - 1) / 2) * width
+            cells = [rows[policy].get(c) for c in conds]
+            rate = np.array([c["success_rate"] if c else np.nan for c in cells])
+            low = np.array([c["success_interval"][0] if c else np.nan for c in cells])
+            high = np.array([c["success_interval"][1] if c else np.nan for c in cells])
+            ax.bar(x, rate, width, label=policy)
+            ax.errorbar(
+                x, rate, yerr=[rate - low, high - rate], fmt="none", ecolor="black", capsize=2, lw=0.8
+            )
+        ax.set_xticks(np.arange(len(conds)))
+        ax.set_xticklabels([c.removeprefix(SHIFT_PREFIX) for c in conds], rotation=35, ha="right", fontsize=8)
+        ax.set_ylim(0, 1.05)
+        ax.set_ylabel("success rate")
+        ax.set_title(f"{task}: {board['episodes']} episodes a cell, 95% Wilson intervals")
+        ax.legend(fontsize=8, ncol=len(policies))
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    return path

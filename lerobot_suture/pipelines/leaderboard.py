@@ -1,0 +1,261 @@
+"""``lerobot-suture leaderboard``: LeRobot's policies and the ensemble on every task, the same test seeds for all.
+
+For each task (``tasks.TASKS``) and each policy (:data:`POLICIES`: LeRobot's own ``act`` and ``diffusion``,
+and ``ensemble_diffusion``) it takes a trained checkpoint (``--checkpoints=TASK:POLICY=DIR``) or makes one
+from nothing: records the task's dataset recipe (:data:`TASK_RECIPES`) into ``output_dir/data``, trains the
+policy's CPU preset on it with the real ``lerobot-train`` (the same training episodes and the same number of
+steps for the three policies: the task's ensemble preset's), and calibrates the ensemble's gate. Then it
+evaluates every policy on every condition of its task (:mod:`lerobot_suture.experiments.leaderboard`) and
+writes ``leaderboard.json``, ``leaderboard.md`` and ``leaderboard.png`` into ``results_dir``.
+
+Every finished cell is written at once to ``output_dir/cells/TASK/POLICY/CONDITION.json`` and not run
+again: an interrupted run resumes where it stopped (with the same flags). Each stage's time lands in the
+board's ``timings``.
+
+A user's checkpoint joins with ``--policy.path=DIR --policy_name=NAME --tasks=[TASK]``: it is evaluated
+on the same cells and its row is added to the board already in ``results_dir`` (nothing is trained).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import draccus
+
+from lerobot_suture.experiments import leaderboard as cells
+from lerobot_suture.runtime.config import PolicyPathConfig
+from lerobot_suture.sim.shifts import MAGNITUDES, SHIFTS, Shift
+from lerobot_suture.sim.tasks import TASK_NAMES
+
+logger = logging.getLogger(__name__)
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+PRESETS = REPO_ROOT / "policies" / "presets"
+TASK_RECIPES = {
+    "insertion": (REPO_ROOT / "recipes" / "suture_expert_servo.yaml", PRESETS / "reference.json"),
+    "pickup": (REPO_ROOT / "recipes" / "suture_pickup.yaml", PRESETS / "pickup.json"),
+    "extraction": (REPO_ROOT / "recipes" / "suture_extraction.yaml", PRESETS / "extraction.json"),
+    "running_suture": (REPO_ROOT / "recipes" / "suture_running.yaml", PRESETS / "running_suture.json"),
+}
+"""Each task's dataset recipe and its ensemble preset (whose dataset episodes and steps every policy uses)."""
+POLICIES = ("act", "diffusion", "ensemble_diffusion")
+POLICY_PRESETS = {"act": PRESETS / "act.json", "diffusion": PRESETS / "diffusion.json"}
+"""LeRobot's own policies' CPU presets; ``ensemble_diffusion`` trains with the task's own preset."""
+CALIBRATE_CONFIG = PRESETS / "reference_calibrate.yaml"
+
+
+def default_shifts() -> list[str]:
+    """Every shift at its smaller magnitude (inside the randomized recipe's range where it has one)."""
+    return [Shift(name, MAGNITUDES[name][0]).label for name in SHIFTS]
+
+
+@dataclass
+class LeaderboardConfig:
+    """Args:
+    tasks: the tasks to rank on (default: every task of the env).
+    policies: which of :data:`POLICIES` to train or take.
+    checkpoints: ``TASK:POLICY=DIR`` trained checkpoints to take instead of training (e.g.
+        ``insertion:act=outputs/act/train/checkpoints/last/pretrained_model``).
+    policy: ``--policy.path=DIR``: a user's checkpoint to add to the board already in ``results_dir``
+        (only it is evaluated; nothing is trained).
+    policy_name: the row's name for ``--policy.path`` (default: the policy's type).
+    episodes: episodes a cell, >= 1 (50: the LIBERO protocol's count per task).
+    shifts: distribution shifts run in the nominal scene, ``NAME@MAGNITUDE`` (default: every shift at its
+        smaller magnitude); ``[]`` for the scenarios only.
+    seed: base of the test seeds (disjoint from recording, calibration and the other commands' seeds).
+    batch_envs: envs run in lockstep with one batched policy call, >= 1 (a seed gives the same episode at
+        any value).
+    output_dir: datasets, checkpoints and finished cells (resumable).
+    results_dir: where ``leaderboard.json``, ``leaderboard.md`` and ``leaderboard.png`` go.
+    device: torch device for calibration and evaluation (training takes the presets').
+    toy: the same pipeline at toy scale (4 recorded episodes, 4 training steps, 2 calibration episodes):
+        a smoke test whose figures mean nothing.
+    """
+
+    tasks: list[str] = field(default_factory=lambda: list(TASK_NAMES))
+    policies: list[str] = field(default_factory=lambda: list(POLICIES))
+    checkpoints: list[str] = field(default_factory=list)
+    policy: PolicyPathConfig = field(default_factory=PolicyPathConfig)
+    policy_name: str | None = None
+    episodes: int = 50
+    shifts: list[str] = field(default_factory=default_shifts)
+    seed: int = 7_000_000
+    batch_envs: int = 8
+    output_dir: Path = Path("outputs/leaderboard")
+    results_dir: Path = Path("docs/results/leaderboard")
+    device: str = "cpu"
+    toy: bool = False
+
+    def __post_init__(self):
+        unknown = sorted(set(self.tasks) - set(TASK_NAMES))
+        if unknown or not self.tasks:
+            raise ValueError(f"`tasks` must be a non-empty list of {list(TASK_NAMES)}. Got {self.tasks}.")
+        unknown = sorted(set(self.policies) - set(POLICIES))
+        if unknown:
+            raise ValueError(f"`policies` must be among {list(POLICIES)}. Got {unknown}.")
+        if self.episodes < 1 or self.batch_envs < 1:
+            raise ValueError(
+                f"`episodes` and `batch_envs` must be >= 1. Got {self.episodes}, {self.batch_envs}."
+            )
+        self.shifts = [Shift.parse(s).label for s in self.shifts]  # raises on an unknown shift
+        self.taken = parse_checkpoints(self.checkpoints)
+        if self.policy.path is not None and not (Path(self.policy.path) / "config.json").is_file():
+            raise FileNotFoundError(
+                f"No trained policy at {self.policy.path} (no config.json): pass the pretrained_model directory "
+                "of a lerobot-train checkpoint."
+            )
+
+
+def parse_checkpoints(entries: list[str]) -> dict[tuple[str, str], Path]:
+    """``TASK:POLICY=DIR`` entries as {(task, policy): DIR}; a ValueError names a malformed one."""
+    out = {}
+    for entry in entries:
+        key, sep, path = entry.partition("=")
+        task, colon, policy = key.partition(":")
+        if not (sep and colon and path) or task not in TASK_NAMES or policy not in POLICIES:
+            raise ValueError(
+                f"`checkpoints` entries are TASK:POLICY=DIR with TASK in {list(TASK_NAMES)} and POLICY in "
+                f"{list(POLICIES)}. Got {entry!r}."
+            )
+        if not (Path(path) / "config.json").is_file():
+            raise FileNotFoundError(f"`checkpoints` entry {entry!r}: no config.json in {path}.")
+        out[(task, policy)] = Path(path)
+    return out
+
+
+class _Timings(dict):
+    def timed(self, stage: str, fn, *args):
+        start = time.perf_counter()
+        try:
+            return fn(*args)
+        finally:
+            self[stage] = self.get(stage, 0.0) + time.perf_counter() - start
+
+
+def record_dataset(cfg: LeaderboardConfig, task: str) -> Path:
+    """The task's recipe recorded into ``output_dir/data/TASK`` (resumed when interrupted)."""
+    from lerobot_suture.datasets.record import record
+    from lerobot_suture.datasets.record_config import parse_config
+
+    root = cfg.output_dir / "data" / task
+    args = [
+        f"--config_path={TASK_RECIPES[task][0]}",
+        f"--root={root}",
+        f"--resume={str(root.exists()).lower()}",
+    ]
+    if cfg.toy:
+        args += ["--num_episodes=4", "--checkpoint_every=2"]
+    record(parse_config(args))
+    return root
+
+
+def train_policy(cfg: LeaderboardConfig, task: str, policy: str, dataset_root: Path) -> Path:
+    """``lerobot-train`` of ``policy``'s preset on the task's dataset (resumable); its pretrained directory."""
+    from lerobot_suture.datasets.split import train_episodes
+    from lerobot_suture.datasets.video import resolve_video_backend
+    from lerobot_suture.runtime.training import run_lerobot_train
+
+    task_preset = TASK_RECIPES[task][1]
+    reference = json.loads(task_preset.read_text())
+    preset = task_preset if policy == "ensemble_diffusion" else POLICY_PRESETS[policy]
+    steps = 4 if cfg.toy else int(reference["steps"])
+    episodes = train_episodes(dataset_root) if cfg.toy else reference["dataset"]["episodes"]
+    fresh = [
+        f"--config_path={preset}",
+        f"--dataset.repo_id={reference['dataset']['repo_id']}",
+        f"--dataset.episodes=[{','.join(str(e) for e in episodes)}]",
+        f"--job_name={task}_{policy}",
+    ]
+    if cfg.toy:
+        fresh += ["--batch_size=4", "--num_workers=0", "--log_freq=1"]
+    common = [
+        f"--dataset.root={dataset_root}",
+        f"--dataset.video_backend={resolve_video_backend()}",
+        f"--save_freq={2 if cfg.toy else reference['save_freq']}",
+    ]
+    return run_lerobot_train(cfg.output_dir / "train" / task / policy, fresh, steps, common)
+
+
+def calibrate_gate(cfg: LeaderboardConfig, policy_dir: Path, dataset_root: Path) -> None:
+    """The ensemble's O.O.D. gate calibrated on the task's validation seeds (kept when already there)."""
+    from lerobot_suture.runtime.calibration import CalibrateConfig, run_calibration
+    from lerobot_suture.safety.ood.calibration_file import CALIBRATION_FILENAME
+
+    if (policy_dir / CALIBRATION_FILENAME).is_file():
+        return
+    args = [f"--policy.path={policy_dir}", f"--dataset_root={dataset_root}", f"--device={cfg.device}"]
+    if cfg.toy:
+        args += [
+            "--calibration_episodes=2",
+            "--holdout_episodes=1",
+            "--mode=per_prediction",
+            "--batch_envs=2",
+        ]
+    run_calibration(draccus.parse(CalibrateConfig, config_path=CALIBRATE_CONFIG, args=args))
+
+
+def evaluate_row(cfg: LeaderboardConfig, task: str, name: str, policy_dir: Path) -> dict:
+    """Every condition of ``task`` for one policy; finished cells are read back, not run again."""
+    from lerobot_suture.runtime.policy import GateMode, PolicyRunner, env_kwargs_for_policy
+
+    row, runner, env_kwargs = {}, None, None
+    for condition in cells.conditions(task, cfg.shifts):
+        path = cfg.output_dir / "cells" / task / name / f"{condition.replace(':', '_')}.json"
+        if path.is_file():
+            row[condition] = json.loads(path.read_text())
+            continue
+        if runner is None:
+            runner = PolicyRunner.from_pretrained(policy_dir, GateMode.REPORT, cfg.device)
+            env_kwargs = env_kwargs_for_policy(runner.policy.config)
+        seeds = cells.condition_seeds(cfg.seed, task, condition, cfg.episodes)
+        cell = cells.run_cell(runner, env_kwargs, task, condition, seeds, cfg.batch_envs)
+        cell["policy_path"] = str(policy_dir)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(cell, indent=1))
+        tmp.replace(path)  # a cell is on disk whole or not at all
+        row[condition] = cell
+    return row
+
+
+def run_leaderboard(cfg: LeaderboardConfig) -> dict:
+    """Train or take every policy, evaluate every cell, write the board; returns it."""
+    results = Path(cfg.results_dir)
+    results.mkdir(parents=True, exist_ok=True)
+    board_file = results / "leaderboard.json"
+    board = json.loads(board_file.read_text()) if board_file.is_file() else {}
+    board.update(episodes=cfg.episodes, shifts=cfg.shifts, seed=cfg.seed)
+    board.setdefault("tasks", {})
+    timings = _Timings(board.get("timings", {}))
+    if cfg.policy.path is not None:  # a user's checkpoint joins the board
+        from lerobot.configs.policies import PreTrainedConfig
+
+        name = cfg.policy_name or PreTrainedConfig.from_pretrained(cfg.policy.path).type
+        for task in cfg.tasks:
+            row = timings.timed(
+                f"evaluate {task} {name}", evaluate_row, cfg, task, name, Path(cfg.policy.path)
+            )
+            board["tasks"].setdefault(task, {})[name] = row
+    else:
+        for task in cfg.tasks:
+            needs_data = any((task, p) not in cfg.taken for p in cfg.policies)
+            dataset_root = timings.timed(f"record {task}", record_dataset, cfg, task) if needs_data else None
+            for policy in cfg.policies:
+                policy_dir = cfg.taken.get((task, policy))
+                if policy_dir is None:
+                    policy_dir = timings.timed(
+                        f"train {task} {policy}", train_policy, cfg, task, policy, dataset_root
+                    )
+                if policy == "ensemble_diffusion" and dataset_root is not None:
+                    timings.timed(f"calibrate {task}", calibrate_gate, cfg, policy_dir, dataset_root)
+                row = timings.timed(f"evaluate {task} {policy}", evaluate_row, cfg, task, policy, policy_dir)
+                board["tasks"].setdefault(task, {})[policy] = row
+    board["timings"] = {k: round(v, 1) for k, v in timings.items()}
+    board_file.write_text(json.dumps(board, indent=1))
+    (results / "leaderboard.md").write_text(cells.render(board))
+    cells.plot(board, results / "leaderboard.png")
+    return board

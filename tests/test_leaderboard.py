@@ -1,0 +1,139 @@
+"""`lerobot-suture leaderboard`: cells, seeds, the board a user's checkpoint joins, and the whole pipeline."""
+
+import json
+import math
+
+import pytest
+from PIL import Image
+
+from lerobot_suture.cli import main as cli_main
+from lerobot_suture.experiments.leaderboard import condition_seeds, conditions, render, summarize_cell
+from lerobot_suture.pipelines.leaderboard import LeaderboardConfig, default_shifts, parse_checkpoints
+from lerobot_suture.runtime.rollout import EpisodeLog, StepLog
+from lerobot_suture.sim.shifts import SHIFTS
+from lerobot_suture.sim.tasks import TASK_NAMES
+
+
+def _step(score=math.nan, ood=False, active=False, intervened=False):
+    return StepLog(
+        score=score,
+        threshold=1.0,
+        ood=ood,
+        released=False,
+        new_prediction=True,
+        controller="policy",
+        perturbed=False,
+        needle_in_tissue=False,
+        cbf_active=active,
+        cbf_intervened=intervened,
+    )
+
+
+def test_cell_summary_counts_success_gate_and_cbf():
+    ok = EpisodeLog(seed=1, scenario="nominal", success=True, steps=[_step(0.1), _step(0.2, active=True)])
+    ok.h_min_physics = 0.3
+    flagged = EpisodeLog(
+        seed=2, scenario="nominal", steps=[_step(0.1, active=True, intervened=True), _step(2.0, ood=True)]
+    )
+    flagged.h_min_physics = -0.01
+    cell = summarize_cell([ok, flagged], seconds=1.0)
+    assert cell["episodes"] == 2 and cell["successes"] == 1 and cell["success_rate"] == 0.5
+    low, high = cell["success_interval"]
+    assert 0.0 < low < 0.5 < high < 1.0
+    assert cell["gate"] == {"flagged": 1, "flagged_rate": 0.5, "flagged_failures": 1, "failures": 1}
+    assert cell["cbf"]["active_steps"] == 2 and cell["cbf"]["intervention_rate"] == 0.5
+    assert cell["cbf"]["violating_episodes"] == 1 and cell["cbf"]["h_min"] == -0.01
+    assert cell["per_episode"] == [[1, True, 2, None], [2, False, 2, 1]]
+    # A policy without a gate (NaN scores) has no gate figures, not zero alarms.
+    assert summarize_cell([EpisodeLog(seed=3, scenario="nominal", steps=[_step()])], 1.0)["gate"] is None
+
+
+def test_conditions_and_seeds_are_shared_by_policies_and_disjoint_across_cells():
+    conds = conditions("insertion", ["dim_light@0.2", "action_delay@1"])
+    assert conds[0] == "nominal" and conds[-2:] == ["shift:dim_light@0.2", "shift:action_delay@1"]
+    seeds = {
+        (task, c): condition_seeds(7_000_000, task, c, 50)
+        for task in TASK_NAMES
+        for c in conditions(task, default_shifts())
+    }
+    flat = [s for group in seeds.values() for s in group]
+    assert len(flat) == len(set(flat))  # no seed serves two cells
+    assert condition_seeds(7_000_000, "insertion", "nominal", 50) == seeds[("insertion", "nominal")]
+    assert len(default_shifts()) == len(SHIFTS)
+
+
+@pytest.mark.parametrize(
+    ("args", "match"),
+    [
+        ({"tasks": ["knot_tying"]}, "tasks"),
+        ({"policies": ["pi0"]}, "policies"),
+        ({"episodes": 0}, "episodes"),
+        ({"shifts": ["fog@0.2"]}, "Unknown shift"),
+        ({"checkpoints": ["insertion=outputs/x"]}, "TASK:POLICY=DIR"),
+    ],
+)
+def test_bad_config_names_the_field(args, match):
+    with pytest.raises(ValueError, match=match):
+        LeaderboardConfig(**args)
+
+
+def test_checkpoint_entries_need_a_trained_policy(tmp_path):
+    with pytest.raises(FileNotFoundError, match="config.json"):
+        parse_checkpoints([f"insertion:act={tmp_path}"])
+    (tmp_path / "config.json").write_text("{}")
+    assert parse_checkpoints([f"insertion:act={tmp_path}"]) == {("insertion", "act"): tmp_path}
+
+
+def test_a_users_checkpoint_joins_the_board_and_finished_cells_are_kept(tiny_policy_dir, tmp_path, capsys):
+    results, work = tmp_path / "results", tmp_path / "work"
+    args = [
+        f"--policy.path={tiny_policy_dir}",
+        "--tasks=[insertion]",
+        "--episodes=1",
+        "--batch_envs=1",
+        "--shifts=[dim_light@0.2]",
+        f"--output_dir={work}",
+        f"--results_dir={results}",
+    ]
+    cli_main(["leaderboard", *args, "--policy_name=mine"])
+    board = json.loads((results / "leaderboard.json").read_text())
+    row = board["tasks"]["insertion"]["mine"]
+    assert list(row) == conditions("insertion", ["dim_light@0.2"])
+    assert all(cell["episodes"] == 1 for cell in row.values())
+    assert row["nominal"]["gate"] is not None  # the ensemble reports its gate
+    assert "| nominal |" in (results / "leaderboard.md").read_text()
+    with Image.open(results / "leaderboard.png") as image:
+        assert len(set(image.convert("L").getdata())) > 10  # not blank
+    assert "leaderboard.md" in capsys.readouterr().out
+
+    # Finished cells are read back, not run again; a second row joins beside the first.
+    cell_files = sorted((work / "cells").rglob("*.json"))
+    stamps = [f.stat().st_mtime_ns for f in cell_files]
+    cli_main(["leaderboard", *args, "--policy_name=theirs"])
+    assert [f.stat().st_mtime_ns for f in cell_files] == stamps
+    board = json.loads((results / "leaderboard.json").read_text())
+    assert set(board["tasks"]["insertion"]) == {"mine", "theirs"}
+    assert board["tasks"]["insertion"]["theirs"]["nominal"]["per_episode"] == row["nominal"]["per_episode"]
+    assert "| mine | theirs |" in render(board)
+
+
+@pytest.mark.slow
+def test_toy_leaderboard_trains_the_three_policies_and_ranks_them(tmp_path):
+    """The whole pipeline at toy scale: record, train LeRobot's ACT and diffusion and the ensemble with the
+    real lerobot-train, calibrate, evaluate."""
+    results = tmp_path / "results"
+    cli_main(
+        [
+            "leaderboard",
+            "--tasks=[insertion]",
+            "--toy=true",
+            "--episodes=1",
+            "--shifts=[]",
+            f"--output_dir={tmp_path / 'work'}",
+            f"--results_dir={results}",
+        ]
+    )
+    board = json.loads((results / "leaderboard.json").read_text())
+    assert set(board["tasks"]["insertion"]) == {"act", "diffusion", "ensemble_diffusion"}
+    assert board["tasks"]["insertion"]["act"]["nominal"]["gate"] is None
+    assert {"record insertion", "train insertion act", "evaluate insertion diffusion"} <= set(board["timings"])
