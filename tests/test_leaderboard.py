@@ -136,4 +136,6 @@ def test_toy_leaderboard_trains_the_three_policies_and_ranks_them(tmp_path):
     board = json.loads((results / "leaderboard.json").read_text())
     assert set(board["tasks"]["insertion"]) == {"act", "diffusion", "ensemble_diffusion"}
     assert board["tasks"]["insertion"]["act"]["nominal"]["gate"] is None
-    assert {"record insertion", "train insertion act", "evaluate insertion diffusion"} <= set(board["timings"])
+    assert {"record insertion", "train insertion act", "evaluate insertion diffusion"} <= set(
+        board["timings"]
+    )
