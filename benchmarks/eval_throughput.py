@@ -1,19 +1,25 @@
 """Closed-loop evaluation throughput of a trained policy: episodes per minute of `rollout_seeds` at several
-`batch_envs`, and whether every configuration gives the same episodes.
+`batch_envs` and `workers`, and whether every configuration gives the same episodes.
 
 Each configuration runs the same nominal test seeds (the CBF on, the gate reporting, as the experiments
-run). A seed's diffusion noise comes from the seed itself (`PolicyRunner`), so batching is an exact
-speed-up: the check compares every episode with the first configuration's (success, length, the step of
+run). A seed's diffusion noise comes from the seed itself (`PolicyRunner`), so batching and worker
+processes are exact speed-ups: the check compares every episode with the first configuration's (success, length, the step of
 the gate's first alarm, and the largest relative difference of its uncertainty scores, which float rounding
 in a batched GEMM may move by ~1e-6). Time it with nothing else running; prints JSON.
 
     python benchmarks/eval_throughput.py --policy-path outputs/.../pretrained_model [--episodes 16]
-        [--batch-envs 1 8 16] [--threads N] [--output FILE]
+        [--configs 1 8 8x2 16x2] [--output FILE]
+
+A configuration is BATCH_ENVS or BATCH_ENVSxWORKERS. In one process torch takes its default threads (all
+cores); each of W workers takes cores // W. Worker start-up (imports, loading the policy) is kept out of
+`seconds`, the rollouts' wall time once the workers are up: `warmup_seconds` is the first call (start-up plus
+one batch per worker).
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import math
 import os
 import time
@@ -67,30 +73,35 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--policy-path", type=Path, required=True)
     parser.add_argument("--episodes", type=int, default=16)
-    parser.add_argument("--batch-envs", type=int, nargs="+", default=[1, 8, 16])
-    parser.add_argument("--threads", type=int, default=torch.get_num_threads())
+    parser.add_argument("--configs", nargs="+", default=["1", "8", "8x2", "16x2"])
     parser.add_argument("--output", type=Path, default=None)
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
 
     runner = PolicyRunner.from_pretrained(args.policy_path, GateMode.REPORT)
     env_kwargs = env_kwargs_for_policy(runner.policy.config)
     seeds = episode_seeds(TEST_SEED, 0, args.episodes)
 
-    def make_env():
-        return make_scenario_env(env_kwargs, "nominal", CBFConfig(enabled=True))
-
+    make_env = functools.partial(make_scenario_env, env_kwargs, "nominal", CBFConfig(enabled=True))
     rollout_seeds(make_env, runner, seeds[:1], 1, desc="warm-up")
     rows, reference = [], None
-    for batch_envs in args.batch_envs:
+    for config in args.configs:
+        batch_envs, _, workers = config.partition("x")
+        batch_envs, workers = int(batch_envs), int(workers or 1)
+        warmup = 0.0
+        if workers > 1:  # start the pool (and its envs) on one batch per worker, timed apart
+            start = time.perf_counter()
+            rollout_seeds(make_env, runner, seeds[: batch_envs * workers], batch_envs, workers=workers)
+            warmup = time.perf_counter() - start
         start = time.perf_counter()
-        logs = rollout_seeds(make_env, runner, seeds, batch_envs, desc=f"batch_envs={batch_envs}")
+        logs = rollout_seeds(make_env, runner, seeds, batch_envs, desc=config, workers=workers)
         seconds = time.perf_counter() - start
         episodes = [episode_record(log) for log in logs]
         row = {
             "batch_envs": batch_envs,
+            "workers": workers,
             "episodes": len(logs),
             "seconds": round(seconds, 1),
+            "warmup_seconds": round(warmup, 1),
             "episodes_per_min": round(60.0 * len(logs) / seconds, 1),
             "success_rate": float(np.mean([e["success"] for e in episodes])),
             "mean_steps": float(np.mean([e["steps"] for e in episodes])),
@@ -108,7 +119,7 @@ def main() -> None:
             "benchmark": "eval_throughput",
             "policy_path": str(args.policy_path),
             "policy_type": runner.policy.config.type,
-            "torch_threads": args.threads,
+            "torch_threads_one_process": torch.get_num_threads(),
             "machine": machine(),
             "configurations": rows,
         },

@@ -182,6 +182,20 @@ def test_fused_conv_equals_member_convs(mode, kernel, stride, padding):
             torch.testing.assert_close(fused(x), expected, rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.parametrize("mode", ["gemm", "grouped"])
+def test_fused_transposed_conv_equals_member_convs(mode):
+    """The U-Net's upsampling (kernel 4, stride 2); on short inputs "gemm" mode runs its dense matrix."""
+    from lerobot_policy_ensemble_diffusion.fused_unet import FusedConv1d
+
+    convs = [torch.nn.ConvTranspose1d(4, 6, 4, 2, 1) for _ in range(3)]
+    fused = FusedConv1d(convs, mode)
+    for length in (1, 2, 3, 8):
+        x = torch.randn(2, 3 * 4, length)
+        with torch.no_grad():
+            expected = torch.cat([c(x[:, 4 * n : 4 * (n + 1)]) for n, c in enumerate(convs)], dim=1)
+            torch.testing.assert_close(fused(x), expected, rtol=1e-5, atol=1e-5)
+
+
 @pytest.mark.parametrize(("size", "stride"), [(4, 2), (3, 1), (5, 2), (6, 2), (4, 1)])  # 2x2, 3x3 x3, 4x4
 def test_small_map_gemm_equals_conv2d(size, stride):
     """ResNet's last stage at 64/72 px: 2x2/3x3 maps run as im2col + GEMM, larger maps as the conv."""

@@ -142,6 +142,24 @@ def test_a_seed_gives_the_same_episode_at_any_batch_size(tiny_policy_dir, tmp_pa
     assert not np.allclose(batched[0].scores, batched[1].scores)
 
 
+def test_worker_processes_give_the_same_episodes(tiny_policy_dir, tmp_path):
+    import functools
+
+    runner = _runner(tiny_policy_dir, tmp_path, threshold=1.0, enforce=False)
+    make_env = functools.partial(_env, runner, max_episode_steps=6)
+    local = rollout_seeds(make_env, runner, [5, 6, 7], batch_envs=1)
+    spread = rollout_seeds(make_env, runner, [5, 6, 7], batch_envs=1, workers=2)
+    assert [log.seed for log in spread] == [5, 6, 7]
+    for a, b in zip(local, spread, strict=True):
+        assert (a.success, len(a.steps)) == (b.success, len(b.steps))
+        np.testing.assert_allclose(a.scores, b.scores, rtol=1e-4, atol=1e-9)
+    with pytest.raises(ValueError, match="pickled"):
+        rollout_seeds(lambda: _env(runner), runner, [5, 6], batch_envs=1, workers=2)
+    in_memory = PolicyRunner(runner.policy, runner.preprocessor, runner.postprocessor, GateMode.REPORT)
+    with pytest.raises(ValueError, match="from_pretrained"):
+        rollout_seeds(make_env, in_memory, [5, 6], batch_envs=1, workers=2)
+
+
 def test_episode_noise_needs_one_seed_per_row(tiny_policy_dir, tmp_path):
     runner = _runner(tiny_policy_dir, tmp_path, threshold=None, enforce=False)
     env = _env(runner)

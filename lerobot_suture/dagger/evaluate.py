@@ -86,7 +86,13 @@ def summarize(logs: dict[str, list[EpisodeLog]]) -> dict:
 
 
 def evaluate(
-    policy_dir: Path, env_kwargs: dict, seeds: dict[str, list[int]], batch_envs: int, device: str, desc: str
+    policy_dir: Path,
+    env_kwargs: dict,
+    seeds: dict[str, list[int]],
+    batch_envs: int,
+    workers: int,
+    device: str,
+    desc: str,
 ) -> dict:
     """Roll the calibrated policy out on ``seeds`` (scenario -> seeds), gate enforced, expert surgeon."""
     runner = PolicyRunner.from_pretrained(policy_dir, GateMode.ENFORCE, device)
@@ -98,6 +104,7 @@ def evaluate(
             batch_envs,
             surgeon="expert",
             desc=f"{desc}, {scenario}",
+            workers=workers,
         )
         for scenario, scenario_seeds in seeds.items()
     }

@@ -212,12 +212,16 @@ class DaggerRun:
                 mode=cfg.calibration_mode,
                 alpha=cfg.alpha,
                 batch_envs=cfg.batch_envs,
+                workers=cfg.workers,
                 device=cfg.device,
             )
         )
 
     def evaluate(self, policy: Path, out: Path, key: str) -> None:
-        result = evaluate(policy, self.env_kwargs, self.test_seeds, self.cfg.batch_envs, self.cfg.device, key)
+        cfg = self.cfg
+        result = evaluate(
+            policy, self.env_kwargs, self.test_seeds, cfg.batch_envs, cfg.workers, cfg.device, key
+        )
         write_json_atomic(out / "eval.json", result)
 
     # ---- one round of one arm

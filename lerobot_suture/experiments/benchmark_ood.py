@@ -97,6 +97,10 @@ class BenchmarkOODConfig(RolloutCommandConfig):
 
     def __post_init__(self):
         super().__post_init__()
+        if self.workers != 1:
+            raise ValueError(
+                f"`workers` must be 1 here (the detectors read every prediction's features in this process). Got {self.workers}."
+            )
         for key in ("fit_episodes", "nominal_episodes", "runs_per_scenario", "runs_per_shift"):
             if getattr(self, key) < 1:
                 raise ValueError(f"`{key}` must be >= 1. Got {getattr(self, key)}.")

@@ -13,6 +13,7 @@ set at any physics step, the smallest barrier value).
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from collections.abc import Sequence
@@ -55,20 +56,28 @@ def _shift_index(condition: str) -> int:
 
 
 def run_cell(
-    runner, env_kwargs: dict, task: str, condition: str, seeds: Sequence[int], batch_envs: int
+    runner,
+    env_kwargs: dict,
+    task: str,
+    condition: str,
+    seeds: Sequence[int],
+    batch_envs: int,
+    workers: int = 1,
 ) -> dict:
-    """Roll ``runner`` out on ``seeds`` under ``condition`` of ``task``; returns the cell's summary."""
+    """Roll ``runner`` out on ``seeds`` under ``condition`` of ``task`` (``batch_envs`` in lockstep, in
+    ``workers`` processes); returns the cell's summary."""
     scenario, shift = condition, None
     if condition.startswith(SHIFT_PREFIX):
         scenario, shift = "nominal", Shift.parse(condition[len(SHIFT_PREFIX) :])
     kwargs = {**env_kwargs, "task": task}
     start = time.perf_counter()
     logs = rollout_seeds(
-        lambda: make_scenario_env(kwargs, scenario, CBFConfig(enabled=True), trace=True, shift=shift),
+        functools.partial(make_scenario_env, kwargs, scenario, CBFConfig(enabled=True), True, shift),
         runner,
         seeds,
         batch_envs,
         desc=f"{task}, {condition}",
+        workers=workers,
     )
     return summarize_cell(logs, time.perf_counter() - start)
 

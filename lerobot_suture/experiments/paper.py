@@ -20,6 +20,7 @@ nothing here is tuned on them.
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import math
@@ -100,12 +101,13 @@ def _rollouts(
     cfg: ExperimentsConfig, runner, env_kwargs, scenario, seeds, desc, surgeon="none", cbf=None, trace=False
 ) -> list[EpisodeLog]:
     return rollout_seeds(
-        lambda: make_scenario_env(env_kwargs, scenario, cbf, trace),
+        functools.partial(make_scenario_env, env_kwargs, scenario, cbf, trace),
         runner,
         seeds,
         cfg.batch_envs,
         surgeon,
         desc,
+        cfg.workers,
     )
 
 

@@ -61,6 +61,10 @@ class ScoreStudyConfig(RolloutCommandConfig):
 
     def __post_init__(self):
         super().__post_init__()
+        if self.workers != 1:
+            raise ValueError(
+                f"`workers` must be 1 here (the study scores every prediction in this process). Got {self.workers}."
+            )
         if self.runs_per_scenario < 1:
             raise ValueError(f"`runs_per_scenario` must be >= 1. Got {self.runs_per_scenario}.")
         needed = min_calibration_episodes(self.alpha)

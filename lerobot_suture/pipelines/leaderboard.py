@@ -69,6 +69,8 @@ class LeaderboardConfig:
     seed: base of the test seeds (disjoint from recording, calibration and the other commands' seeds).
     batch_envs: envs run in lockstep with one batched policy call, >= 1 (a seed gives the same episode at
         any value).
+    workers: processes the batches are spread over, >= 1 (one per core is fastest on a CPU); the same
+        episodes.
     output_dir: datasets, checkpoints and finished cells (resumable).
     results_dir: where ``leaderboard.json``, ``leaderboard.md`` and ``leaderboard.png`` go.
     device: torch device for calibration and evaluation (training takes the presets').
@@ -85,6 +87,7 @@ class LeaderboardConfig:
     shifts: list[str] = field(default_factory=default_shifts)
     seed: int = 7_000_000
     batch_envs: int = 8
+    workers: int = 1
     output_dir: Path = Path("outputs/leaderboard")
     results_dir: Path = Path("docs/results/leaderboard")
     device: str = "cpu"
@@ -97,9 +100,10 @@ class LeaderboardConfig:
         unknown = sorted(set(self.policies) - set(POLICIES))
         if unknown:
             raise ValueError(f"`policies` must be among {list(POLICIES)}. Got {unknown}.")
-        if self.episodes < 1 or self.batch_envs < 1:
+        if min(self.episodes, self.batch_envs, self.workers) < 1:
             raise ValueError(
-                f"`episodes` and `batch_envs` must be >= 1. Got {self.episodes}, {self.batch_envs}."
+                "`episodes`, `batch_envs` and `workers` must be >= 1. "
+                f"Got {self.episodes}, {self.batch_envs}, {self.workers}."
             )
         self.shifts = [Shift.parse(s).label for s in self.shifts]  # raises on an unknown shift
         self.taken = parse_checkpoints(self.checkpoints)
@@ -212,7 +216,7 @@ def evaluate_row(cfg: LeaderboardConfig, task: str, name: str, policy_dir: Path)
             runner = PolicyRunner.from_pretrained(policy_dir, GateMode.REPORT, cfg.device)
             env_kwargs = env_kwargs_for_policy(runner.policy.config)
         seeds = cells.condition_seeds(cfg.seed, task, condition, cfg.episodes)
-        cell = cells.run_cell(runner, env_kwargs, task, condition, seeds, cfg.batch_envs)
+        cell = cells.run_cell(runner, env_kwargs, task, condition, seeds, cfg.batch_envs, cfg.workers)
         cell["policy_path"] = str(policy_dir)
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".tmp")

@@ -17,6 +17,7 @@ flagged, and what lies beyond its ranges still is.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import logging
 from dataclasses import asdict, dataclass
@@ -140,11 +141,16 @@ def dataset_task(dataset_root: Path | None) -> dict:
 
 
 def collect_scores(
-    runner, env_kwargs: dict, seeds: list[int], desc: str, batch_envs: int = 8
+    runner, env_kwargs: dict, seeds: list[int], desc: str, batch_envs: int = 8, workers: int = 1
 ) -> tuple[np.ndarray, np.ndarray, list]:
     """Per-prediction uncertainty scores and their episode ids over nominal episodes of ``runner``."""
     logs = rollout_seeds(
-        lambda: make_scenario_env(env_kwargs, "nominal"), runner, seeds, batch_envs, desc=desc
+        functools.partial(make_scenario_env, env_kwargs, "nominal"),
+        runner,
+        seeds,
+        batch_envs,
+        desc=desc,
+        workers=workers,
     )
     scores, episode_ids = [], []
     for episode, log in enumerate(logs):
@@ -160,6 +166,11 @@ def run_calibration(cfg: CalibrateConfig) -> dict:
     runner = reporting_runner(cfg.policy.path, cfg.device)
     config = runner.policy.config
     choice = cfg.score_choice()
+    if choice and cfg.workers != 1:
+        raise ValueError(
+            "A score choice is applied to the policy in this process: calibrate with it at `workers`=1. "
+            f"Got workers={cfg.workers}."
+        )
     apply_score_choice(config, choice)
     env_kwargs = {
         **env_kwargs_for_policy(config),
@@ -169,7 +180,7 @@ def run_calibration(cfg: CalibrateConfig) -> dict:
     seeds = calibration_seeds(cfg)
     fit_seeds, holdout_seeds = seeds[: cfg.calibration_episodes], seeds[cfg.calibration_episodes :]
     scores, ids, fit_logs = collect_scores(
-        runner, env_kwargs, fit_seeds, "calibration episodes", cfg.batch_envs
+        runner, env_kwargs, fit_seeds, "calibration episodes", cfg.batch_envs, cfg.workers
     )
     calibration = fit_calibration(
         scores,
@@ -195,7 +206,7 @@ def run_calibration(cfg: CalibrateConfig) -> dict:
     }
     if holdout_seeds:
         held_scores, held_ids, held_logs = collect_scores(
-            runner, env_kwargs, holdout_seeds, "held-out episodes", cfg.batch_envs
+            runner, env_kwargs, holdout_seeds, "held-out episodes", cfg.batch_envs, cfg.workers
         )
         rates = false_alarm_rates(held_scores, calibration, held_ids)
         report["holdout_seeds"] = holdout_seeds

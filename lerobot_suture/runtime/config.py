@@ -39,11 +39,16 @@ class RolloutCommandConfig(PolicyCommandConfig):
     """Args:
     batch_envs: envs run in lockstep with one batched policy call per control step, >= 1 (a seed gives
         the same episode at any ``batch_envs``: each episode's noise comes from its own seed).
+    workers: processes the batches are spread over, >= 1, each with its own copy of the policy and
+        ``cores // workers`` torch threads (on a CPU, one per core is fastest); the same episodes.
     """
 
     batch_envs: int = 8
+    workers: int = 1
 
     def __post_init__(self):
         super().__post_init__()
         if self.batch_envs < 1:
             raise ValueError(f"`batch_envs` must be >= 1. Got {self.batch_envs}.")
+        if self.workers < 1:
+            raise ValueError(f"`workers` must be >= 1. Got {self.workers}.")

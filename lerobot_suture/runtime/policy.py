@@ -116,6 +116,7 @@ class PolicyRunner:
         self.preprocessor = preprocessor
         self.postprocessor = postprocessor
         self.gate = gate
+        self.source: tuple[str, str] | None = None  # (policy directory, device) when loaded from one
         self._generators: list[torch.Generator] | None = None
         self._noise_shape = noise_shape(policy.config)
         self._apply_gate()
@@ -129,6 +130,7 @@ class PolicyRunner:
                 to make one).
         """
         runner = cls(*load_policy(policy_path, device), gate=gate)
+        runner.source = (str(policy_path), device)
         if gate is GateMode.ENFORCE and getattr(runner.policy, "ood_calibration", False) is None:
             raise FileNotFoundError(
                 f"The gate cannot be enforced: the policy at {policy_path} has no O.O.D. calibration. Run "
@@ -138,7 +140,9 @@ class PolicyRunner:
 
     def with_gate(self, gate: GateMode) -> PolicyRunner:
         """A runner of the same policy and processors (no copy) whose gate acts in mode ``gate``."""
-        return PolicyRunner(self.policy, self.preprocessor, self.postprocessor, gate)
+        runner = PolicyRunner(self.policy, self.preprocessor, self.postprocessor, gate)
+        runner.source = self.source
+        return runner
 
     def _apply_gate(self) -> None:
         ood = getattr(self.policy.config, "ood", None)

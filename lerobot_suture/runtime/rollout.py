@@ -208,14 +208,22 @@ def rollout_seeds(
     batch_envs: int = 8,
     surgeon: str = "none",
     desc: str | None = None,
+    workers: int = 1,
 ) -> list[EpisodeLog]:
     """One episode per seed, ``batch_envs`` at a time (:func:`rollout_episodes`), with a progress bar.
 
-    ``make_env()`` builds one env; ``min(batch_envs, len(seeds))`` of them are built and reused.
+    ``make_env()`` builds one env; ``min(batch_envs, len(seeds))`` of them are built and reused. With
+    ``workers`` > 1 the batches run in that many processes (:mod:`lerobot_suture.runtime.workers`; the
+    runner must come from ``PolicyRunner.from_pretrained`` and ``make_env`` must pickle): the same
+    episodes, sooner on several cores.
     """
-    if batch_envs < 1:
-        raise ValueError(f"`batch_envs` must be >= 1. Got {batch_envs}.")
+    if batch_envs < 1 or workers < 1:
+        raise ValueError(f"`batch_envs` and `workers` must be >= 1. Got {batch_envs}, {workers}.")
     seeds = [int(s) for s in seeds]
+    if workers > 1 and len(seeds) > batch_envs:
+        from lerobot_suture.runtime.workers import rollout_in_workers
+
+        return rollout_in_workers(make_env, runner, seeds, batch_envs, surgeon, workers, desc)
     envs = [make_env() for _ in range(min(batch_envs, len(seeds)))]
     logs: list[EpisodeLog] = []
     try:

@@ -18,6 +18,10 @@ Channels are member-major (member n owns channels [n * C, (n + 1) * C)):
 - Conv1d -> one batched GEMM over the members (im2col + `torch.baddbmm`, "gemm" mode, the default) or
   one grouped convolution (`groups = N`, "grouped" mode);
 - ConvTranspose1d -> one grouped transposed convolution;
+- in "gemm" mode, either of them on a sequence shorter than the kernel taps it reads (the U-Net's inner
+  levels: T = 2 and 4 under a 5-tap kernel) -> one batched GEMM with the layer's dense matrix over the
+  whole sequence (C_in * T -> C_out * T'), which skips the products with the zero padding and the im2col
+  copy: the same sums up to float rounding, in fewer FLOPs (2/3 at T = 2);
 - GroupNorm(G, C) -> GroupNorm(N * G, N * C) (groups never straddle two members);
 - Linear -> a batched matmul over a member axis (`GroupedLinear`); Mish and FiLM act element-wise.
 
@@ -116,8 +120,17 @@ class FusedConv1d(nn.Module):
         self.weight = _frozen(torch.cat([c.weight for c in convs]))
         self.bias = None if c0.bias is None else _frozen(torch.cat([c.bias for c in convs]))
         self._trimmed: dict[int, tuple[int, int, Tensor]] = {}
+        self._dense: dict[int, tuple[Tensor, Tensor | None] | None] = {}
+        self._dense_ok = mode == "gemm" and c0.groups == 1
 
     def forward(self, x: Tensor) -> Tensor:
+        dense = self._dense_matrix(x) if self._dense_ok else None
+        if dense is not None:
+            weight, bias = dense  # (N, C_in*T, C_out*T'), (N, 1, C_out*T') or None
+            b, n = x.shape[0], self.n
+            rows = x.reshape(b, n, -1).transpose(0, 1)  # (N, B, C_in*T), a view
+            y = torch.bmm(rows, weight) if bias is None else torch.baddbmm(bias, rows, weight)
+            return y.transpose(0, 1).reshape(b, n * self.out_channels, -1)
         if self.transposed:
             return F.conv_transpose1d(
                 x, self.weight, self.bias, self.stride, self.padding, self.output_padding, self.groups
@@ -138,6 +151,52 @@ class FusedConv1d(nn.Module):
         else:
             y = torch.baddbmm(self.bias.view(n, 1, c_out), cols, weight)  # (N, B*T', C_out)
         return y.view(n, b, t_out, c_out).permute(1, 0, 3, 2).reshape(b, n * c_out, t_out)
+
+    def _output_length(self, t_in: int) -> int:
+        k, s, p, d = self.kernel_size, self.stride, self.padding, self.dilation
+        if self.transposed:
+            return (t_in - 1) * s - 2 * p + d * (k - 1) + self.output_padding + 1
+        return (t_in + 2 * p - d * (k - 1) - 1) // s + 1
+
+    def _dense_matrix(self, x: Tensor) -> tuple[Tensor, Tensor | None] | None:
+        """The layer as a dense map of the whole sequence, when that is cheaper than im2col (cached per T).
+
+        Worth it when the input is shorter than the taps each output reads (a conv on T = 2 with 3 taps
+        that see data, a transposed conv on T <= k / stride): the dense GEMM does C_in*T x C_out*T' products
+        per row against T' x taps x C_in x C_out. Its entries are the kernel's weights, read off by running
+        the layer on the identity (each output then holds one weight times 1: exact).
+        """
+        t_in = x.shape[-1]
+        if t_in in self._dense:
+            return self._dense[t_in]
+        k, s = self.kernel_size, self.stride
+        if self.transposed:
+            taps = -(-k // s)
+        else:
+            _, taps, _ = self._gemm_weight(t_in)
+        dense = None
+        if t_in < taps or (self.transposed and t_in <= taps):
+            n, c_in, c_out = self.n, self.in_channels, self.out_channels
+            t_out = self._output_length(t_in)
+            eye = torch.eye(c_in * t_in, dtype=x.dtype, device=x.device).view(c_in * t_in, c_in, t_in)
+            per_member = []
+            for m in range(n):
+                if self.transposed:
+                    w = self.weight[m * c_in : (m + 1) * c_in]  # (C_in, C_out, k)
+                    out = F.conv_transpose1d(
+                        eye, w, None, s, self.padding, self.output_padding, 1, self.dilation
+                    )
+                else:
+                    w = self.weight[m * c_out : (m + 1) * c_out]  # (C_out, C_in, k)
+                    out = F.conv1d(eye, w, None, s, self.padding, self.dilation)
+                per_member.append(out.reshape(c_in * t_in, c_out * t_out))  # (C_in*T, C_out*T')
+            weight = torch.stack(per_member).to(self.weight.dtype)
+            bias = None
+            if self.bias is not None:
+                bias = self.bias.view(n, c_out, 1).expand(n, c_out, t_out).reshape(n, 1, c_out * t_out)
+            dense = (weight, bias)
+        self._dense[t_in] = dense
+        return dense
 
     def _gemm_weight(self, t_in: int) -> tuple[int, int, Tensor]:
         """Left padding, kernel taps and GEMM weight (N, C_in*taps, C_out) for an input of length `t_in`.
