@@ -14,12 +14,17 @@ A configuration is BATCH_ENVS or BATCH_ENVSxWORKERS. In one process torch takes 
 cores); each of W workers takes cores // W. Worker start-up (imports, loading the policy) is kept out of
 `seconds`, the rollouts' wall time once the workers are up: `warmup_seconds` is the first call (start-up plus
 one batch per worker).
+
+`--baseline FILE` names this script's output from another version of the code (e.g. run from a worktree
+of an earlier commit with `PYTHONPATH` on its packages, `--configs 1`): its first configuration is the
+baseline every `speed_up_vs_baseline` divides by.
 """
 
 from __future__ import annotations
 
 import argparse
 import functools
+import json
 import math
 import os
 import time
@@ -75,6 +80,7 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=16)
     parser.add_argument("--configs", nargs="+", default=["1", "8", "8x2", "16x2"])
     parser.add_argument("--output", type=Path, default=None)
+    parser.add_argument("--baseline", type=Path, default=None)
     args = parser.parse_args()
 
     runner = PolicyRunner.from_pretrained(args.policy_path, GateMode.REPORT)
@@ -93,7 +99,8 @@ def main() -> None:
             rollout_seeds(make_env, runner, seeds[: batch_envs * workers], batch_envs, workers=workers)
             warmup = time.perf_counter() - start
         start = time.perf_counter()
-        logs = rollout_seeds(make_env, runner, seeds, batch_envs, desc=config, workers=workers)
+        spread = {"workers": workers} if workers > 1 else {}  # (an older rollout_seeds has no workers)
+        logs = rollout_seeds(make_env, runner, seeds, batch_envs, desc=config, **spread)
         seconds = time.perf_counter() - start
         episodes = [episode_record(log) for log in logs]
         row = {
@@ -112,10 +119,17 @@ def main() -> None:
             row.update(compare(reference, episodes))
         rows.append(row)
     base = rows[0]["episodes_per_min"]
+    baseline = None
+    if args.baseline is not None:
+        baseline = json.loads(args.baseline.read_text())
+        baseline = {"file": str(args.baseline), **baseline["configurations"][0]}
     for row in rows:
         row["speed_up"] = round(row["episodes_per_min"] / base, 2) if base else math.nan
+        if baseline is not None:
+            row["speed_up_vs_baseline"] = round(row["episodes_per_min"] / baseline["episodes_per_min"], 2)
     emit(
         {
+            "baseline": baseline,
             "benchmark": "eval_throughput",
             "policy_path": str(args.policy_path),
             "policy_type": runner.policy.config.type,

@@ -118,7 +118,7 @@ class PolicyRunner:
         self.gate = gate
         self.source: tuple[str, str] | None = None  # (policy directory, device) when loaded from one
         self._generators: list[torch.Generator] | None = None
-        self._noise_shape = noise_shape(policy.config)
+        self._noise_shape: tuple[int, ...] | None = None
         self._apply_gate()
 
     @classmethod
@@ -156,6 +156,7 @@ class PolicyRunner:
         for pipeline in (self.preprocessor, self.postprocessor):
             pipeline.reset()
         self._generators = None
+        self._noise_shape = noise_shape(self.policy.config)  # read now: the config may change between runs
         if seeds is not None and self._noise_shape is not None:
             self._generators = [torch.Generator().manual_seed(int(seed)) for seed in seeds]
 
