@@ -9,6 +9,7 @@ from PIL import Image
 from lerobot_suture.cli import main as cli_main
 from lerobot_suture.experiments.leaderboard import condition_seeds, conditions, render, summarize_cell
 from lerobot_suture.pipelines.leaderboard import LeaderboardConfig, default_shifts, parse_checkpoints
+from lerobot_suture.runtime.config import PolicyPathConfig
 from lerobot_suture.runtime.rollout import EpisodeLog, StepLog
 from lerobot_suture.sim.shifts import SHIFTS
 from lerobot_suture.sim.tasks import TASK_NAMES
@@ -75,6 +76,12 @@ def test_conditions_and_seeds_are_shared_by_policies_and_disjoint_across_cells()
 def test_bad_config_names_the_field(args, match):
     with pytest.raises(ValueError, match=match):
         LeaderboardConfig(**args)
+
+
+def test_a_joining_checkpoint_names_its_task(tiny_policy_dir):
+    with pytest.raises(ValueError, match="--tasks"):
+        LeaderboardConfig(policy=PolicyPathConfig(path=tiny_policy_dir))
+    assert LeaderboardConfig().tasks == list(TASK_NAMES)
 
 
 def test_checkpoint_entries_need_a_trained_policy(tmp_path):

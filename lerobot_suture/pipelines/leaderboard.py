@@ -56,7 +56,8 @@ def default_shifts() -> list[str]:
 @dataclass
 class LeaderboardConfig:
     """Args:
-    tasks: the tasks to rank on (default: every task of the env).
+    tasks: the tasks to rank on (default: every task of the env; with ``--policy.path``, name the task(s)
+        the checkpoint was trained for).
     policies: which of :data:`POLICIES` to train or take.
     checkpoints: ``TASK:POLICY=DIR`` trained checkpoints to take instead of training (e.g.
         ``insertion:act=outputs/act/train/checkpoints/last/pretrained_model``).
@@ -78,7 +79,7 @@ class LeaderboardConfig:
         a smoke test whose figures mean nothing.
     """
 
-    tasks: list[str] = field(default_factory=lambda: list(TASK_NAMES))
+    tasks: list[str] | None = None
     policies: list[str] = field(default_factory=lambda: list(POLICIES))
     checkpoints: list[str] = field(default_factory=list)
     policy: PolicyPathConfig = field(default_factory=PolicyPathConfig)
@@ -94,6 +95,13 @@ class LeaderboardConfig:
     toy: bool = False
 
     def __post_init__(self):
+        if self.tasks is None:
+            if self.policy.path is not None:
+                raise ValueError(
+                    "`--policy.path` needs `--tasks`: the task(s) the checkpoint was trained for, e.g. "
+                    "--tasks='[insertion]'."
+                )
+            self.tasks = list(TASK_NAMES)
         unknown = sorted(set(self.tasks) - set(TASK_NAMES))
         if unknown or not self.tasks:
             raise ValueError(f"`tasks` must be a non-empty list of {list(TASK_NAMES)}. Got {self.tasks}.")
