@@ -27,6 +27,7 @@ import functools
 import json
 import math
 import os
+import subprocess
 import time
 from pathlib import Path
 
@@ -43,6 +44,18 @@ from lerobot_suture.runtime.seeds import episode_seeds  # noqa: E402
 from lerobot_suture.safety.cbf_config import CBFConfig  # noqa: E402
 
 TEST_SEED = 8_000_000  # apart from recording, calibration and the commands' test seeds
+
+
+def code_commit() -> str | None:
+    """The commit of the lerobot_suture package this run imported (a baseline may come from a worktree)."""
+    import lerobot_suture
+
+    result = subprocess.run(
+        ["git", "-C", str(Path(lerobot_suture.__file__).parent), "rev-parse", "HEAD"],
+        capture_output=True,
+        text=True,
+    )
+    return result.stdout.strip() or None
 
 
 def episode_record(log) -> dict:
@@ -129,6 +142,7 @@ def main() -> None:
             row["speed_up_vs_baseline"] = round(row["episodes_per_min"] / baseline["episodes_per_min"], 2)
     emit(
         {
+            "code_commit": code_commit(),
             "baseline": baseline,
             "benchmark": "eval_throughput",
             "policy_path": str(args.policy_path),

@@ -122,6 +122,12 @@ def test_a_users_checkpoint_joins_the_board_and_finished_cells_are_kept(tiny_pol
     assert set(board["tasks"]["insertion"]) == {"mine", "theirs"}
     assert board["tasks"]["insertion"]["theirs"]["nominal"]["per_episode"] == row["nominal"]["per_episode"]
     assert "| mine | theirs |" in render(board)
+    summary = board["summary"]["insertion"]["mine"]
+    assert summary["nominal_success"] == row["nominal"]["success_rate"]
+    assert (
+        summary["episodes"] == len(row)
+        and summary["shift_success_mean"] == row["shift:dim_light@0.2"]["success_rate"]
+    )
 
 
 @pytest.mark.slow

@@ -116,6 +116,26 @@ def summarize_cell(logs: Sequence[EpisodeLog], seconds: float) -> dict:
     }
 
 
+def row_summary(row: dict) -> dict:
+    """One policy's row in a few figures: nominal success, the mean success over the perturbation scenarios
+    and over the shifts, and the gate's false alarms on nominal (None without a gate)."""
+    scenarios = [c for name, c in row.items() if name != "nominal" and not name.startswith(SHIFT_PREFIX)]
+    shifts = [c for name, c in row.items() if name.startswith(SHIFT_PREFIX)]
+    nominal = row.get("nominal")
+
+    def mean(cells: list[dict]) -> float | None:
+        return float(np.mean([c["success_rate"] for c in cells])) if cells else None
+
+    return {
+        "nominal_success": nominal["success_rate"] if nominal else None,
+        "scenario_success_mean": mean(scenarios),
+        "shift_success_mean": mean(shifts),
+        "nominal_false_alarms": nominal["gate"]["flagged_rate"] if nominal and nominal["gate"] else None,
+        "cbf_violating_episodes": sum(c["cbf"]["violating_episodes"] for c in row.values()),
+        "episodes": sum(c["episodes"] for c in row.values()),
+    }
+
+
 def _percent(x: float) -> str:
     return "n/a" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{100 * x:.0f}"
 
@@ -135,7 +155,21 @@ def render(board: dict) -> str:
     for task, rows in board["tasks"].items():
         policies = list(rows)
         conds = list(next(iter(rows.values())).keys()) if rows else []
-        lines += [f"## {task}", "", "| condition | " + " | ".join(policies) + " |"]
+        lines += [
+            f"## {task}",
+            "",
+            "| policy | nominal success | mean over the scenarios | mean over the shifts | gate false alarms "
+            "| episodes out of the safe set |",
+            "|---|---|---|---|---|---|",
+        ]
+        for policy in policies:
+            s = row_summary(rows[policy])
+            lines.append(
+                f"| {policy} | {_percent(s['nominal_success'])} | {_percent(s['scenario_success_mean'])} | "
+                f"{_percent(s['shift_success_mean'])} | {_percent(s['nominal_false_alarms'])} | "
+                f"{s['cbf_violating_episodes']} of {s['episodes']} |"
+            )
+        lines += ["", "| condition | " + " | ".join(policies) + " |"]
         lines.append("|---|" + "---|" * len(policies))
         for cond in conds:
             cells = []

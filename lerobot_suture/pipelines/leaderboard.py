@@ -266,6 +266,10 @@ def run_leaderboard(cfg: LeaderboardConfig) -> dict:
                     timings.timed(f"calibrate {task}", calibrate_gate, cfg, policy_dir, dataset_root)
                 row = timings.timed(f"evaluate {task} {policy}", evaluate_row, cfg, task, policy, policy_dir)
                 board["tasks"].setdefault(task, {})[policy] = row
+    board["summary"] = {
+        task: {name: cells.row_summary(row) for name, row in rows.items()}
+        for task, rows in board["tasks"].items()
+    }
     board["timings"] = {k: round(v, 1) for k, v in timings.items()}
     board_file.write_text(json.dumps(board, indent=1))
     (results / "leaderboard.md").write_text(cells.render(board))
