@@ -155,6 +155,14 @@ def test_worker_processes_give_the_same_episodes(tiny_policy_dir, tmp_path):
         np.testing.assert_allclose(a.scores, b.scores, rtol=1e-4, atol=1e-9)
     with pytest.raises(ValueError, match="pickled"):
         rollout_seeds(lambda: _env(runner), runner, [5, 6], batch_envs=1, workers=2)
+    # A calibration written into the policy's directory since reaches the workers: they start afresh.
+    from lerobot_suture.runtime import workers
+
+    pool = next(iter(workers._POOLS.values()))
+    save_calibration(fit_calibration(np.full(50, 1e-9) + np.arange(50) * 1e-12), runner.source[0])
+    enforced = rollout_seeds(make_env, runner.with_gate(GateMode.ENFORCE), [5, 6], batch_envs=1, workers=2)
+    assert next(iter(workers._POOLS.values())) is not pool
+    assert all(log.handover_step is not None for log in enforced)  # every score is above that threshold
     in_memory = PolicyRunner(runner.policy, runner.preprocessor, runner.postprocessor, GateMode.REPORT)
     with pytest.raises(ValueError, match="from_pretrained"):
         rollout_seeds(make_env, in_memory, [5, 6], batch_envs=1, workers=2)

@@ -6,8 +6,10 @@ faster on 2 threads than on 1), while two processes of one thread each run two b
 divides by the cores. Each episode's noise comes from its own seed (:class:`PolicyRunner`), so an episode
 is the same whichever process rolls it out.
 
-A pool is kept per (policy, device, workers) for the life of the program (a worker spends seconds
-importing torch and loading the policy), and shut down at exit. The envs of a worker are rebuilt only when
+The pool is kept while the same (policy, device, workers) comes back (a worker spends seconds importing
+torch and loading the policy) and the policy's directory is unchanged (a calibration written since, or
+weights trained over, start fresh workers); a call for another policy replaces it (one copy of one policy per
+worker at a time, whatever a program evaluates in turn), and it is shut down at exit. The envs of a worker are rebuilt only when
 the env factory changes.
 """
 
@@ -19,6 +21,7 @@ import os
 import pickle
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
 
 from tqdm import tqdm
 
@@ -53,9 +56,16 @@ def _run_batch(factory: bytes, gate, seeds: list[int], surgeon: str) -> list:
     return rollout_episodes(_WORKER["envs"][: len(seeds)], runner, seeds, surgeon)
 
 
+def _directory_state(policy_path: str) -> tuple:
+    """What the workers loaded from: every file of the policy directory, with its size and time."""
+    files = sorted(p for p in Path(policy_path).iterdir() if p.is_file())
+    return tuple((p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in files)
+
+
 def _pool(policy_path: str, device: str, workers: int) -> ProcessPoolExecutor:
-    key = (policy_path, device, workers)
+    key = (policy_path, device, workers, _directory_state(policy_path))
     if key not in _POOLS:
+        shutdown_pools()  # another policy's workers: free their memory first
         _POOLS[key] = ProcessPoolExecutor(
             max_workers=workers,
             mp_context=multiprocessing.get_context("spawn"),  # no forked torch threads or GL contexts
