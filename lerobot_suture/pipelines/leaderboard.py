@@ -19,19 +19,15 @@ on the same cells and its row is added to the board already in ``results_dir`` (
 from __future__ import annotations
 
 import json
-import logging
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import draccus
-
 from lerobot_suture.experiments import leaderboard as cells
+from lerobot_suture.pipelines.stages import calibrate_policy, record_recipe
 from lerobot_suture.runtime.config import PolicyPathConfig
 from lerobot_suture.sim.shifts import MAGNITUDES, SHIFTS, Shift
 from lerobot_suture.sim.tasks import TASK_NAMES
-
-logger = logging.getLogger(__name__)
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 PRESETS = REPO_ROOT / "policies" / "presets"
@@ -45,7 +41,6 @@ TASK_RECIPES = {
 POLICIES = ("act", "diffusion", "ensemble_diffusion")
 POLICY_PRESETS = {"act": PRESETS / "act.json", "diffusion": PRESETS / "diffusion.json"}
 """LeRobot's own policies' CPU presets; ``ensemble_diffusion`` trains with the task's own preset."""
-CALIBRATE_CONFIG = PRESETS / "reference_calibrate.yaml"
 
 
 def default_shifts() -> list[str]:
@@ -148,23 +143,6 @@ class _Timings(dict):
             self[stage] = self.get(stage, 0.0) + time.perf_counter() - start
 
 
-def record_dataset(cfg: LeaderboardConfig, task: str) -> Path:
-    """The task's recipe recorded into ``output_dir/data/TASK`` (resumed when interrupted)."""
-    from lerobot_suture.datasets.record import record
-    from lerobot_suture.datasets.record_config import parse_config
-
-    root = cfg.output_dir / "data" / task
-    args = [
-        f"--config_path={TASK_RECIPES[task][0]}",
-        f"--root={root}",
-        f"--resume={str(root.exists()).lower()}",
-    ]
-    if cfg.toy:
-        args += ["--num_episodes=4", "--checkpoint_every=2"]
-    record(parse_config(args))
-    return root
-
-
 def train_policy(cfg: LeaderboardConfig, task: str, policy: str, dataset_root: Path) -> Path:
     """``lerobot-train`` of ``policy``'s preset on the task's dataset (resumable); its pretrained directory."""
     from lerobot_suture.datasets.split import train_episodes
@@ -190,24 +168,6 @@ def train_policy(cfg: LeaderboardConfig, task: str, policy: str, dataset_root: P
         f"--save_freq={2 if cfg.toy else reference['save_freq']}",
     ]
     return run_lerobot_train(cfg.output_dir / "train" / task / policy, fresh, steps, common)
-
-
-def calibrate_gate(cfg: LeaderboardConfig, policy_dir: Path, dataset_root: Path) -> None:
-    """The ensemble's O.O.D. gate calibrated on the task's validation seeds (kept when already there)."""
-    from lerobot_suture.runtime.calibration import CalibrateConfig, run_calibration
-    from lerobot_suture.safety.ood.calibration_file import CALIBRATION_FILENAME
-
-    if (policy_dir / CALIBRATION_FILENAME).is_file():
-        return
-    args = [f"--policy.path={policy_dir}", f"--dataset_root={dataset_root}", f"--device={cfg.device}"]
-    if cfg.toy:
-        args += [
-            "--calibration_episodes=2",
-            "--holdout_episodes=1",
-            "--mode=per_prediction",
-            "--batch_envs=2",
-        ]
-    run_calibration(draccus.parse(CalibrateConfig, config_path=CALIBRATE_CONFIG, args=args))
 
 
 def evaluate_row(cfg: LeaderboardConfig, task: str, name: str, policy_dir: Path) -> dict:
@@ -259,7 +219,12 @@ def run_leaderboard(cfg: LeaderboardConfig) -> dict:
     else:
         for task in cfg.tasks:
             needs_data = any((task, p) not in cfg.taken for p in cfg.policies)
-            dataset_root = timings.timed(f"record {task}", record_dataset, cfg, task) if needs_data else None
+            dataset_root = None
+            if needs_data:
+                root = cfg.output_dir / "data" / task
+                dataset_root = timings.timed(
+                    f"record {task}", record_recipe, TASK_RECIPES[task][0], root, cfg.toy
+                )
             for policy in cfg.policies:
                 policy_dir = cfg.taken.get((task, policy))
                 if policy_dir is None:
@@ -267,7 +232,9 @@ def run_leaderboard(cfg: LeaderboardConfig) -> dict:
                         f"train {task} {policy}", train_policy, cfg, task, policy, dataset_root
                     )
                 if policy == "ensemble_diffusion" and dataset_root is not None:
-                    timings.timed(f"calibrate {task}", calibrate_gate, cfg, policy_dir, dataset_root)
+                    timings.timed(
+                        f"calibrate {task}", calibrate_policy, policy_dir, dataset_root, cfg.device, cfg.toy
+                    )
                 row = evaluate_row(cfg, task, policy, policy_dir)
                 board["tasks"].setdefault(task, {})[policy] = row
                 timings[f"evaluate {task} {policy}"] = _rollout_seconds(row)

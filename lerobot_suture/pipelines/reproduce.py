@@ -26,13 +26,12 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import draccus
+from lerobot_suture.pipelines.stages import CALIBRATE_CONFIG, calibrate_policy, record_recipe
 
 logger = logging.getLogger(__name__)
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 REFERENCE_RESULTS = REPO_ROOT / "docs" / "results" / "prior_servo_5500"
-CALIBRATE_CONFIG = REPO_ROOT / "policies" / "presets" / "reference_calibrate.yaml"
 
 
 @dataclass(frozen=True)
@@ -133,19 +132,7 @@ class _Timings:
 
 
 def record_stage(cfg: ReproduceConfig) -> Path:
-    from lerobot_suture.datasets.record import record
-    from lerobot_suture.datasets.record_config import parse_config
-
-    root = cfg.output_dir / "data"
-    args = [
-        f"--config_path={RECIPES[cfg.recipe].dataset}",
-        f"--root={root}",
-        f"--resume={str(root.exists()).lower()}",
-    ]
-    if cfg.toy:
-        args += ["--num_episodes=4", "--checkpoint_every=2"]
-    record(parse_config(args))
-    return root
+    return record_recipe(RECIPES[cfg.recipe].dataset, cfg.output_dir / "data", cfg.toy)
 
 
 def train_stage(cfg: ReproduceConfig, dataset_root: Path) -> Path:
@@ -169,23 +156,7 @@ def train_stage(cfg: ReproduceConfig, dataset_root: Path) -> Path:
 
 
 def calibrate_stage(cfg: ReproduceConfig, policy_dir: Path, dataset_root: Path) -> Path:
-    from lerobot_suture.runtime.calibration import CalibrateConfig, run_calibration
-    from lerobot_suture.safety.ood.calibration_file import CALIBRATION_FILENAME
-
-    calibration_file = policy_dir / CALIBRATION_FILENAME
-    if calibration_file.is_file():  # written atomically once fitted; a newly trained checkpoint has none
-        logger.info("already calibrated: %s", calibration_file)
-        return calibration_file
-    args = [f"--policy.path={policy_dir}", f"--dataset_root={dataset_root}", f"--device={cfg.device}"]
-    if cfg.toy:
-        args += [
-            "--calibration_episodes=2",
-            "--holdout_episodes=1",
-            "--mode=per_prediction",
-            "--batch_envs=2",
-        ]
-    run_calibration(draccus.parse(CalibrateConfig, config_path=CALIBRATE_CONFIG, args=args))
-    return calibration_file
+    return calibrate_policy(policy_dir, dataset_root, cfg.device, cfg.toy)
 
 
 def experiments_stage(cfg: ReproduceConfig, policy_dir: Path, calibration_file: Path) -> dict:

@@ -27,6 +27,7 @@ from tqdm import tqdm
 
 from lerobot_suture.expert import ScriptedExpert
 from lerobot_suture.registration import MAX_EPISODE_STEPS
+from lerobot_suture.safety.ood.gate import silent_status
 from lerobot_suture.sim.shifts import Shift, ShiftWrapper
 from lerobot_suture.sim.tasks import DEFAULT_TASK, task_spec
 
@@ -241,15 +242,7 @@ def rollout_seeds(
 def gate_status(policy, row: int) -> dict:
     """The O.O.D. gate's status for batch row ``row`` (``ood_status``); a policy without a gate (ACT,
     LeRobot's diffusion) reports NaN scores and never decides O.O.D. or releases control."""
-    if hasattr(policy, "ood_status"):
-        return policy.ood_status(row)
-    return {
-        "score": math.nan,
-        "threshold": math.nan,
-        "decision": False,
-        "released": False,
-        "new_prediction": False,
-    }
+    return policy.ood_status(row) if hasattr(policy, "ood_status") else silent_status()
 
 
 def _step_log(status: dict, controller: str, info: dict) -> StepLog:

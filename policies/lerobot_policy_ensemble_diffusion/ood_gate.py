@@ -18,7 +18,6 @@ likelihood-ratio test, latch) is `lerobot_suture.safety.ood`."""
 from __future__ import annotations
 
 import logging
-import math
 from pathlib import Path
 
 import torch
@@ -28,7 +27,7 @@ from torch import Tensor
 
 from lerobot_suture.safety.ood.calibration import OODCalibration
 from lerobot_suture.safety.ood.calibration_file import load_calibration
-from lerobot_suture.safety.ood.gate import OODGate
+from lerobot_suture.safety.ood.gate import OODGate, silent_status
 
 from .configuration_ensemble_diffusion import EnsembleDiffusionConfig
 from .normalization import action_affine_from_stats
@@ -104,13 +103,7 @@ def update_gates(
 def gate_status(gates: list[OODGate], index: int, enforce: bool, new_prediction: bool) -> dict:
     """The gate's state for batch element `index`, for logging (see `EnsembleDiffusionPolicy.ood_status`)."""
     if index >= len(gates):
-        return {
-            "score": math.nan,
-            "threshold": math.nan,
-            "decision": False,
-            "released": False,
-            "new_prediction": False,
-        }
+        return silent_status()
     gate = gates[index]
     return {
         "score": float(gate.last_score),

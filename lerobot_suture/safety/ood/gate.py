@@ -8,7 +8,19 @@ import numpy as np
 from lerobot_suture.safety.ood.calibration import CALIBRATE_HINT, CalibrationMode, OODCalibration
 from lerobot_suture.safety.ood.likelihood_ratio import likelihood_ratio_test, standardized_score
 
-__all__ = ["OODGate"]
+__all__ = ["OODGate", "silent_status"]
+
+
+def silent_status() -> dict:
+    """The status of a gate that has not scored anything (no prediction yet, or no gate at all): NaN score
+    and threshold, no O.O.D. decision, control not released (the keys of ``ood_status``)."""
+    return {
+        "score": math.nan,
+        "threshold": math.nan,
+        "decision": False,
+        "released": False,
+        "new_prediction": False,
+    }
 
 
 @dataclass
