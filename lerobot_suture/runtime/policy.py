@@ -17,6 +17,8 @@ import torch
 
 from lerobot_suture.sim.task import TASK
 
+ACTION = "action"  # LeRobot's key of the action (and of a policy's action queue)
+
 
 def load_policy(policy_path: str | Path, device: str = "cpu"):
     """A trained policy and its processors from a pretrained directory (offline).
@@ -102,10 +104,11 @@ class PolicyRunner:
     other LeRobot policy) ignores it.
 
     Episode noise: after ``reset(seeds=...)`` the diffusion noise of batch row i comes from its own
-    generator, seeded with ``seeds[i]``, and is handed to ``select_action(batch, noise)`` at every call
-    (a policy that predicts no chunk at that call ignores it). An episode's noise then depends on its seed
-    alone, not on which other episodes share its batch: the same seed gives the same episode at any
-    ``batch_envs``. Policies with a deterministic scheduler's noise only (DDIM) are covered; ACT samples
+    generator, seeded with ``seeds[i]``, drawn when the policy's action queue is empty (it predicts a
+    chunk at that call) and handed to ``select_action(batch, noise)``. An episode's noise then depends on
+    its seed alone, not on which other episodes share its batch: the same seed gives the same episode at
+    any ``batch_envs``, and the same draws as one env with torch's global RNG seeded with that seed (the
+    robot path). Policies with a deterministic scheduler's noise only (DDIM) are covered; ACT samples
     nothing at inference.
     """
 
@@ -162,7 +165,7 @@ class PolicyRunner:
 
     def _episode_noise(self, batch_size: int) -> torch.Tensor | None:
         """(B, *noise_shape) noise, row i from episode i's generator; None without seeded episodes."""
-        if self._generators is None:
+        if self._generators is None or not _predicts_now(self.policy):
             return None
         if batch_size != len(self._generators):
             raise ValueError(
@@ -193,6 +196,13 @@ class PolicyRunner:
             action = self.policy.select_action(batch, *(() if noise is None else (noise,)))
         action = self.postprocessor(action)
         return action.to("cpu").numpy().astype(np.float32)
+
+
+def _predicts_now(policy) -> bool:
+    """Whether ``policy`` predicts a new chunk at its next ``select_action``: its action queue is empty
+    (LeRobot's queue semantics; a policy without that queue is asked at every call)."""
+    queues = getattr(policy, "_queues", None)
+    return not isinstance(queues, dict) or len(queues.get(ACTION, ())) == 0
 
 
 def noise_shape(config) -> tuple[int, ...] | None:
