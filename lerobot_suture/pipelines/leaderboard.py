@@ -19,12 +19,11 @@ on the same cells and its row is added to the board already in ``results_dir`` (
 from __future__ import annotations
 
 import json
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from lerobot_suture.experiments import leaderboard as cells
-from lerobot_suture.pipelines.stages import calibrate_policy, record_recipe
+from lerobot_suture.pipelines.stages import StageTimings, calibrate_policy, record_recipe
 from lerobot_suture.runtime.config import PolicyPathConfig
 from lerobot_suture.sim.shifts import MAGNITUDES, SHIFTS, Shift
 from lerobot_suture.sim.tasks import TASK_NAMES
@@ -134,15 +133,6 @@ def parse_checkpoints(entries: list[str]) -> dict[tuple[str, str], Path]:
     return out
 
 
-class _Timings(dict):
-    def timed(self, stage: str, fn, *args):
-        start = time.perf_counter()
-        try:
-            return fn(*args)
-        finally:
-            self[stage] = self.get(stage, 0.0) + time.perf_counter() - start
-
-
 def train_policy(cfg: LeaderboardConfig, task: str, policy: str, dataset_root: Path) -> Path:
     """``lerobot-train`` of ``policy``'s preset on the task's dataset (resumable); its pretrained directory."""
     from lerobot_suture.datasets.split import train_episodes
@@ -207,7 +197,7 @@ def run_leaderboard(cfg: LeaderboardConfig) -> dict:
     board = json.loads(board_file.read_text()) if board_file.is_file() else {}
     board.update(episodes=cfg.episodes, shifts=cfg.shifts, seed=cfg.seed)
     board.setdefault("tasks", {})
-    timings = _Timings(board.get("timings", {}))
+    timings = StageTimings(cfg.output_dir / "timings.json")
     if cfg.policy.path is not None:  # a user's checkpoint joins the board
         from lerobot.configs.policies import PreTrainedConfig
 
@@ -215,7 +205,7 @@ def run_leaderboard(cfg: LeaderboardConfig) -> dict:
         for task in cfg.tasks:
             row = evaluate_row(cfg, task, name, Path(cfg.policy.path))
             board["tasks"].setdefault(task, {})[name] = row
-            timings[f"evaluate {task} {name}"] = _rollout_seconds(row)
+            timings.seconds[f"evaluate {task} {name}"] = _rollout_seconds(row)
     else:
         for task in cfg.tasks:
             needs_data = any((task, p) not in cfg.taken for p in cfg.policies)
@@ -237,12 +227,12 @@ def run_leaderboard(cfg: LeaderboardConfig) -> dict:
                     )
                 row = evaluate_row(cfg, task, policy, policy_dir)
                 board["tasks"].setdefault(task, {})[policy] = row
-                timings[f"evaluate {task} {policy}"] = _rollout_seconds(row)
+                timings.seconds[f"evaluate {task} {policy}"] = _rollout_seconds(row)
     board["summary"] = {
         task: {name: cells.row_summary(row) for name, row in rows.items()}
         for task, rows in board["tasks"].items()
     }
-    board["timings"] = {k: round(v, 1) for k, v in timings.items()}
+    board["timings"] = {k: round(v, 1) for k, v in timings.seconds.items()}
     board_file.write_text(json.dumps(board, indent=1))
     (results / "leaderboard.md").write_text(cells.render(board))
     cells.plot(board, results / "leaderboard.png")

@@ -22,11 +22,10 @@ from __future__ import annotations
 
 import json
 import logging
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from lerobot_suture.pipelines.stages import CALIBRATE_CONFIG, calibrate_policy, record_recipe
+from lerobot_suture.pipelines.stages import CALIBRATE_CONFIG, StageTimings, calibrate_policy, record_recipe
 
 logger = logging.getLogger(__name__)
 
@@ -115,22 +114,6 @@ class ReproduceConfig:
             )
 
 
-class _Timings:
-    """Wall time per stage (s), summed over invocations, kept in ``timings.json``."""
-
-    def __init__(self, path: Path):
-        self.path = path
-        self.seconds: dict[str, float] = json.loads(path.read_text()) if path.is_file() else {}
-
-    def add(self, stage: str, seconds: float) -> None:
-        self.seconds[stage] = round(self.seconds.get(stage, 0.0) + seconds, 1)
-        self.path.write_text(json.dumps(self.seconds, indent=2))
-
-    @property
-    def total(self) -> float:
-        return round(sum(self.seconds.get(s, 0.0) for s in STAGES), 1)
-
-
 def record_stage(cfg: ReproduceConfig) -> Path:
     return record_recipe(RECIPES[cfg.recipe].dataset, cfg.output_dir / "data", cfg.toy)
 
@@ -181,7 +164,7 @@ def experiments_stage(cfg: ReproduceConfig, policy_dir: Path, calibration_file: 
     return json.loads(metrics_file.read_text())
 
 
-def write_comparison(cfg: ReproduceConfig, metrics: dict, timings: _Timings) -> str:
+def write_comparison(cfg: ReproduceConfig, metrics: dict, timings: StageTimings) -> str:
     from lerobot_suture.experiments.compare import compare_metrics, comparison_json, comparison_markdown
 
     committed_file = Path(cfg.reference) / "metrics.json"
@@ -194,7 +177,7 @@ def write_comparison(cfg: ReproduceConfig, metrics: dict, timings: _Timings) -> 
     stage_times = ", ".join(f"{s} {timings.seconds.get(s, 0.0) / 60:.1f} min" for s in STAGES)
     text = (
         f"# Reproduction{' (toy scale)' if cfg.toy else ''}\n\n{table}\n\n"
-        f"Wall time {timings.total / 60:.1f} min ({stage_times}).\n"
+        f"Wall time {round(sum(timings.seconds.get(s, 0.0) for s in STAGES), 1) / 60:.1f} min ({stage_times}).\n"
     )
     (cfg.output_dir / "comparison.md").write_text(text)
     (cfg.output_dir / "comparison.json").write_text(
@@ -205,14 +188,11 @@ def write_comparison(cfg: ReproduceConfig, metrics: dict, timings: _Timings) -> 
 
 def run_reproduce(cfg: ReproduceConfig) -> str:
     cfg.output_dir.mkdir(parents=True, exist_ok=True)
-    timings = _Timings(cfg.output_dir / "timings.json")
+    timings = StageTimings(cfg.output_dir / "timings.json")
 
     def timed(stage: str, fn, *args):
         logger.info("reproduce: stage %d of %d, %s", STAGES.index(stage) + 1, len(STAGES), stage)
-        start = time.perf_counter()
-        result = fn(*args)
-        timings.add(stage, time.perf_counter() - start)
-        return result
+        return timings.timed(stage, fn, *args)
 
     dataset_root = timed("record", record_stage, cfg)
     policy_dir = timed("train", train_stage, cfg, dataset_root)

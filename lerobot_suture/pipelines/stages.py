@@ -1,4 +1,5 @@
-"""The stages the pipelines share: a dataset recipe recorded, and a trained ensemble's gate calibrated.
+"""The stages the pipelines share: a dataset recipe recorded, and a trained ensemble's gate calibrated;
+and the file their wall times are kept in.
 
 Each is resumable: a recording continues where it stopped, and a policy that already holds its
 calibration is left as it is.
@@ -6,7 +7,9 @@ calibration is left as it is.
 
 from __future__ import annotations
 
+import json
 import logging
+import time
 from pathlib import Path
 
 import draccus
@@ -16,6 +19,27 @@ logger = logging.getLogger(__name__)
 REPO_ROOT = Path(__file__).resolve().parents[2]
 CALIBRATE_CONFIG = REPO_ROOT / "policies" / "presets" / "reference_calibrate.yaml"
 """The reference's gate calibration (validation seeds, log-normal model, per-episode threshold)."""
+
+
+class StageTimings:
+    """Wall time per stage (s), summed over invocations, written to ``path`` after every stage (an
+    interrupted run keeps the time of the stages it finished)."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.seconds: dict[str, float] = json.loads(path.read_text()) if path.is_file() else {}
+
+    def add(self, stage: str, seconds: float) -> None:
+        self.seconds[stage] = round(self.seconds.get(stage, 0.0) + seconds, 1)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.path.write_text(json.dumps(self.seconds, indent=2))
+
+    def timed(self, stage: str, fn, *args):
+        """``fn(*args)``, its wall time added to ``stage``."""
+        start = time.perf_counter()
+        result = fn(*args)
+        self.add(stage, time.perf_counter() - start)
+        return result
 
 
 def record_recipe(recipe: Path, root: Path, toy: bool) -> Path:
