@@ -28,7 +28,6 @@ import functools
 import json
 import math
 import os
-import subprocess
 import time
 from pathlib import Path
 
@@ -39,24 +38,13 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from _report import emit, machine  # noqa: E402
 
+from lerobot_suture.pipelines.stages import code_commit  # noqa: E402
 from lerobot_suture.runtime.policy import GateMode, PolicyRunner, env_kwargs_for_policy  # noqa: E402
 from lerobot_suture.runtime.rollout import make_scenario_env, rollout_seeds  # noqa: E402
 from lerobot_suture.runtime.seeds import episode_seeds  # noqa: E402
 from lerobot_suture.safety.cbf_config import CBFConfig  # noqa: E402
 
 TEST_SEED = 8_000_000  # apart from recording, calibration and the commands' test seeds
-
-
-def code_commit() -> str | None:
-    """The commit of the lerobot_suture package this run imported (a baseline may come from a worktree)."""
-    import lerobot_suture
-
-    result = subprocess.run(
-        ["git", "-C", str(Path(lerobot_suture.__file__).parent), "rev-parse", "HEAD"],
-        capture_output=True,
-        text=True,
-    )
-    return result.stdout.strip() or None
 
 
 def episode_record(log) -> dict:

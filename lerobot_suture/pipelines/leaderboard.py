@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from lerobot_suture.experiments import leaderboard as cells
-from lerobot_suture.pipelines.stages import StageTimings, calibrate_policy, record_recipe
+from lerobot_suture.pipelines.stages import StageTimings, calibrate_policy, code_commit, record_recipe
 from lerobot_suture.runtime.config import PolicyPathConfig
 from lerobot_suture.sim.shifts import MAGNITUDES, SHIFTS, Shift
 from lerobot_suture.sim.tasks import TASK_NAMES
@@ -165,6 +165,7 @@ def evaluate_row(cfg: LeaderboardConfig, task: str, name: str, policy_dir: Path)
     from lerobot_suture.runtime.policy import GateMode, PolicyRunner, env_kwargs_for_policy
 
     row, runner, env_kwargs = {}, None, None
+    commit = code_commit()
     for condition in cells.conditions(task, cfg.shifts):
         path = cfg.output_dir / "cells" / task / name / f"{condition.replace(':', '_')}.json"
         if path.is_file():
@@ -176,6 +177,7 @@ def evaluate_row(cfg: LeaderboardConfig, task: str, name: str, policy_dir: Path)
         seeds = cells.condition_seeds(cfg.seed, task, condition, cfg.episodes)
         cell = cells.run_cell(runner, env_kwargs, task, condition, seeds, cfg.batch_envs, cfg.workers)
         cell["policy_path"] = str(policy_dir)
+        cell["code_commit"] = commit
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".tmp")
         tmp.write_text(json.dumps(cell, indent=1))

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import logging
+import subprocess
 import time
 from pathlib import Path
 
@@ -19,6 +20,15 @@ logger = logging.getLogger(__name__)
 REPO_ROOT = Path(__file__).resolve().parents[2]
 CALIBRATE_CONFIG = REPO_ROOT / "policies" / "presets" / "reference_calibrate.yaml"
 """The reference's gate calibration (validation seeds, log-normal model, per-episode threshold)."""
+
+
+def code_commit() -> str | None:
+    """The commit of the lerobot_suture package this process imported (None outside a git checkout):
+    results carry it so a figure can be traced to the code that made it."""
+    result = subprocess.run(
+        ["git", "-C", str(Path(__file__).parent), "rev-parse", "HEAD"], capture_output=True, text=True
+    )
+    return result.stdout.strip() or None
 
 
 class StageTimings:
