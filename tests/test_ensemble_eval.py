@@ -130,12 +130,20 @@ def test_lerobot_eval_async_batch_2_with_the_cbf_and_the_enforced_gate(tiny_poli
 
 def test_lerobot_eval_default_batch_size_on_a_machine_with_more_cores(tiny_policy_dir, tmp_path):
     # 16 cores: LeRobot takes 70% of them, capped by the episode count, and runs them async.
+    # The inference approximations are LeRobot's own overrides of the trained config.
+    approximations = ["--policy.num_inference_steps=2", "--policy.uncertainty_samples_per_member=3"]
     info, log = run_lerobot_eval(
-        [f"--policy.path={tiny_policy_dir}", "--env.episode_length=3", "--eval.n_episodes=3"],
+        [
+            f"--policy.path={tiny_policy_dir}",
+            *approximations,
+            "--env.episode_length=3",
+            "--eval.n_episodes=3",
+        ],
         tmp_path / "eval",
         cpu_count=16,
     )
     assert "batch_size=3, async=True" in log
+    assert "'num_inference_steps': 2" in log and "'uncertainty_samples_per_member': 3" in log
     check_eval_info(info, n_episodes=3, batch_size=3)
 
 

@@ -168,6 +168,27 @@ def test_worker_processes_give_the_same_episodes(tiny_policy_dir, tmp_path):
         rollout_seeds(make_env, in_memory, [5, 6], batch_envs=1, workers=2)
 
 
+def test_config_overrides_reach_the_policy_and_the_workers(tiny_policy_dir):
+    """Fewer denoising steps / more samples per member, chosen at load as lerobot-eval's --policy.FIELD."""
+    import functools
+
+    overrides = {"num_inference_steps": 2, "uncertainty_samples_per_member": 2}
+    runner = PolicyRunner.from_pretrained(tiny_policy_dir, GateMode.REPORT, overrides=overrides)
+    assert runner.policy.config.num_inference_steps == 2
+    assert runner.policy.config.uncertainty_samples_per_member == 2
+    make_env = functools.partial(_env, runner, max_episode_steps=5)
+    local = rollout_seeds(make_env, runner, [3, 4], batch_envs=1)
+    spread = rollout_seeds(make_env, runner, [3, 4], batch_envs=1, workers=2)
+    plain = rollout_seeds(make_env, PolicyRunner.from_pretrained(tiny_policy_dir, GateMode.REPORT), [3, 4], 1)
+    for a, b, c in zip(local, spread, plain, strict=True):
+        np.testing.assert_allclose(a.scores, b.scores, rtol=1e-4, atol=1e-9)  # the workers load the overrides
+        assert not np.allclose(a.scores, c.scores)  # and they change the policy
+    with pytest.raises(ValueError, match="name no field"):
+        PolicyRunner.from_pretrained(tiny_policy_dir, GateMode.REPORT, overrides={"num_denoising_steps": 2})
+    with pytest.raises(ValueError, match="num_inference_steps"):
+        PolicyRunner.from_pretrained(tiny_policy_dir, GateMode.REPORT, overrides={"num_inference_steps": 0})
+
+
 def test_episode_noise_needs_one_seed_per_row(tiny_policy_dir, tmp_path):
     runner = _runner(tiny_policy_dir, tmp_path, threshold=None, enforce=False)
     env = _env(runner)

@@ -8,6 +8,7 @@ postprocessor).
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from enum import Enum
 from pathlib import Path
@@ -20,14 +21,20 @@ from lerobot_suture.sim.task import TASK
 ACTION = "action"  # LeRobot's key of the action (and of a policy's action queue)
 
 
-def load_policy(policy_path: str | Path, device: str = "cpu"):
+def load_policy(policy_path: str | Path, device: str = "cpu", overrides: dict | None = None):
     """A trained policy and its processors from a pretrained directory (offline).
+
+    Args:
+        overrides: config fields to change before the policy is built, as ``lerobot-eval``'s
+            ``--policy.FIELD=VALUE`` does, e.g. ``{"num_inference_steps": 5}``: the inference-time
+            approximations (fewer denoising steps, fewer samples per member). Validated by the config.
 
     Returns:
         (policy, preprocessor, postprocessor)
 
     Raises:
         FileNotFoundError: the directory or its ``config.json`` is missing.
+        ValueError: an override names no field of the policy's config, or a value its config refuses.
     """
     from lerobot.configs.policies import PreTrainedConfig
     from lerobot.policies.factory import get_policy_class, make_pre_post_processors
@@ -41,6 +48,11 @@ def load_policy(policy_path: str | Path, device: str = "cpu"):
         )
     register_third_party_plugins()
     config = PreTrainedConfig.from_pretrained(path)
+    if overrides:
+        unknown = sorted(set(overrides) - {f.name for f in dataclasses.fields(config)})
+        if unknown:
+            raise ValueError(f"{unknown} name no field of the {config.type!r} policy's config; drop them.")
+        config = dataclasses.replace(config, **overrides)  # runs the config's own validation
     config.device = device
     policy = get_policy_class(config.type).from_pretrained(path, config=config)
     policy.eval()
@@ -119,21 +131,24 @@ class PolicyRunner:
         self.preprocessor = preprocessor
         self.postprocessor = postprocessor
         self.gate = gate
-        self.source: tuple[str, str] | None = None  # (policy directory, device) when loaded from one
+        self.source: tuple[str, str, dict] | None = None  # (directory, device, overrides) when loaded from one
         self._generators: list[torch.Generator] | None = None
         self._noise_shape: tuple[int, ...] | None = None
         self._apply_gate()
 
     @classmethod
-    def from_pretrained(cls, policy_path: str | Path, gate: GateMode, device: str = "cpu") -> PolicyRunner:
-        """Load a policy (:func:`load_policy`) to run with its gate in mode ``gate``.
+    def from_pretrained(
+        cls, policy_path: str | Path, gate: GateMode, device: str = "cpu", overrides: dict | None = None
+    ) -> PolicyRunner:
+        """Load a policy (:func:`load_policy`, with its config ``overrides``) to run with its gate in mode
+        ``gate``.
 
         Raises:
             FileNotFoundError: ``gate`` is ENFORCE and the ensemble has no calibration (the message says how
                 to make one).
         """
-        runner = cls(*load_policy(policy_path, device), gate=gate)
-        runner.source = (str(policy_path), device)
+        runner = cls(*load_policy(policy_path, device, overrides), gate=gate)
+        runner.source = (str(policy_path), device, dict(overrides or {}))
         if gate is GateMode.ENFORCE and getattr(runner.policy, "ood_calibration", False) is None:
             raise FileNotFoundError(
                 f"The gate cannot be enforced: the policy at {policy_path} has no O.O.D. calibration. Run "

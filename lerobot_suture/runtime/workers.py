@@ -6,7 +6,7 @@ faster on 2 threads than on 1), while two processes of one thread each run two b
 divides by the cores. Each episode's noise comes from its own seed (:class:`PolicyRunner`), so an episode
 is the same whichever process rolls it out.
 
-The pool is kept while the same (policy, device, workers) comes back (a worker spends seconds importing
+The pool is kept while the same (policy, device, config overrides, workers) comes back (a worker spends seconds importing
 torch and loading the policy) and the policy's directory is unchanged (a calibration written since, or
 weights trained over, start fresh workers); a call for another policy replaces it (one copy of one policy per
 worker at a time, whatever a program evaluates in turn), and it is shut down at exit. The envs of a worker are rebuilt only when
@@ -34,13 +34,13 @@ def threads_per_worker(workers: int) -> int:
     return max(1, (os.cpu_count() or 1) // workers)
 
 
-def _init_worker(policy_path: str, device: str, threads: int) -> None:
+def _init_worker(policy_path: str, device: str, overrides: dict, threads: int) -> None:
     import torch
 
     from lerobot_suture.runtime.policy import GateMode, PolicyRunner
 
     torch.set_num_threads(threads)
-    _WORKER["runner"] = PolicyRunner.from_pretrained(policy_path, GateMode.REPORT, device)
+    _WORKER["runner"] = PolicyRunner.from_pretrained(policy_path, GateMode.REPORT, device, overrides)
 
 
 def _run_batch(factory: bytes, gate, seeds: list[int], surgeon: str) -> list:
@@ -62,15 +62,15 @@ def _directory_state(policy_path: str) -> tuple:
     return tuple((p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in files)
 
 
-def _pool(policy_path: str, device: str, workers: int) -> ProcessPoolExecutor:
-    key = (policy_path, device, workers, _directory_state(policy_path))
+def _pool(policy_path: str, device: str, overrides: dict, workers: int) -> ProcessPoolExecutor:
+    key = (policy_path, device, tuple(sorted(overrides.items())), workers, _directory_state(policy_path))
     if key not in _POOLS:
         shutdown_pools()  # another policy's workers: free their memory first
         _POOLS[key] = ProcessPoolExecutor(
             max_workers=workers,
             mp_context=multiprocessing.get_context("spawn"),  # no forked torch threads or GL contexts
             initializer=_init_worker,
-            initargs=(policy_path, device, threads_per_worker(workers)),
+            initargs=(policy_path, device, overrides, threads_per_worker(workers)),
         )
     return _POOLS[key]
 
@@ -112,7 +112,7 @@ def rollout_in_workers(
             f"`workers` > 1 needs an env factory that can be pickled; got {make_env!r} ({error}). Pass "
             "functools.partial(make_scenario_env, ...) instead of a lambda."
         ) from None
-    pool = _pool(str(source[0]), source[1], workers)
+    pool = _pool(str(source[0]), source[1], source[2], workers)
     batches = [list(seeds[i : i + batch_envs]) for i in range(0, len(seeds), batch_envs)]
     futures = {
         pool.submit(_run_batch, factory, runner.gate, batch, surgeon): k for k, batch in enumerate(batches)

@@ -1,0 +1,180 @@
+"""What the inference approximations cost the ensemble: fewer samples per member (K) and fewer DDIM
+denoising steps, against the trained configuration, in closed loop.
+
+Each configuration loads the same checkpoint with config overrides (as `lerobot-eval --policy.path=DIR
+--policy.uncertainty_samples_per_member=K --policy.num_inference_steps=S` does) and runs the insertion
+task's conditions (nominal and the paper's four scenarios) on the leaderboard's test seeds, the CBF on and
+the gate reporting. Reported per configuration: episodes per minute, success per condition (Wilson 95%),
+the gate's episode-level AUROC per scenario against the nominal episodes (DeLong 95%), its alarm rates at
+the checkpoint's calibrated threshold (fitted to the trained configuration's scores: an approximation
+changes the score distribution, so a deployment that keeps one recalibrates), and how many episodes end
+as they do under the trained configuration. The first configuration is the reference. Prints JSON;
+`--plot FILE` draws success and AUROC against the denoising work per prediction.
+
+    python benchmarks/eval_approximations.py --policy-path outputs/.../pretrained_model
+        [--configs 8x10 4x10 1x10 8x5 4x5] [--episodes 50] [--workers 2] [--output FILE] [--plot FILE]
+
+A configuration is KxS: K chunks per member, S DDIM steps. Time it with nothing else running.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from _report import emit, machine
+
+from lerobot_suture.experiments import leaderboard, metrics
+from lerobot_suture.experiments.episode_metrics import ood_metrics
+from lerobot_suture.pipelines.stages import code_commit
+from lerobot_suture.runtime.policy import GateMode, PolicyRunner, env_kwargs_for_policy
+from lerobot_suture.runtime.rollout import make_scenario_env, rollout_seeds
+from lerobot_suture.safety.cbf_config import CBFConfig
+from lerobot_suture.sim.tasks import task_spec
+
+TASK = "insertion"
+LEADERBOARD_SEED = 7_000_000  # the leaderboard's default: the reference configuration's cells are its own
+
+
+def parse_config(text: str) -> dict:
+    samples, _, steps = text.partition("x")
+    if not (samples.isdigit() and steps.isdigit()):
+        raise SystemExit(f"A configuration is KxS (samples per member x DDIM steps), e.g. 4x5. Got {text!r}.")
+    return {"uncertainty_samples_per_member": int(samples), "num_inference_steps": int(steps)}
+
+
+def run_config(
+    policy_path: Path, overrides: dict, episodes: int, batch_envs: int, workers: int, seed: int
+) -> tuple[dict, dict]:
+    """One configuration's figures, and its per-episode outcomes by condition (for the agreement check)."""
+    runner = PolicyRunner.from_pretrained(policy_path, GateMode.REPORT, overrides=overrides)
+    env_kwargs = {**env_kwargs_for_policy(runner.policy.config), "task": TASK}
+    logs, seconds = {}, 0.0
+    for condition in task_spec(TASK).scenarios:
+        seeds = leaderboard.condition_seeds(seed, TASK, condition, episodes)
+        make_env = functools.partial(make_scenario_env, env_kwargs, condition, CBFConfig(enabled=True), True)
+        start = time.perf_counter()
+        logs[condition] = rollout_seeds(make_env, runner, seeds, batch_envs, desc=condition, workers=workers)
+        seconds += time.perf_counter() - start
+    nominal = logs["nominal"]
+    per_condition = {}
+    for condition, runs in logs.items():
+        successes = sum(log.success for log in runs)
+        flagged = sum(log.first_alarm_step is not None for log in runs)
+        cell = {
+            "success_rate": successes / len(runs),
+            "success_interval": metrics.wilson_interval(successes, len(runs)),
+            "flagged_rate": flagged / len(runs),
+        }
+        if condition != "nominal":
+            ood = ood_metrics(nominal, runs)
+            cell |= {k: ood[k] for k in ("auroc", "auroc_interval95", "tpr_at_threshold")}
+        per_condition[condition] = cell
+    total = sum(len(runs) for runs in logs.values())
+    row = {
+        "samples_per_member": overrides["uncertainty_samples_per_member"],
+        "ddim_steps": overrides["num_inference_steps"],
+        "unet_evaluations_per_prediction": runner.policy.config.n_members
+        * overrides["uncertainty_samples_per_member"]
+        * overrides["num_inference_steps"],
+        "episodes": total,
+        "seconds": round(seconds, 1),
+        "episodes_per_min": round(60.0 * total / seconds, 1),
+        "nominal_false_alarm_rate": per_condition["nominal"]["flagged_rate"],
+        "conditions": per_condition,
+    }
+    outcomes = {c: [(log.seed, bool(log.success)) for log in runs] for c, runs in logs.items()}
+    return row, outcomes
+
+
+def agreement(reference: dict, other: dict) -> float:
+    """The share of episodes (same seeds) whose success is the reference configuration's."""
+    pairs = [(a, b) for c in reference for a, b in zip(reference[c], other[c], strict=True)]
+    assert all(a[0] == b[0] for a, b in pairs)
+    return float(np.mean([a[1] == b[1] for a, b in pairs]))
+
+
+def plot(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    conditions = list(rows[0]["conditions"])
+    work = [row["unet_evaluations_per_prediction"] for row in rows]
+    labels = [f"K={row['samples_per_member']}, S={row['ddim_steps']}" for row in rows]
+    fig, (ax_success, ax_auroc) = plt.subplots(1, 2, figsize=(11, 4.2))
+    for condition in conditions:
+        ax_success.plot(
+            work, [r["conditions"][condition]["success_rate"] for r in rows], "o", label=condition
+        )
+        if condition != "nominal":
+            ax_auroc.plot(work, [r["conditions"][condition]["auroc"] for r in rows], "o", label=condition)
+    for ax, title in ((ax_success, "policy success"), (ax_auroc, "gate AUROC vs nominal")):
+        ax.set_xscale("log")
+        ax.set_xlabel("U-Net evaluations per prediction (members x K x S)")
+        ax.set_title(title)
+        ax.set_ylim(-0.03, 1.03)
+        ax.grid(alpha=0.3)
+        for x, label in zip(work, labels, strict=True):
+            ax.annotate(label, (x, 0.0), rotation=90, fontsize=7, ha="center", va="bottom", alpha=0.6)
+    ax_success.legend(fontsize=7, loc="center left")
+    ax_auroc.legend(fontsize=7, loc="center left")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--policy-path", type=Path, required=True)
+    parser.add_argument("--configs", nargs="+", default=["8x10", "4x10", "1x10", "8x5", "4x5"])
+    parser.add_argument("--episodes", type=int, default=50, help="per condition")
+    parser.add_argument("--batch-envs", type=int, default=8)
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--seed", type=int, default=LEADERBOARD_SEED)
+    parser.add_argument("--output", type=Path, default=None)
+    parser.add_argument("--plot", type=Path, default=None)
+    args = parser.parse_args()
+
+    configs = [parse_config(c) for c in args.configs]
+    rows, reference = [], None
+    for overrides in configs:
+        row, outcomes = run_config(
+            args.policy_path, overrides, args.episodes, args.batch_envs, args.workers, args.seed
+        )
+        if reference is None:
+            reference = outcomes
+        row["same_success_as_reference"] = agreement(reference, outcomes)
+        row["speed_up_vs_reference"] = round(
+            row["episodes_per_min"] / (rows[0] if rows else row)["episodes_per_min"], 2
+        )
+        rows.append(row)
+    if args.plot is not None:
+        plot(rows, args.plot)
+    emit(
+        {
+            "benchmark": "eval_approximations",
+            "code_commit": code_commit(),
+            "policy_path": str(args.policy_path),
+            "task": TASK,
+            "seed": args.seed,
+            "episodes_per_condition": args.episodes,
+            "batch_envs": args.batch_envs,
+            "workers": args.workers,
+            "torch_threads_one_process": torch.get_num_threads(),
+            "machine": machine(),
+            "configurations": rows,
+        },
+        args.output,
+    )
+
+
+if __name__ == "__main__":
+    main()
