@@ -131,7 +131,7 @@ class PolicyRunner:
         self.preprocessor = preprocessor
         self.postprocessor = postprocessor
         self.gate = gate
-        self.source: tuple[str, str, dict] | None = None  # (directory, device, overrides) when loaded from one
+        self.source: tuple[str, str, dict] | None = None  # (directory, device, overrides) if loaded
         self._generators: list[torch.Generator] | None = None
         self._noise_shape: tuple[int, ...] | None = None
         self._apply_gate()
