@@ -4,12 +4,14 @@ denoising steps, against the trained configuration, in closed loop.
 Each configuration loads the same checkpoint with config overrides (as `lerobot-eval --policy.path=DIR
 --policy.uncertainty_samples_per_member=K --policy.num_inference_steps=S` does) and runs the insertion
 task's conditions (nominal and the paper's four scenarios) on the leaderboard's test seeds, the CBF on and
-the gate reporting. Reported per configuration: episodes per minute, success per condition (Wilson 95%),
-the gate's episode-level AUROC per scenario against the nominal episodes (DeLong 95%), its alarm rates at
-the checkpoint's calibrated threshold (fitted to the trained configuration's scores: an approximation
-changes the score distribution, so a deployment that keeps one recalibrates), and how many episodes end
-as they do under the trained configuration. The first configuration is the reference. Prints JSON;
-`--plot FILE` draws success and AUROC against the denoising work per prediction.
+the gate scoring every prediction. Reported per configuration: episodes per minute, success per condition
+(Wilson 95%), the gate's episode-level AUROC per scenario against the nominal episodes (DeLong 95%;
+threshold-free), and how many episodes end as they do under the first configuration, the reference.
+
+A gate's calibration is bound to the K and S it was fitted with (the policy refuses to load it under
+others: its threshold would not hold), so every configuration runs from a copy of the checkpoint without
+its calibration, and no alarm rate is reported: a deployment that keeps an approximation calibrates it
+anew. Prints JSON; `--plot FILE` draws success and AUROC against the denoising work per prediction.
 
     python benchmarks/eval_approximations.py --policy-path outputs/.../pretrained_model
         [--configs 8x10 4x10 1x10 8x5 4x5] [--episodes 50] [--workers 2] [--output FILE] [--plot FILE]
@@ -21,6 +23,8 @@ from __future__ import annotations
 
 import argparse
 import functools
+import shutil
+import tempfile
 import time
 from pathlib import Path
 
@@ -47,6 +51,15 @@ def parse_config(text: str) -> dict:
     return {"uncertainty_samples_per_member": int(samples), "num_inference_steps": int(steps)}
 
 
+def uncalibrated_copy(policy_path: Path, directory: Path) -> Path:
+    """The checkpoint's files but its gate calibration (``ood_calibration*.json``), in ``directory``."""
+    directory.mkdir(parents=True)
+    for file in policy_path.iterdir():
+        if file.is_file() and not file.name.startswith("ood_calibration"):
+            shutil.copy2(file, directory / file.name)
+    return directory
+
+
 def run_config(
     policy_path: Path, overrides: dict, episodes: int, batch_envs: int, workers: int, seed: int
 ) -> tuple[dict, dict]:
@@ -64,15 +77,13 @@ def run_config(
     per_condition = {}
     for condition, runs in logs.items():
         successes = sum(log.success for log in runs)
-        flagged = sum(log.first_alarm_step is not None for log in runs)
         cell = {
             "success_rate": successes / len(runs),
             "success_interval": metrics.wilson_interval(successes, len(runs)),
-            "flagged_rate": flagged / len(runs),
         }
         if condition != "nominal":
             ood = ood_metrics(nominal, runs)
-            cell |= {k: ood[k] for k in ("auroc", "auroc_interval95", "tpr_at_threshold")}
+            cell |= {k: ood[k] for k in ("auroc", "auroc_interval95")}
         per_condition[condition] = cell
     total = sum(len(runs) for runs in logs.values())
     row = {
@@ -84,7 +95,6 @@ def run_config(
         "episodes": total,
         "seconds": round(seconds, 1),
         "episodes_per_min": round(60.0 * total / seconds, 1),
-        "nominal_false_alarm_rate": per_condition["nominal"]["flagged_rate"],
         "conditions": per_condition,
     }
     outcomes = {c: [(log.seed, bool(log.success)) for log in runs] for c, runs in logs.items()}
@@ -99,31 +109,30 @@ def agreement(reference: dict, other: dict) -> float:
 
 
 def plot(rows: list[dict], path: Path) -> None:
+    """Success and AUROC per condition against the measured episodes per minute, a point per configuration."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     conditions = list(rows[0]["conditions"])
-    work = [row["unet_evaluations_per_prediction"] for row in rows]
-    labels = [f"K={row['samples_per_member']}, S={row['ddim_steps']}" for row in rows]
-    fig, (ax_success, ax_auroc) = plt.subplots(1, 2, figsize=(11, 4.2))
+    speed = [row["episodes_per_min"] for row in rows]
+    fig, (ax_success, ax_auroc) = plt.subplots(1, 2, figsize=(11, 4.6))
     for condition in conditions:
         ax_success.plot(
-            work, [r["conditions"][condition]["success_rate"] for r in rows], "o", label=condition
+            speed, [r["conditions"][condition]["success_rate"] for r in rows], "o", label=condition
         )
         if condition != "nominal":
-            ax_auroc.plot(work, [r["conditions"][condition]["auroc"] for r in rows], "o", label=condition)
-    for ax, title in ((ax_success, "policy success"), (ax_auroc, "gate AUROC vs nominal")):
-        ax.set_xscale("log")
-        ax.set_xlabel("U-Net evaluations per prediction (members x K x S)")
-        ax.set_title(title)
+            ax_auroc.plot(speed, [r["conditions"][condition]["auroc"] for r in rows], "o", label=condition)
+    for ax, title in ((ax_success, "policy success"), (ax_auroc, "gate AUROC against nominal")):
+        ax.set_xlabel("episodes per minute (2 cores)")
+        ax.set_title(title, pad=22)
         ax.set_ylim(-0.03, 1.03)
         ax.grid(alpha=0.3)
-        for x, label in zip(work, labels, strict=True):
-            ax.annotate(label, (x, 0.0), rotation=90, fontsize=7, ha="center", va="bottom", alpha=0.6)
-    ax_success.legend(fontsize=7, loc="center left")
-    ax_auroc.legend(fontsize=7, loc="center left")
+        for row in rows:
+            label = f"K={row['samples_per_member']}\nS={row['ddim_steps']}"
+            ax.annotate(label, (row["episodes_per_min"], 1.03), fontsize=7, ha="center", va="bottom")
+        ax.legend(fontsize=7, loc="center", bbox_to_anchor=(0.5, 0.3))
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
@@ -145,9 +154,11 @@ def main() -> None:
 
     configs = [parse_config(c) for c in args.configs]
     rows, reference = [], None
+    scratch = tempfile.TemporaryDirectory(prefix="eval_approximations_")
+    policy_copy = uncalibrated_copy(args.policy_path, Path(scratch.name) / "pretrained_model")
     for overrides in configs:
         row, outcomes = run_config(
-            args.policy_path, overrides, args.episodes, args.batch_envs, args.workers, args.seed
+            policy_copy, overrides, args.episodes, args.batch_envs, args.workers, args.seed
         )
         if reference is None:
             reference = outcomes

@@ -195,7 +195,7 @@ class _GateThatReleasesMidThrow:
         self.expert, self.in_tissue_steps, self.off_steps, self.released = ScriptedExpert(), 0, 0, False
         self.expert.reset(self.env)
 
-    def act_batch(self, observations):
+    def act_batch(self, observations, tasks=None):
         u = self.env.unwrapped
         self.in_tissue_steps += int(u.needle_in_tissue)
         if self.in_tissue_steps <= self.depth:

@@ -189,6 +189,18 @@ def test_config_overrides_reach_the_policy_and_the_workers(tiny_policy_dir):
         PolicyRunner.from_pretrained(tiny_policy_dir, GateMode.REPORT, overrides={"num_inference_steps": 0})
 
 
+def test_each_env_sends_its_own_task_instruction(tiny_policy_dir):
+    """A language-conditioned policy reads the instruction of the task its env simulates."""
+    from lerobot_suture.sim.tasks import task_spec
+
+    runner = PolicyRunner.from_pretrained(tiny_policy_dir, GateMode.REPORT)
+    sent, preprocess = [], runner.preprocess
+    runner.preprocess = lambda observations, tasks=None: sent.append(tasks) or preprocess(observations, tasks)
+    envs = [_env(runner, task=task, max_episode_steps=2) for task in ("pickup", "insertion")]
+    rollout_episodes(envs, runner, [1, 2])
+    assert sent[0] == [task_spec("pickup").instruction, task_spec("insertion").instruction]
+
+
 def test_episode_noise_needs_one_seed_per_row(tiny_policy_dir, tmp_path):
     runner = _runner(tiny_policy_dir, tmp_path, threshold=None, enforce=False)
     env = _env(runner)
@@ -236,6 +248,9 @@ def test_calibrate_command_writes_a_calibration_the_policy_loads(tiny_policy_dir
     runner = PolicyRunner.from_pretrained(directory, GateMode.REPORT)
     assert runner.policy.ood_calibration == calibration
     assert calibration.score_settings == runner.policy.config.score_settings()
+    # The threshold belongs to the denoising it was fitted with: an approximation is refused, with the way.
+    with pytest.raises(ValueError, match="copy's config.json"):
+        PolicyRunner.from_pretrained(directory, GateMode.REPORT, overrides={"num_inference_steps": 2})
     assert (directory / "config.json").read_bytes() == config_json  # no score flags: the config is kept
 
 
@@ -264,3 +279,12 @@ def test_calibrate_rejects_too_few_episodes_for_per_episode_mode(tiny_policy_dir
         cli_main(["calibrate", f"--policy.path={tiny_policy_dir}", "--calibration_episodes=5"])
     assert exit_info.value.code == 2
     assert "needs at least 19 calibration episodes" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", ["calibrate", "calibrate-stac", "dagger"])
+def test_commands_that_write_into_the_policy_refuse_approximations(command, tiny_policy_dir, capsys):
+    """A calibration or a fine-tuned policy must hold for the policy as it will be loaded: as trained."""
+    with pytest.raises(SystemExit) as exit_info:
+        cli_main([command, f"--policy.path={tiny_policy_dir}", "--policy.num_inference_steps=2"])
+    assert exit_info.value.code == 2
+    assert "drop --policy.num_inference_steps" in capsys.readouterr().err

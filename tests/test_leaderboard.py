@@ -71,6 +71,7 @@ def test_conditions_and_seeds_are_shared_by_policies_and_disjoint_across_cells()
         ({"episodes": 0}, "episodes"),
         ({"shifts": ["fog@0.2"]}, "Unknown shift"),
         ({"checkpoints": ["insertion=outputs/x"]}, "TASK:POLICY=DIR"),
+        ({"policy": PolicyPathConfig(num_inference_steps=2)}, "apply to the checkpoint of `--policy.path`"),
     ],
 )
 def test_bad_config_names_the_field(args, match):
@@ -128,6 +129,25 @@ def test_a_users_checkpoint_joins_the_board_and_finished_cells_are_kept(tiny_pol
         summary["episodes"] == len(row)
         and summary["shift_success_mean"] == row["shift:dim_light@0.2"]["success_rate"]
     )
+
+    # An approximation is its own row by default, and a named row's cells run as trained are not reused
+    # for it.
+    theirs = sorted((work / "cells" / "insertion" / "theirs").glob("*.json"))
+    theirs_stamps = [f.stat().st_mtime_ns for f in theirs]
+    cli_main(["leaderboard", *args, "--policy.num_inference_steps=2"])
+    cli_main(["leaderboard", *args, "--policy_name=mine", "--policy.num_inference_steps=2"])
+    assert [f.stat().st_mtime_ns for f in theirs] == theirs_stamps
+    board = json.loads((results / "leaderboard.json").read_text())
+    approximated = board["tasks"]["insertion"]["ensemble_diffusion S=2"]
+    assert approximated["nominal"]["policy_overrides"] == {"num_inference_steps": 2}
+    assert board["tasks"]["insertion"]["mine"]["nominal"]["policy_overrides"] == {"num_inference_steps": 2}
+
+
+def test_an_approximation_must_leave_at_least_one_step_and_sample():
+    with pytest.raises(ValueError, match="policy.uncertainty_samples_per_member"):
+        PolicyPathConfig(uncertainty_samples_per_member=0)
+    assert PolicyPathConfig(num_inference_steps=3).overrides == {"num_inference_steps": 3}
+    assert PolicyPathConfig().overrides == {}
 
 
 @pytest.mark.slow

@@ -83,7 +83,7 @@ class _StubRunner:
     def reset(self, seeds=None):
         self.policy.calls = 0
 
-    def act_batch(self, observations):
+    def act_batch(self, observations, tasks=None):
         if self.policy.calls % 2 == 0:
             self.policy.last_prediction = self.policy.calls
         self.policy.calls += 1

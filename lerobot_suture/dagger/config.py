@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 from lerobot_suture.dagger.watch import WatchConfig
 from lerobot_suture.runtime.config import RolloutCommandConfig
@@ -75,6 +76,8 @@ class DaggerConfig(RolloutCommandConfig):
         device: torch device of rollouts and training.
         toy: shrink everything (:data:`TOY_SIZES`, set over the flags above) so the loop runs in minutes.
     """
+
+    writes_to_policy: ClassVar[bool] = True
 
     # Inputs and outputs.
     dataset_root: Path | None = None

@@ -177,8 +177,8 @@ class CapturingRunner:
         self._close_batch()
         self.runner.reset(seeds=seeds)
 
-    def act_batch(self, observations: list[dict]) -> np.ndarray:
-        actions = self.runner.act_batch(observations)
+    def act_batch(self, observations: list[dict], tasks=None) -> np.ndarray:
+        actions = self.runner.act_batch(observations, tasks)
         if self.policy.ood_status(0)["new_prediction"]:
             features = self.policy.last_features
             samples = self.policy.last_prediction.normalized.samples  # (B, N, K, T, A)
@@ -272,6 +272,7 @@ def run_benchmark(cfg: BenchmarkOODConfig) -> dict:
         needs="enable_feature_capture",
         needed_for="the benchmark needs an ensemble_diffusion policy, whose members' samples and embeddings "
         "the detectors read.",
+        overrides=cfg.policy.overrides,
     )
     k = base.policy.config.uncertainty_samples_per_member
     if cfg.single_member_samples == 0 and k < 2 and "single_member_spread" in cfg.detectors:
@@ -296,6 +297,8 @@ def run_benchmark(cfg: BenchmarkOODConfig) -> dict:
             "single_member_samples": cfg.single_member_samples,
             "device": cfg.device,
         }
+        if cfg.policy.overrides:  # absent as trained: parts saved before overrides existed still match
+            meta["policy_overrides"] = cfg.policy.overrides
         if "appearance" in kwargs:  # absent otherwise: parts saved before appearance existed still match
             meta["appearance"] = kwargs["appearance"]
         if shift is not None:

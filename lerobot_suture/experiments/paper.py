@@ -182,7 +182,8 @@ def run_experiments(cfg: ExperimentsConfig) -> dict:
     """Run every experiment; writes the figures, ``metrics.json``, ``report.md`` and ``traces.json``."""
     started = time.perf_counter()
     cfg.output_dir.mkdir(parents=True, exist_ok=True)
-    runner = reporting_runner(cfg.policy.path, cfg.device)  # the paper's experiments report the gate
+    # The paper's experiments report the gate.
+    runner = reporting_runner(cfg.policy.path, cfg.device, overrides=cfg.policy.overrides)
     policy = runner.policy
     if policy.ood_calibration is None:
         raise ValueError(
@@ -203,6 +204,7 @@ def run_experiments(cfg: ExperimentsConfig) -> dict:
     expert_successes = sum(e.success for e in expert)
     result: dict = {
         "policy_path": str(cfg.policy.path),
+        "policy_overrides": cfg.policy.overrides,
         "calibration": policy.ood_calibration.to_dict(),
         "nominal": {
             "episodes": len(nominal),

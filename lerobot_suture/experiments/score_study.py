@@ -111,8 +111,8 @@ class RescoringRunner:
         self._close_batch()
         self.runner.reset(seeds=seeds)
 
-    def act_batch(self, observations: list[dict]) -> np.ndarray:
-        actions = self.runner.act_batch(observations)
+    def act_batch(self, observations: list[dict], tasks=None) -> np.ndarray:
+        actions = self.runner.act_batch(observations, tasks)
         if self.policy.ood_status(0)["new_prediction"]:
             prediction = self.policy.last_prediction
             scores = [self.policy.rescore(prediction, **c).float().cpu().numpy() for c in self.choices]
@@ -208,6 +208,7 @@ def run_score_study(cfg: ScoreStudyConfig) -> dict:
         needs="rescore",
         needed_for="the score study needs an ensemble_diffusion policy, which can score a prediction in "
         "several ways.",
+        overrides=cfg.policy.overrides,
     )
     choices = choice_grid(base.policy)
     runner = RescoringRunner(base, choices)

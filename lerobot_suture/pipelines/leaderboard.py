@@ -56,8 +56,10 @@ class LeaderboardConfig:
     checkpoints: ``TASK:POLICY=DIR`` trained checkpoints to take instead of training (e.g.
         ``insertion:act=outputs/act/train/checkpoints/last/pretrained_model``).
     policy: ``--policy.path=DIR``: a user's checkpoint to add to the board already in ``results_dir``
-        (only it is evaluated; nothing is trained).
-    policy_name: the row's name for ``--policy.path`` (default: the policy's type).
+        (only it is evaluated; nothing is trained); ``--policy.num_inference_steps=S`` /
+        ``--policy.uncertainty_samples_per_member=K`` run it with those approximations.
+    policy_name: the row's name for ``--policy.path`` (default: the policy's type, with ``S=`` / ``K=``
+        when approximated).
     episodes: episodes a cell, >= 1 (50: the LIBERO protocol's count per task).
     shifts: distribution shifts run in the nominal scene, ``NAME@MAGNITUDE`` (default: every shift at its
         smaller magnitude); ``[]`` for the scenarios only.
@@ -109,6 +111,11 @@ class LeaderboardConfig:
             )
         self.shifts = [Shift.parse(s).label for s in self.shifts]  # raises on an unknown shift
         self.taken = parse_checkpoints(self.checkpoints)
+        if self.policy.overrides and self.policy.path is None:
+            raise ValueError(
+                "`--policy.num_inference_steps` / `--policy.uncertainty_samples_per_member` apply to the "
+                "checkpoint of `--policy.path`: pass it (the trained rows run as trained)."
+            )
         if self.policy.path is not None and not (Path(self.policy.path) / "config.json").is_file():
             raise FileNotFoundError(
                 f"No trained policy at {self.policy.path} (no config.json): pass the pretrained_model directory "
@@ -160,24 +167,38 @@ def train_policy(cfg: LeaderboardConfig, task: str, policy: str, dataset_root: P
     return run_lerobot_train(cfg.output_dir / "train" / task / policy, fresh, steps, common)
 
 
-def evaluate_row(cfg: LeaderboardConfig, task: str, name: str, policy_dir: Path) -> dict:
-    """Every condition of ``task`` for one policy; finished cells are read back, not run again."""
+def row_name(policy_type: str, overrides: dict) -> str:
+    """A row's default name: the policy type, and the inference approximations it runs with, if any."""
+    short = {"num_inference_steps": "S", "uncertainty_samples_per_member": "K"}
+    return policy_type + "".join(f" {short[k]}={v}" for k, v in sorted(overrides.items()))
+
+
+def evaluate_row(
+    cfg: LeaderboardConfig, task: str, name: str, policy_dir: Path, overrides: dict | None = None
+) -> dict:
+    """Every condition of ``task`` for one policy (with its config ``overrides``); finished cells run with the
+    same overrides are read back, not run again."""
     from lerobot_suture.runtime.policy import GateMode, PolicyRunner, env_kwargs_for_policy
 
+    overrides = dict(overrides or {})
     row, runner, env_kwargs = {}, None, None
     commit = code_commit()
     for condition in cells.conditions(task, cfg.shifts):
         path = cfg.output_dir / "cells" / task / name / f"{condition.replace(':', '_')}.json"
         if path.is_file():
-            row[condition] = json.loads(path.read_text())
-            continue
+            saved = json.loads(path.read_text())
+            if saved.get("policy_overrides", {}) == overrides:
+                row[condition] = saved
+                continue
         if runner is None:
-            runner = PolicyRunner.from_pretrained(policy_dir, GateMode.REPORT, cfg.device)
+            runner = PolicyRunner.from_pretrained(policy_dir, GateMode.REPORT, cfg.device, overrides)
             env_kwargs = env_kwargs_for_policy(runner.policy.config)
         seeds = cells.condition_seeds(cfg.seed, task, condition, cfg.episodes)
         cell = cells.run_cell(runner, env_kwargs, task, condition, seeds, cfg.batch_envs, cfg.workers)
         cell["policy_path"] = str(policy_dir)
         cell["code_commit"] = commit
+        if overrides:
+            cell["policy_overrides"] = overrides
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".tmp")
         tmp.write_text(json.dumps(cell, indent=1))
@@ -203,9 +224,10 @@ def run_leaderboard(cfg: LeaderboardConfig) -> dict:
     if cfg.policy.path is not None:  # a user's checkpoint joins the board
         from lerobot.configs.policies import PreTrainedConfig
 
-        name = cfg.policy_name or PreTrainedConfig.from_pretrained(cfg.policy.path).type
+        policy_type = PreTrainedConfig.from_pretrained(cfg.policy.path).type
+        name = cfg.policy_name or row_name(policy_type, cfg.policy.overrides)
         for task in cfg.tasks:
-            row = evaluate_row(cfg, task, name, Path(cfg.policy.path))
+            row = evaluate_row(cfg, task, name, Path(cfg.policy.path), cfg.policy.overrides)
             board["tasks"].setdefault(task, {})[name] = row
             timings.seconds[f"evaluate {task} {name}"] = _rollout_seconds(row)
     else:

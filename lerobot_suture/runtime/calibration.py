@@ -22,6 +22,7 @@ import json
 import logging
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
@@ -59,6 +60,8 @@ class CalibrateConfig(RolloutCommandConfig):
         from ``lerobot-suture score-study``) to calibrate the gate for; it is written into the policy's
         ``config.json`` beside the calibration. Unset: the policy's own.
     """
+
+    writes_to_policy: ClassVar[bool] = True
 
     dataset_root: Path | None = None
     calibration_episodes: int = 100

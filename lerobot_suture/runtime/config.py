@@ -5,13 +5,37 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 
 @dataclass
 class PolicyPathConfig:
-    """``--policy.path=DIR``: the ``pretrained_model`` directory of a ``lerobot-train`` checkpoint."""
+    """``--policy.path=DIR``: the ``pretrained_model`` directory of a ``lerobot-train`` checkpoint.
+
+    Inference approximations, LeRobot's own config fields as ``lerobot-eval`` overrides them (unset: as
+    trained): ``--policy.num_inference_steps=S``, fewer DDIM denoising steps; and, for an ensemble,
+    ``--policy.uncertainty_samples_per_member=K``, fewer chunks per member. Both change the episodes and
+    the gate's scores, whose calibration was fitted to the policy as trained
+    (``docs/results/benchmarks/eval_approximations.json`` measures both).
+    """
 
     path: Path | None = None
+    num_inference_steps: int | None = None
+    uncertainty_samples_per_member: int | None = None
+
+    def __post_init__(self):
+        for name, value in self.overrides.items():
+            if value < 1:
+                raise ValueError(f"`policy.{name}` must be >= 1 (or unset: as trained). Got {value}.")
+
+    @property
+    def overrides(self) -> dict:
+        """The set approximations as config overrides (empty: the policy as trained)."""
+        chosen = {
+            "num_inference_steps": self.num_inference_steps,
+            "uncertainty_samples_per_member": self.uncertainty_samples_per_member,
+        }
+        return {name: value for name, value in chosen.items() if value is not None}
 
 
 @dataclass
@@ -24,11 +48,22 @@ class PolicyCommandConfig:
     policy: PolicyPathConfig = field(default_factory=PolicyPathConfig)
     device: str = "cpu"
 
+    writes_to_policy: ClassVar[bool] = False
+    """A command that writes into the policy's directory (a calibration, a fine-tuned policy) runs it as
+    trained: what it writes must hold for the policy as it will be loaded."""
+
     def __post_init__(self):
         if self.policy.path is None:
             raise ValueError(
                 "`--policy.path` is required: the pretrained_model directory of a trained policy, e.g. "
                 "outputs/train/NAME/checkpoints/last/pretrained_model."
+            )
+        if self.writes_to_policy and self.policy.overrides:
+            flags = " ".join(f"--policy.{name}" for name in self.policy.overrides)
+            raise ValueError(
+                f"This command writes into the policy's directory, for the policy as trained: drop {flags}. "
+                "For a gate with fewer steps or samples, copy the directory, set them in the copy's "
+                "config.json and pass the copy."
             )
         if self.device.split(":")[0] not in ("cpu", "cuda", "mps", "xpu"):
             raise ValueError(f"`device` must be cpu, cuda[:N], mps or xpu. Got {self.device!r}.")

@@ -34,7 +34,8 @@ def load_policy(policy_path: str | Path, device: str = "cpu", overrides: dict | 
 
     Raises:
         FileNotFoundError: the directory or its ``config.json`` is missing.
-        ValueError: an override names no field of the policy's config, or a value its config refuses.
+        ValueError: an override names no field of the policy's config, a value its config refuses, or one
+            the gate's calibration was not fitted with (the message says how to calibrate for it).
     """
     from lerobot.configs.policies import PreTrainedConfig
     from lerobot.policies.factory import get_policy_class, make_pre_post_processors
@@ -54,7 +55,18 @@ def load_policy(policy_path: str | Path, device: str = "cpu", overrides: dict | 
             raise ValueError(f"{unknown} name no field of the {config.type!r} policy's config; drop them.")
         config = dataclasses.replace(config, **overrides)  # runs the config's own validation
     config.device = device
-    policy = get_policy_class(config.type).from_pretrained(path, config=config)
+    try:
+        policy = get_policy_class(config.type).from_pretrained(path, config=config)
+    except ValueError as error:
+        if not overrides or "calibration" not in str(error):
+            raise
+        fields = " ".join(f"{name}={value}" for name, value in overrides.items())
+        raise ValueError(
+            f"The gate's calibration in {path} was fitted to the policy as trained, and its threshold does not "
+            f"hold with {fields}. To gate the approximation, copy {path} without its ood_calibration*.json, "
+            "set those fields in the copy's config.json and run `lerobot-suture calibrate --policy.path=COPY` "
+            "on the copy; then evaluate the copy."
+        ) from error
     policy.eval()
     preprocessor, postprocessor = make_pre_post_processors(
         policy_cfg=config,
@@ -190,21 +202,26 @@ class PolicyRunner:
         noise = torch.stack([torch.randn(self._noise_shape, generator=g) for g in self._generators])
         return noise.to(next(self.policy.parameters()).device)
 
-    def act(self, observation: dict) -> np.ndarray:
-        """(10,) float32: the action for one env's observation."""
-        return self.act_batch([observation])[0]
+    def act(self, observation: dict, task: str = TASK) -> np.ndarray:
+        """(10,) float32: the action for one env's observation (``task``: its instruction)."""
+        return self.act_batch([observation], [task])[0]
 
-    def preprocess(self, observations: list[dict]) -> dict:
-        """B envs' observations as the policy's normalized input batch (row i is env i)."""
+    def preprocess(self, observations: list[dict], tasks: Sequence[str] | None = None) -> dict:
+        """B envs' observations as the policy's normalized input batch (row i is env i).
+
+        ``tasks``: each env's instruction (its ``task_description``, as ``lerobot-eval`` sends it); unset:
+        the insertion task's.
+        """
         from lerobot.envs.utils import preprocess_observation
 
         batch = preprocess_observation(_stack(observations))
-        batch["task"] = [TASK] * len(observations)
+        batch["task"] = [TASK] * len(observations) if tasks is None else list(tasks)
         return self.preprocessor(batch)
 
-    def act_batch(self, observations: list[dict]) -> np.ndarray:
-        """(B, 10) float32: the actions for B envs' observations, in one policy call (row i is env i)."""
-        batch = self.preprocess(observations)
+    def act_batch(self, observations: list[dict], tasks: Sequence[str] | None = None) -> np.ndarray:
+        """(B, 10) float32: the actions for B envs' observations, in one policy call (row i is env i;
+        ``tasks`` as in :meth:`preprocess`)."""
+        batch = self.preprocess(observations, tasks)
         self._apply_gate()
         noise = self._episode_noise(len(observations))
         with torch.inference_mode():
@@ -238,7 +255,11 @@ def noise_shape(config) -> tuple[int, ...] | None:
 
 
 def reporting_runner(
-    policy_path: str | Path, device: str = "cpu", needs: str | None = None, needed_for: str = ""
+    policy_path: str | Path,
+    device: str = "cpu",
+    needs: str | None = None,
+    needed_for: str = "",
+    overrides: dict | None = None,
 ) -> PolicyRunner:
     """A runner whose O.O.D. gate reports and never stops a rollout: calibration, experiments and studies
     read the gate's scores over whole episodes.
@@ -246,8 +267,9 @@ def reporting_runner(
     Args:
         needs: an attribute the policy must have (a capability of ``ensemble_diffusion``), or None.
         needed_for: the error's end when it lacks it: "the <command> needs an ensemble_diffusion policy, ...".
+        overrides: config overrides at load (:func:`load_policy`).
     """
-    runner = PolicyRunner.from_pretrained(policy_path, GateMode.REPORT, device)
+    runner = PolicyRunner.from_pretrained(policy_path, GateMode.REPORT, device, overrides)
     if needs is not None and not hasattr(runner.policy, needs):
         raise ValueError(
             f"The policy at {policy_path} is a {runner.policy.config.type!r} policy; {needed_for}"

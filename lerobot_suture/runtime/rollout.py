@@ -151,6 +151,7 @@ def rollout_episodes(
     torch.manual_seed(int(seeds[0]))
     observations = [env.reset(seed=int(seed))[0] for env, seed in zip(envs, seeds, strict=True)]
     runner.reset(seeds=[int(seed) for seed in seeds])
+    tasks = [env.unwrapped.task_description for env in envs]  # each env's instruction, as lerobot-eval sends
     n = len(envs)
     experts = [ScriptedExpert() for _ in range(n)]
     logs = [
@@ -165,7 +166,7 @@ def rollout_episodes(
         if all(done):
             break
         policy_acts = any(not done[i] and logs[i].handover_step is None for i in range(n))
-        actions = runner.act_batch(observations) if policy_acts else None
+        actions = runner.act_batch(observations, tasks) if policy_acts else None
         for i, (env, log) in enumerate(zip(envs, logs, strict=True)):
             if done[i]:
                 continue

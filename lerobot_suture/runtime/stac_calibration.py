@@ -14,6 +14,7 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 from tqdm import tqdm
@@ -43,6 +44,8 @@ class CalibrateStacConfig(PolicyCommandConfig):
         alpha: per-episode false-alarm rate the threshold is set for, in (0, 0.5).
         bandwidth: STAC's kernel bandwidth per dimension (normalized action units, > 0).
     """
+
+    writes_to_policy: ClassVar[bool] = True
 
     calibration_episodes: int = 100
     holdout_episodes: int = 20

@@ -133,7 +133,9 @@ def surgeon_run(cfg: SurgeonRunConfig) -> list:
     from lerobot_suture.runtime.policy import GateMode, PolicyRunner, env_kwargs_for_policy
     from lerobot_suture.surgeon.session import run_surgeon_episode
 
-    runner = PolicyRunner.from_pretrained(cfg.policy.path, GateMode.of(cfg.enforce), cfg.device)
+    runner = PolicyRunner.from_pretrained(
+        cfg.policy.path, GateMode.of(cfg.enforce), cfg.device, cfg.policy.overrides
+    )
     env_kwargs = env_kwargs_for_policy(runner.policy.config)
     surgeon = make_surgeon(cfg.surgeon, cfg.mapping)
     env = _env(cfg, env_kwargs)
