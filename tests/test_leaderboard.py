@@ -121,6 +121,7 @@ def test_a_users_checkpoint_joins_the_board_and_finished_cells_are_kept(tiny_pol
     assert [f.stat().st_mtime_ns for f in cell_files] == stamps
     board = json.loads((results / "leaderboard.json").read_text())
     assert set(board["tasks"]["insertion"]) == {"mine", "theirs"}
+    assert {"evaluate insertion mine", "evaluate insertion theirs"} <= set(board["timings"])
     assert board["tasks"]["insertion"]["theirs"]["nominal"]["per_episode"] == row["nominal"]["per_episode"]
     assert "| mine | theirs |" in render(board)
     summary = board["summary"]["insertion"]["mine"]

@@ -222,9 +222,8 @@ def run_leaderboard(cfg: LeaderboardConfig) -> dict:
     board.setdefault("tasks", {})
     timings = StageTimings(cfg.output_dir / "timings.json")
     if cfg.policy.path is not None:  # a user's checkpoint joins the board
-        from lerobot.configs.policies import PreTrainedConfig
-
-        policy_type = PreTrainedConfig.from_pretrained(cfg.policy.path).type
+        # config.json names its type: read it there, before any policy plugin is registered
+        policy_type = json.loads((Path(cfg.policy.path) / "config.json").read_text())["type"]
         name = cfg.policy_name or row_name(policy_type, cfg.policy.overrides)
         for task in cfg.tasks:
             row = evaluate_row(cfg, task, name, Path(cfg.policy.path), cfg.policy.overrides)
@@ -256,7 +255,8 @@ def run_leaderboard(cfg: LeaderboardConfig) -> dict:
         task: {name: cells.row_summary(row) for name, row in rows.items()}
         for task, rows in board["tasks"].items()
     }
-    board["timings"] = {k: round(v, 1) for k, v in timings.seconds.items()}
+    # The rows already on the board keep their times; this run's stages add or update theirs.
+    board["timings"] = {**board.get("timings", {}), **{k: round(v, 1) for k, v in timings.seconds.items()}}
     board_file.write_text(json.dumps(board, indent=1))
     (results / "leaderboard.md").write_text(cells.render(board))
     cells.plot(board, results / "leaderboard.png")
