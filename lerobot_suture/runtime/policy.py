@@ -35,7 +35,7 @@ def load_policy(policy_path: str | Path, device: str = "cpu", overrides: dict | 
     Raises:
         FileNotFoundError: the directory or its ``config.json`` is missing.
         ValueError: an override names no field of the policy's config, a value its config refuses, or one
-            the gate's calibration was not fitted with (the message says how to calibrate for it).
+            the gate's calibration was not fitted with (the policy's message says how to calibrate for it).
     """
     from lerobot.configs.policies import PreTrainedConfig
     from lerobot.policies.factory import get_policy_class, make_pre_post_processors
@@ -55,18 +55,7 @@ def load_policy(policy_path: str | Path, device: str = "cpu", overrides: dict | 
             raise ValueError(f"{unknown} name no field of the {config.type!r} policy's config; drop them.")
         config = dataclasses.replace(config, **overrides)  # runs the config's own validation
     config.device = device
-    try:
-        policy = get_policy_class(config.type).from_pretrained(path, config=config)
-    except ValueError as error:
-        if not overrides or "calibration" not in str(error):
-            raise
-        fields = " ".join(f"{name}={value}" for name, value in overrides.items())
-        raise ValueError(
-            f"The gate's calibration in {path} was fitted to the policy as trained, and its threshold does not "
-            f"hold with {fields}. To gate the approximation, copy {path} without its ood_calibration*.json, "
-            "set those fields in the copy's config.json and run `lerobot-suture calibrate --policy.path=COPY` "
-            "on the copy; then evaluate the copy."
-        ) from error
+    policy = get_policy_class(config.type).from_pretrained(path, config=config)
     policy.eval()
     preprocessor, postprocessor = make_pre_post_processors(
         policy_cfg=config,

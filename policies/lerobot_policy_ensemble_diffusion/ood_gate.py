@@ -63,8 +63,10 @@ def check_calibration_fits(
             )
             raise ValueError(
                 f"The calibration in {directory} was fitted with {described}; its threshold does not hold "
-                f"for this policy's scores. Recalibrate with `lerobot-suture calibrate "
-                f"--policy.path={directory}` or set the policy's options back."
+                f"for this policy's scores. Set the policy's options back, or calibrate for these: copy "
+                f"{directory}, set them in the copy's config.json and run `lerobot-suture calibrate "
+                f"--policy.path=COPY` (a policy saved with them: `lerobot-suture calibrate "
+                f"--policy.path={directory}`)."
             )
 
 
