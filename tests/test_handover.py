@@ -248,10 +248,29 @@ def test_calibrate_command_writes_a_calibration_the_policy_loads(tiny_policy_dir
     runner = PolicyRunner.from_pretrained(directory, GateMode.REPORT)
     assert runner.policy.ood_calibration == calibration
     assert calibration.score_settings == runner.policy.config.score_settings()
-    # The threshold belongs to the denoising it was fitted with: an approximation is refused, with the way.
-    with pytest.raises(ValueError, match="copy's config.json"):
-        PolicyRunner.from_pretrained(directory, GateMode.REPORT, overrides={"num_inference_steps": 2})
     assert (directory / "config.json").read_bytes() == config_json  # no score flags: the config is kept
+    # The threshold belongs to the denoising it was fitted with: an approximation is refused, with the way.
+    with pytest.raises(ValueError, match="--copy_to=COPY"):
+        PolicyRunner.from_pretrained(directory, GateMode.REPORT, overrides={"num_inference_steps": 2})
+
+
+def test_calibrate_makes_a_calibrated_copy_of_an_approximation(tiny_policy_dir, tmp_path, capsys):
+    directory, copy = tmp_path / "policy", tmp_path / "samples_2"
+    shutil.copytree(tiny_policy_dir, directory)
+    save_calibration(fit_calibration(np.full(50, 1.0) + np.arange(50) * 1e-3), directory)  # as trained
+    original = {p.name: p.read_bytes() for p in directory.iterdir()}
+    args = ["calibrate", f"--policy.path={directory}", "--policy.uncertainty_samples_per_member=2"]
+    cli_main(
+        [*args, f"--copy_to={copy}", "--calibration_episodes=2", "--holdout_episodes=0"]
+        + ["--mode=per_prediction"]
+    )
+    assert {p.name: p.read_bytes() for p in directory.iterdir()} == original  # the original is untouched
+    runner = PolicyRunner.from_pretrained(copy, GateMode.ENFORCE)  # its own gate, fitted with K = 2
+    assert runner.policy.config.uncertainty_samples_per_member == 2
+    assert runner.policy.ood_calibration.score_settings["uncertainty_samples_per_member"] == 2
+    with pytest.raises(SystemExit):  # nothing already there is overwritten
+        cli_main([*args, f"--copy_to={copy}", "--calibration_episodes=2", "--mode=per_prediction"])
+    assert "exists and is not empty" in capsys.readouterr().err
 
 
 def test_calibrate_with_a_score_choice_writes_it_beside_its_calibration(tiny_policy_dir, tmp_path, capsys):

@@ -22,13 +22,12 @@ import json
 import logging
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import ClassVar
 
 import numpy as np
 
 from lerobot_suture.datasets.metadata import read_episode_log, write_json_atomic
-from lerobot_suture.runtime.config import RolloutCommandConfig
-from lerobot_suture.runtime.policy import env_kwargs_for_policy, reporting_runner
+from lerobot_suture.runtime.config import PolicyPathConfig, RolloutCommandConfig
+from lerobot_suture.runtime.policy import copy_with_overrides, env_kwargs_for_policy, reporting_runner
 from lerobot_suture.runtime.rollout import make_scenario_env, rollout_seeds
 from lerobot_suture.runtime.seeds import fresh_seeds
 from lerobot_suture.safety.ood.calibration import default_model, fit_calibration, min_calibration_episodes
@@ -59,9 +58,10 @@ class CalibrateConfig(RolloutCommandConfig):
     uncertainty_score, uncertainty_space, uncertainty_source, uncertainty_steps: a choice of score (e.g.
         from ``lerobot-suture score-study``) to calibrate the gate for; it is written into the policy's
         ``config.json`` beside the calibration. Unset: the policy's own.
+    copy_to: calibrate a copy of the policy made there instead (an empty or new directory), with
+        ``--policy.num_inference_steps`` / ``--policy.uncertainty_samples_per_member`` written into its
+        ``config.json``: the gate of an inference approximation (the original is left as it is).
     """
-
-    writes_to_policy: ClassVar[bool] = True
 
     dataset_root: Path | None = None
     calibration_episodes: int = 100
@@ -74,6 +74,12 @@ class CalibrateConfig(RolloutCommandConfig):
     uncertainty_space: str | None = None
     uncertainty_source: str | None = None
     uncertainty_steps: str | None = None
+    copy_to: Path | None = None
+
+    @property
+    def writes_to_policy(self) -> bool:
+        """Into the policy's own directory unless a copy is calibrated (the overrides then go into it)."""
+        return self.copy_to is None
 
     def __post_init__(self):
         super().__post_init__()
@@ -166,6 +172,10 @@ def collect_scores(
 
 def run_calibration(cfg: CalibrateConfig) -> dict:
     """Fit the gate, write it beside the policy with ``ood_calibration_report.json``; returns the report."""
+    if cfg.copy_to is not None:
+        copy = copy_with_overrides(cfg.policy.path, cfg.copy_to, cfg.policy.overrides)
+        cfg = dataclasses.replace(cfg, policy=PolicyPathConfig(path=copy), copy_to=None)
+        logger.info("calibrating the copy %s", copy)
     runner = reporting_runner(cfg.policy.path, cfg.device)
     config = runner.policy.config
     choice = cfg.score_choice()

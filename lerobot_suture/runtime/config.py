@@ -60,10 +60,11 @@ class PolicyCommandConfig:
             )
         if self.writes_to_policy and self.policy.overrides:
             flags = " ".join(f"--policy.{name}" for name in self.policy.overrides)
+            settings = " ".join(f"--policy.{name}={value}" for name, value in self.policy.overrides.items())
             raise ValueError(
                 f"This command writes into the policy's directory, for the policy as trained: drop {flags}. "
-                "For a gate with fewer steps or samples, copy the directory, set them in the copy's "
-                "config.json and pass the copy."
+                f"`lerobot-suture calibrate --policy.path={self.policy.path} {settings} --copy_to=COPY` makes "
+                "a calibrated copy of the policy with them."
             )
         if self.device.split(":")[0] not in ("cpu", "cuda", "mps", "xpu"):
             raise ValueError(f"`device` must be cpu, cuda[:N], mps or xpu. Got {self.device!r}.")

@@ -9,6 +9,8 @@ postprocessor).
 from __future__ import annotations
 
 import dataclasses
+import json
+import shutil
 from collections.abc import Sequence
 from enum import Enum
 from pathlib import Path
@@ -48,12 +50,7 @@ def load_policy(policy_path: str | Path, device: str = "cpu", overrides: dict | 
             "lerobot-train checkpoint, e.g. outputs/train/NAME/checkpoints/last/pretrained_model."
         )
     register_third_party_plugins()
-    config = PreTrainedConfig.from_pretrained(path)
-    if overrides:
-        unknown = sorted(set(overrides) - {f.name for f in dataclasses.fields(config)})
-        if unknown:
-            raise ValueError(f"{unknown} name no field of the {config.type!r} policy's config; drop them.")
-        config = dataclasses.replace(config, **overrides)  # runs the config's own validation
+    config = override_config(PreTrainedConfig.from_pretrained(path), overrides)
     config.device = device
     policy = get_policy_class(config.type).from_pretrained(path, config=config)
     policy.eval()
@@ -63,6 +60,46 @@ def load_policy(policy_path: str | Path, device: str = "cpu", overrides: dict | 
         preprocessor_overrides={"device_processor": {"device": device}},
     )
     return policy, preprocessor, postprocessor
+
+
+def override_config(config, overrides: dict | None):
+    """``config`` with the fields of ``overrides`` changed, validated by the config's own checks.
+
+    Raises:
+        ValueError: an override names no field of the config, or a value the config refuses.
+    """
+    if not overrides:
+        return config
+    unknown = sorted(set(overrides) - {f.name for f in dataclasses.fields(config)})
+    if unknown:
+        raise ValueError(f"{unknown} name no field of the {config.type!r} policy's config; drop them.")
+    return dataclasses.replace(config, **overrides)  # runs the config's own validation
+
+
+def copy_with_overrides(source: str | Path, target: str | Path, overrides: dict) -> Path:
+    """A copy of the policy directory ``source`` at ``target`` whose ``config.json`` holds ``overrides``
+    (e.g. fewer DDIM steps), without the gate's calibration, which holds only for the settings it was
+    fitted with; returns ``target``.
+
+    Raises:
+        FileExistsError: ``target`` exists and is not empty (nothing there is overwritten).
+        ValueError: an override the policy's config refuses (checked before anything is copied).
+    """
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.utils.import_utils import register_third_party_plugins
+
+    source, target = Path(source), Path(target)
+    if target.exists() and any(target.iterdir()):
+        raise FileExistsError(f"{target} exists and is not empty: pick another `copy_to`, or remove it.")
+    register_third_party_plugins()
+    override_config(PreTrainedConfig.from_pretrained(source), overrides)
+    target.mkdir(parents=True, exist_ok=True)
+    for file in source.iterdir():
+        if file.is_file() and not file.name.startswith("ood_calibration"):
+            shutil.copy2(file, target / file.name)
+    config = json.loads((target / "config.json").read_text())
+    (target / "config.json").write_text(json.dumps({**config, **overrides}, indent=4))
+    return target
 
 
 def env_kwargs_for_policy(config) -> dict:

@@ -63,10 +63,10 @@ def check_calibration_fits(
             )
             raise ValueError(
                 f"The calibration in {directory} was fitted with {described}; its threshold does not hold "
-                f"for this policy's scores. Set the policy's options back, or calibrate for these: copy "
-                f"{directory}, set them in the copy's config.json and run `lerobot-suture calibrate "
-                f"--policy.path=COPY` (a policy saved with them: `lerobot-suture calibrate "
-                f"--policy.path={directory}`)."
+                f"for this policy's scores. Set the policy's options back, or calibrate a copy with them: "
+                f"`lerobot-suture calibrate --policy.path={directory} --policy.OPTION=VALUE ... "
+                f"--copy_to=COPY` writes them into the copy's config.json (a policy saved with them: "
+                f"`lerobot-suture calibrate --policy.path={directory}`)."
             )
 
 
