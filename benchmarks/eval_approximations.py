@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import functools
-import shutil
 import tempfile
 import time
 from pathlib import Path
@@ -35,7 +34,7 @@ from _report import emit, machine
 from lerobot_suture.experiments import leaderboard, metrics
 from lerobot_suture.experiments.episode_metrics import ood_metrics
 from lerobot_suture.pipelines.stages import code_commit
-from lerobot_suture.runtime.policy import GateMode, PolicyRunner, env_kwargs_for_policy
+from lerobot_suture.runtime.policy import GateMode, PolicyRunner, copy_with_overrides, env_kwargs_for_policy
 from lerobot_suture.runtime.rollout import make_scenario_env, rollout_seeds
 from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.sim.tasks import task_spec
@@ -49,15 +48,6 @@ def parse_config(text: str) -> dict:
     if not (samples.isdigit() and steps.isdigit()):
         raise SystemExit(f"A configuration is KxS (samples per member x DDIM steps), e.g. 4x5. Got {text!r}.")
     return {"uncertainty_samples_per_member": int(samples), "num_inference_steps": int(steps)}
-
-
-def uncalibrated_copy(policy_path: Path, directory: Path) -> Path:
-    """The checkpoint's files but its gate calibration (``ood_calibration*.json``), in ``directory``."""
-    directory.mkdir(parents=True)
-    for file in policy_path.iterdir():
-        if file.is_file() and not file.name.startswith("ood_calibration"):
-            shutil.copy2(file, directory / file.name)
-    return directory
 
 
 def run_config(
@@ -155,7 +145,8 @@ def main() -> None:
     configs = [parse_config(c) for c in args.configs]
     rows, reference = [], None
     scratch = tempfile.TemporaryDirectory(prefix="eval_approximations_")
-    policy_copy = uncalibrated_copy(args.policy_path, Path(scratch.name) / "pretrained_model")
+    # the checkpoint without its calibration (copy_with_overrides leaves it out)
+    policy_copy = copy_with_overrides(args.policy_path, Path(scratch.name) / "pretrained_model", {})
     for overrides in configs:
         row, outcomes = run_config(
             policy_copy, overrides, args.episodes, args.batch_envs, args.workers, args.seed
