@@ -15,8 +15,9 @@ class PolicyPathConfig:
     Inference approximations, LeRobot's own config fields as ``lerobot-eval`` overrides them (unset: as
     trained): ``--policy.num_inference_steps=S``, fewer DDIM denoising steps; and, for an ensemble,
     ``--policy.uncertainty_samples_per_member=K``, fewer chunks per member. Both change the episodes and
-    the gate's scores, whose calibration was fitted to the policy as trained
-    (``docs/results/benchmarks/eval_approximations.json`` measures both).
+    the gate's scores (``docs/results/benchmarks/eval_approximations.json`` measures both), so a calibrated
+    ensemble refuses them at load: ``lerobot-suture calibrate --policy.path=DIR ... --copy_to=COPY`` makes
+    a calibrated copy with them.
     """
 
     path: Path | None = None

@@ -6,8 +6,8 @@ faster on 2 threads than on 1), while two processes of one thread each run two b
 divides by the cores. Each episode's noise comes from its own seed (:class:`PolicyRunner`), so an episode
 is the same whichever process rolls it out.
 
-The pool is kept while the same (policy, device, config overrides, workers) comes back (a worker spends seconds importing
-torch and loading the policy) and the policy's directory is unchanged (a calibration written since, or
+The pool is kept while the same (policy, device, config overrides, workers) comes back (a worker spends
+seconds importing torch and loading the policy) and the policy's directory is unchanged (a calibration written since, or
 weights trained over, start fresh workers); a call for another policy replaces it (one copy of one policy per
 worker at a time, whatever a program evaluates in turn), and it is shut down at exit. The envs of a worker are rebuilt only when
 the env factory changes.
