@@ -36,6 +36,7 @@ from lerobot_suture.dagger.config import BC, GATED, SCENARIOS, DaggerConfig
 from lerobot_suture.dagger.evaluate import evaluate, evaluation_seeds
 from lerobot_suture.datasets.metadata import read_episode_log, read_json, write_json_atomic
 from lerobot_suture.runtime.config import PolicyPathConfig
+from lerobot_suture.runtime.policy import calibration_file, copy_policy
 from lerobot_suture.runtime.seeds import episode_seeds
 
 logger = logging.getLogger(__name__)
@@ -133,20 +134,6 @@ def _policy_config(policy_dir: Path):
     return PreTrainedConfig.from_pretrained(policy_dir)
 
 
-def _calibration_file(policy_dir: Path) -> Path:
-    config = read_json(Path(policy_dir) / "config.json")
-    return Path(policy_dir) / config.get("ood", {}).get("calibration_file", "ood_calibration.json")
-
-
-def copy_policy(source: Path, out: Path) -> None:
-    """The policy's files without its calibration (a new one is fitted)."""
-    partial = out.with_name(out.name + ".partial")
-    shutil.rmtree(partial, ignore_errors=True)
-    drop = {_calibration_file(source).name, "ood_calibration_report.json"}
-    shutil.copytree(source, partial, ignore=lambda _, names: [n for n in names if n in drop])
-    partial.rename(out)
-
-
 class DaggerRun:
     """The rounds of one ``lerobot-suture dagger`` invocation (see the module docstring)."""
 
@@ -193,7 +180,7 @@ class DaggerRun:
 
     def _calibrate_and_evaluate(self, key: str, policy: Path, out: Path) -> None:
         self.journal.stage(
-            f"{key}/calibrate", lambda: _calibration_file(policy).is_file(), lambda: self.calibrate(policy)
+            f"{key}/calibrate", lambda: calibration_file(policy).is_file(), lambda: self.calibrate(policy)
         )
         self.journal.stage(
             f"{key}/evaluate", (out / "eval.json").is_file, lambda: self.evaluate(policy, out, key)

@@ -31,7 +31,7 @@ from lerobot_suture.runtime.policy import copy_with_overrides, env_kwargs_for_po
 from lerobot_suture.runtime.rollout import make_scenario_env, rollout_seeds
 from lerobot_suture.runtime.seeds import fresh_seeds
 from lerobot_suture.safety.ood.calibration import default_model, fit_calibration, min_calibration_episodes
-from lerobot_suture.safety.ood.calibration_file import save_calibration
+from lerobot_suture.safety.ood.calibration_file import CALIBRATION_REPORT_FILENAME, save_calibration
 from lerobot_suture.safety.ood.likelihood_ratio import false_alarm_rates
 
 logger = logging.getLogger(__name__)
@@ -225,5 +225,5 @@ def run_calibration(cfg: CalibrateConfig) -> dict:
         report["holdout_seeds"] = holdout_seeds
         report["holdout_false_alarm_rate"] = asdict(rates)
         report["holdout_success_rate"] = float(np.mean([log.success for log in held_logs]))
-    (Path(cfg.policy.path) / "ood_calibration_report.json").write_text(json.dumps(report, indent=2))
+    (Path(cfg.policy.path) / CALIBRATION_REPORT_FILENAME).write_text(json.dumps(report, indent=2))
     return report

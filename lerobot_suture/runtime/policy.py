@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from lerobot_suture.safety.ood.calibration_file import CALIBRATION_FILENAME, CALIBRATION_REPORT_FILENAME
 from lerobot_suture.sim.task import TASK
 
 ACTION = "action"  # LeRobot's key of the action (and of a policy's action queue)
@@ -76,10 +77,29 @@ def override_config(config, overrides: dict | None):
     return dataclasses.replace(config, **overrides)  # runs the config's own validation
 
 
+def calibration_file(policy_dir: str | Path) -> Path:
+    """Where the policy in ``policy_dir`` keeps its gate's calibration (its ``ood.calibration_file``)."""
+    config = json.loads((Path(policy_dir) / "config.json").read_text())
+    return Path(policy_dir) / config.get("ood", {}).get("calibration_file", CALIBRATION_FILENAME)
+
+
+def copy_policy(source: str | Path, out: str | Path, overrides: dict | None = None) -> None:
+    """The policy's files copied to ``out`` without its calibration (it holds only for the policy it was
+    fitted to), ``overrides`` written into the copy's ``config.json``; ``out`` appears whole or not at all."""
+    source, out = Path(source), Path(out)
+    partial = out.with_name(out.name + ".partial")
+    shutil.rmtree(partial, ignore_errors=True)
+    drop = {calibration_file(source).name, CALIBRATION_REPORT_FILENAME}
+    shutil.copytree(source, partial, ignore=lambda _, names: [n for n in names if n in drop])
+    if overrides:
+        config = json.loads((partial / "config.json").read_text())
+        (partial / "config.json").write_text(json.dumps({**config, **overrides}, indent=4))
+    partial.rename(out)
+
+
 def copy_with_overrides(source: str | Path, target: str | Path, overrides: dict) -> Path:
     """A copy of the policy directory ``source`` at ``target`` whose ``config.json`` holds ``overrides``
-    (e.g. fewer DDIM steps), without the gate's calibration, which holds only for the settings it was
-    fitted with; returns ``target``.
+    (e.g. fewer DDIM steps), without the gate's calibration (:func:`copy_policy`); returns ``target``.
 
     Raises:
         FileExistsError: ``target`` exists and is not empty (nothing there is overwritten).
@@ -88,17 +108,12 @@ def copy_with_overrides(source: str | Path, target: str | Path, overrides: dict)
     from lerobot.configs.policies import PreTrainedConfig
     from lerobot.utils.import_utils import register_third_party_plugins
 
-    source, target = Path(source), Path(target)
+    target = Path(target)
     if target.exists() and any(target.iterdir()):
         raise FileExistsError(f"{target} exists and is not empty: pick another `copy_to`, or remove it.")
     register_third_party_plugins()
     override_config(PreTrainedConfig.from_pretrained(source), overrides)
-    target.mkdir(parents=True, exist_ok=True)
-    for file in source.iterdir():
-        if file.is_file() and not file.name.startswith("ood_calibration"):
-            shutil.copy2(file, target / file.name)
-    config = json.loads((target / "config.json").read_text())
-    (target / "config.json").write_text(json.dumps({**config, **overrides}, indent=4))
+    copy_policy(source, target, overrides)
     return target
 
 

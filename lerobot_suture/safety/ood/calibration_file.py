@@ -7,10 +7,18 @@ from pathlib import Path
 
 from lerobot_suture.safety.ood.calibration import CALIBRATE_HINT, OODCalibration
 
-__all__ = ["CALIBRATION_FILENAME", "CalibrationNotFoundError", "load_calibration", "save_calibration"]
+__all__ = [
+    "CALIBRATION_FILENAME",
+    "CALIBRATION_REPORT_FILENAME",
+    "CalibrationNotFoundError",
+    "load_calibration",
+    "save_calibration",
+]
 
 CALIBRATION_FILENAME = "ood_calibration.json"
 """Name of the calibration file inside a pretrained policy directory."""
+CALIBRATION_REPORT_FILENAME = "ood_calibration_report.json"
+"""What ``lerobot-suture calibrate`` measured, beside the calibration file."""
 
 
 class CalibrationNotFoundError(FileNotFoundError):
