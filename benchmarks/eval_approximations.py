@@ -22,9 +22,7 @@ A configuration is KxS: K chunks per member, S DDIM steps. Time it with nothing 
 from __future__ import annotations
 
 import argparse
-import functools
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
@@ -33,14 +31,13 @@ from _report import emit, machine
 
 from lerobot_suture.experiments import leaderboard, metrics
 from lerobot_suture.experiments.episode_metrics import ood_metrics
+from lerobot_suture.pipelines.leaderboard import LeaderboardConfig
 from lerobot_suture.pipelines.stages import code_commit
 from lerobot_suture.runtime.policy import GateMode, PolicyRunner, copy_with_overrides, env_kwargs_for_policy
-from lerobot_suture.runtime.rollout import make_scenario_env, rollout_seeds
-from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.sim.tasks import task_spec
 
 TASK = "insertion"
-LEADERBOARD_SEED = 7_000_000  # the leaderboard's default: the reference configuration's cells are its own
+LEADERBOARD_SEED = LeaderboardConfig.seed  # the leaderboard's test seeds: the reference's cells are its own
 
 
 def parse_config(text: str) -> dict:
@@ -55,14 +52,14 @@ def run_config(
 ) -> tuple[dict, dict]:
     """One configuration's figures, and its per-episode outcomes by condition (for the agreement check)."""
     runner = PolicyRunner.from_pretrained(policy_path, GateMode.REPORT, overrides=overrides)
-    env_kwargs = {**env_kwargs_for_policy(runner.policy.config), "task": TASK}
+    env_kwargs = env_kwargs_for_policy(runner.policy.config)
     logs, seconds = {}, 0.0
-    for condition in task_spec(TASK).scenarios:
+    for condition in task_spec(TASK).scenarios:  # each run as the leaderboard runs its cell
         seeds = leaderboard.condition_seeds(seed, TASK, condition, episodes)
-        make_env = functools.partial(make_scenario_env, env_kwargs, condition, CBFConfig(enabled=True), True)
-        start = time.perf_counter()
-        logs[condition] = rollout_seeds(make_env, runner, seeds, batch_envs, desc=condition, workers=workers)
-        seconds += time.perf_counter() - start
+        logs[condition], elapsed = leaderboard.cell_episodes(
+            runner, env_kwargs, TASK, condition, seeds, batch_envs, workers
+        )
+        seconds += elapsed
     nominal = logs["nominal"]
     per_condition = {}
     for condition, runs in logs.items():
@@ -154,10 +151,9 @@ def main() -> None:
         if reference is None:
             reference = outcomes
         row["same_success_as_reference"] = agreement(reference, outcomes)
-        row["speed_up_vs_reference"] = round(
-            row["episodes_per_min"] / (rows[0] if rows else row)["episodes_per_min"], 2
-        )
         rows.append(row)
+    for row in rows:
+        row["speed_up_vs_reference"] = round(row["episodes_per_min"] / rows[0]["episodes_per_min"], 2)
     if args.plot is not None:
         plot(rows, args.plot)
     emit(

@@ -55,7 +55,7 @@ def _shift_index(condition: str) -> int:
     return SHIFTS.index(Shift.parse(condition[len(SHIFT_PREFIX) :]).name)
 
 
-def run_cell(
+def cell_episodes(
     runner,
     env_kwargs: dict,
     task: str,
@@ -63,9 +63,9 @@ def run_cell(
     seeds: Sequence[int],
     batch_envs: int,
     workers: int = 1,
-) -> dict:
+) -> tuple[list[EpisodeLog], float]:
     """Roll ``runner`` out on ``seeds`` under ``condition`` of ``task`` (``batch_envs`` in lockstep, in
-    ``workers`` processes); returns the cell's summary."""
+    ``workers`` processes), the CBF on; returns the episodes and their wall time (s)."""
     scenario, shift = condition, None
     if condition.startswith(SHIFT_PREFIX):
         scenario, shift = "nominal", Shift.parse(condition[len(SHIFT_PREFIX) :])
@@ -79,7 +79,20 @@ def run_cell(
         desc=f"{task}, {condition}",
         workers=workers,
     )
-    return summarize_cell(logs, time.perf_counter() - start)
+    return logs, time.perf_counter() - start
+
+
+def run_cell(
+    runner,
+    env_kwargs: dict,
+    task: str,
+    condition: str,
+    seeds: Sequence[int],
+    batch_envs: int,
+    workers: int = 1,
+) -> dict:
+    """:func:`cell_episodes`, summarized (the cell's figures)."""
+    return summarize_cell(*cell_episodes(runner, env_kwargs, task, condition, seeds, batch_envs, workers))
 
 
 def summarize_cell(logs: Sequence[EpisodeLog], seconds: float) -> dict:
