@@ -57,10 +57,13 @@ def test_conditions_and_seeds_are_shared_by_policies_and_disjoint_across_cells()
         for task in TASK_NAMES
         for c in conditions(task, default_shifts())
     }
-    flat = [s for group in seeds.values() for s in group]
-    assert len(flat) == len(set(flat))  # no seed serves two cells
+    # One seed set a scene: no seed serves two cells, except the magnitudes of one shift, which are paired.
+    scenes = {(task, c.partition("@")[0]): group for (task, c), group in seeds.items()}
+    flat = [s for group in scenes.values() for s in group]
+    assert len(flat) == len(set(flat))
+    assert seeds[("insertion", "shift:dim_light@0.2")] == seeds[("insertion", "shift:dim_light@0.6")]
     assert condition_seeds(7_000_000, "insertion", "nominal", 50) == seeds[("insertion", "nominal")]
-    assert len(default_shifts()) == len(SHIFTS)
+    assert len(default_shifts()) == 2 * len(SHIFTS)  # the detector benchmark's: both magnitudes
 
 
 @pytest.mark.parametrize(
@@ -142,6 +145,24 @@ def test_a_users_checkpoint_joins_the_board_and_finished_cells_are_kept(tiny_pol
     approximated = board["tasks"]["insertion"]["ensemble_diffusion S=2"]
     assert approximated["nominal"]["policy_overrides"] == {"num_inference_steps": 2}
     assert board["tasks"]["insertion"]["mine"]["nominal"]["policy_overrides"] == {"num_inference_steps": 2}
+
+    # A row with a shift the others lack: they show "-" there and no mean over the shifts (it would not
+    # compare); the board lists every shift its rows hold.
+    wider = [a for a in args if not a.startswith("--shifts")] + ["--shifts=[dim_light@0.2,dim_light@0.6]"]
+    cli_main(["leaderboard", *wider, "--policy_name=mine", "--policy.num_inference_steps=2"])
+    board = json.loads((results / "leaderboard.json").read_text())
+    assert board["shifts"] == ["dim_light@0.2", "dim_light@0.6"]
+    assert board["summary"]["insertion"]["theirs"]["shift_success_mean"] is None
+    assert board["summary"]["insertion"]["mine"]["shift_success_mean"] is not None
+    line = next(x for x in render(board).splitlines() if x.startswith("| shift:dim_light@0.6 |"))
+    assert line.count(" - ") == len(board["tasks"]["insertion"]) - 1
+
+    # A row run on another number of episodes (or seeds) would not compare: refused, the board kept.
+    capsys.readouterr()
+    with pytest.raises(SystemExit):
+        cli_main(["leaderboard", *args, "--policy_name=other", "--episodes=2"])
+    assert "Pass --episodes=1 to join it" in capsys.readouterr().err
+    assert "other" not in json.loads((results / "leaderboard.json").read_text())["tasks"]["insertion"]
 
 
 def test_an_approximation_must_leave_at_least_one_step_and_sample():

@@ -42,7 +42,9 @@ def conditions(task: str, shifts: Sequence[str]) -> list[str]:
 
 
 def condition_seeds(base: int, task: str, condition: str, n: int) -> list[int]:
-    """The test seeds of one condition: the same for every policy, disjoint across tasks and conditions."""
+    """The test seeds of one condition: the same for every policy, disjoint across tasks and conditions but
+    shared by the magnitudes of one shift (the same scenes, shifted more: paired, as the detector benchmark
+    runs them)."""
     spec = task_spec(task)
     if condition.startswith(SHIFT_PREFIX):
         group = SHIFT_SEED_GROUP + _shift_index(condition)
@@ -129,20 +131,31 @@ def summarize_cell(logs: Sequence[EpisodeLog], seconds: float) -> dict:
     }
 
 
-def row_summary(row: dict) -> dict:
+def task_conditions(rows: dict) -> list[str]:
+    """Every condition some row of a task holds, in the order they were run."""
+    return list(dict.fromkeys(c for row in rows.values() for c in row))
+
+
+def row_summary(row: dict, conditions: Sequence[str] | None = None) -> dict:
     """One policy's row in a few figures: nominal success, the mean success over the perturbation scenarios
-    and over the shifts, and the gate's false alarms on nominal (None without a gate)."""
-    scenarios = [c for name, c in row.items() if name != "nominal" and not name.startswith(SHIFT_PREFIX)]
-    shifts = [c for name, c in row.items() if name.startswith(SHIFT_PREFIX)]
+    and over the shifts, and the gate's false alarms on nominal (None without a gate).
+
+    ``conditions`` are the task's conditions on the board (default: the row's own); a mean over a group the
+    row holds only part of is None, as it would not compare with the other rows' means."""
+    conditions = list(row) if conditions is None else list(conditions)
     nominal = row.get("nominal")
 
-    def mean(cells: list[dict]) -> float | None:
-        return float(np.mean([c["success_rate"] for c in cells])) if cells else None
+    def mean(group: list[str]) -> float | None:
+        if not group or any(c not in row for c in group):
+            return None
+        return float(np.mean([row[c]["success_rate"] for c in group]))
 
     return {
         "nominal_success": nominal["success_rate"] if nominal else None,
-        "scenario_success_mean": mean(scenarios),
-        "shift_success_mean": mean(shifts),
+        "scenario_success_mean": mean(
+            [c for c in conditions if c != "nominal" and not c.startswith(SHIFT_PREFIX)]
+        ),
+        "shift_success_mean": mean([c for c in conditions if c.startswith(SHIFT_PREFIX)]),
         "nominal_false_alarms": nominal["gate"]["flagged_rate"] if nominal and nominal["gate"] else None,
         "cbf_violating_episodes": sum(c["cbf"]["violating_episodes"] for c in row.values()),
         "episodes": sum(c["episodes"] for c in row.values()),
@@ -167,7 +180,7 @@ def render(board: dict) -> str:
     ]
     for task, rows in board["tasks"].items():
         policies = list(rows)
-        conds = list(next(iter(rows.values())).keys()) if rows else []
+        conds = task_conditions(rows)
         lines += [
             f"## {task}",
             "",
@@ -176,7 +189,7 @@ def render(board: dict) -> str:
             "|---|---|---|---|---|---|",
         ]
         for policy in policies:
-            s = row_summary(rows[policy])
+            s = row_summary(rows[policy], conds)
             lines.append(
                 f"| {policy} | {_percent(s['nominal_success'])} | {_percent(s['scenario_success_mean'])} | "
                 f"{_percent(s['shift_success_mean'])} | {_percent(s['nominal_false_alarms'])} | "
@@ -210,13 +223,14 @@ def render(board: dict) -> str:
 def plot(board: dict, path: Path) -> Path:
     """Success rate with its 95% interval, per condition, one bar per policy; one panel per task."""
     tasks = [t for t, rows in board["tasks"].items() if rows]
-    fig = Figure(figsize=(12, 3.2 * max(1, len(tasks))), constrained_layout=True)
+    most = max((len(task_conditions(board["tasks"][t])) for t in tasks), default=0)
+    fig = Figure(figsize=(max(12, 0.7 * most), 3.2 * max(1, len(tasks))), constrained_layout=True)
     FigureCanvasAgg(fig)
     for k, task in enumerate(tasks):
         ax = fig.add_subplot(len(tasks), 1, k + 1)
         rows = board["tasks"][task]
         policies = list(rows)
-        conds = list(dict.fromkeys(c for r in rows.values() for c in r))  # the order they ran in
+        conds = task_conditions(rows)
         width = 0.8 / max(1, len(policies))
         for j, policy in enumerate(policies):
             x = np.arange(len(conds)) + (j - (len(policies) - 1) / 2) * width

@@ -25,7 +25,8 @@ from pathlib import Path
 from lerobot_suture.experiments import leaderboard as cells
 from lerobot_suture.pipelines.stages import StageTimings, calibrate_policy, code_commit, record_recipe
 from lerobot_suture.runtime.config import PolicyPathConfig
-from lerobot_suture.sim.shifts import MAGNITUDES, SHIFTS, Shift
+from lerobot_suture.sim.shifts import Shift
+from lerobot_suture.sim.shifts import default_shifts as every_shift
 from lerobot_suture.sim.tasks import TASK_NAMES
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -43,8 +44,9 @@ POLICY_PRESETS = {"act": PRESETS / "act.json", "diffusion": PRESETS / "diffusion
 
 
 def default_shifts() -> list[str]:
-    """Every shift at its smaller magnitude (inside the randomized recipe's range where it has one)."""
-    return [Shift(name, MAGNITUDES[name][0]).label for name in SHIFTS]
+    """The detector benchmark's shifts: every shift at both magnitudes (the smaller inside the randomized
+    recipe's range where it has one, the larger beyond it)."""
+    return [s.label for s in every_shift()]
 
 
 @dataclass
@@ -61,8 +63,8 @@ class LeaderboardConfig:
     policy_name: the row's name for ``--policy.path`` (default: the policy's type, with ``S=`` / ``K=``
         when approximated).
     episodes: episodes a cell, >= 1 (50: the LIBERO protocol's count per task).
-    shifts: distribution shifts run in the nominal scene, ``NAME@MAGNITUDE`` (default: every shift at its
-        smaller magnitude); ``[]`` for the scenarios only.
+    shifts: distribution shifts run in the nominal scene, ``NAME@MAGNITUDE`` (default: every shift at both
+        magnitudes, as the detector benchmark runs them); ``[]`` for the scenarios only.
     seed: base of the test seeds (disjoint from recording, calibration and the other commands' seeds).
     batch_envs: envs run in lockstep with one batched policy call, >= 1 (a seed gives the same episode at
         any value).
@@ -218,7 +220,15 @@ def run_leaderboard(cfg: LeaderboardConfig) -> dict:
     results.mkdir(parents=True, exist_ok=True)
     board_file = results / "leaderboard.json"
     board = json.loads(board_file.read_text()) if board_file.is_file() else {}
-    board.update(episodes=cfg.episodes, shifts=cfg.shifts, seed=cfg.seed)
+    for key in ("episodes", "seed"):  # rows run on other seeds or counts would not compare
+        if board.get(key, getattr(cfg, key)) != getattr(cfg, key):
+            raise ValueError(
+                f"The board in {results} was run with --{key}={board[key]}; this run has "
+                f"--{key}={getattr(cfg, key)}. Pass --{key}={board[key]} to join it, or another --results_dir."
+            )
+    # The shifts the board holds: those of its rows so far and this run's.
+    board.update(episodes=cfg.episodes, shifts=list(dict.fromkeys([*board.get("shifts", []), *cfg.shifts])))
+    board["seed"] = cfg.seed
     board.setdefault("tasks", {})
     timings = StageTimings(cfg.output_dir / "timings.json")
     if cfg.policy.path is not None:  # a user's checkpoint joins the board
@@ -252,7 +262,7 @@ def run_leaderboard(cfg: LeaderboardConfig) -> dict:
                 board["tasks"].setdefault(task, {})[policy] = row
                 timings.seconds[f"evaluate {task} {policy}"] = _rollout_seconds(row)
     board["summary"] = {
-        task: {name: cells.row_summary(row) for name, row in rows.items()}
+        task: {name: cells.row_summary(row, cells.task_conditions(rows)) for name, row in rows.items()}
         for task, rows in board["tasks"].items()
     }
     # The rows already on the board keep their times; this run's stages add or update theirs.
