@@ -157,6 +157,20 @@ def test_a_users_checkpoint_joins_the_board_and_finished_cells_are_kept(tiny_pol
     line = next(x for x in render(board).splitlines() if x.startswith("| shift:dim_light@0.6 |"))
     assert line.count(" - ") == len(board["tasks"]["insertion"]) - 1
 
+    # The robustness report reads the board's shift cells, each with its interval and the gate's flags.
+    report_dir = tmp_path / "robustness"
+    board_file = results / "leaderboard.json"
+    cli_main(["robustness-report", f"--leaderboard={board_file}", "--rows=[a=mine,b=theirs]",
+              f"--output_dir={report_dir}"])  # fmt: skip
+    report = json.loads((report_dir / "robustness.json").read_text())
+    assert [r["shift"] for r in report["policies"]["a"]["shifts"]] == ["dim_light@0.2", "dim_light@0.6"]
+    assert [r["shift"] for r in report["policies"]["b"]["shifts"]] == ["dim_light@0.2"]
+    assert report["policies"]["a"]["shifts"][0]["runs"] == 1
+    assert "| dim_light@0.2 | appearance | untrained |" in (report_dir / "robustness.md").read_text()
+    with pytest.raises(SystemExit):
+        cli_main(["robustness-report", f"--leaderboard={board_file}", "--rows=[a=nobody]"])
+    assert "no row ['nobody']" in capsys.readouterr().err
+
     # A row run on another number of episodes (or seeds) would not compare: refused, the board kept.
     capsys.readouterr()
     with pytest.raises(SystemExit):

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from lerobot_suture.experiments.metrics import most_failures_flagged
-from lerobot_suture.experiments.robustness import bars
+from lerobot_suture.experiments.robustness import bars, cell_shift_rows
 from lerobot_suture.registration import ENV_ID
 from lerobot_suture.sim.appearance import AppearanceSample
 from lerobot_suture.sim.shifts import (
@@ -126,6 +126,26 @@ def test_the_range_status_follows_the_dataset_appearance():
     assert within_training_range(Shift("image_noise", 0.02), recipe) is None  # the recipe leaves noise off
     assert within_training_range(Shift("action_delay", 1), recipe) is None
     assert within_training_range(Shift("dim_light", 0.2), None) is None
+
+
+def test_leaderboard_cells_give_the_reports_rows():
+    cell = {"episodes": 50, "successes": 40, "success_rate": 0.8, "success_interval": [0.67, 0.89],
+            "gate": {"flagged": 12, "flagged_rate": 0.24, "flagged_failures": 9, "failures": 10}}  # fmt: skip
+    row = {
+        "nominal": cell,
+        "shift:dim_light@0.2": cell,
+        "shift:dim_light@0.6": {**cell, "successes": 50, "success_rate": 1.0},
+    }
+    rows = cell_shift_rows(row, {"light_intensity": 0.3})
+    assert [(r["shift"], r["range"]) for r in rows] == [
+        ("dim_light@0.2", "inside"),
+        ("dim_light@0.6", "beyond"),
+    ]
+    assert rows[0]["flagged_of_failures"] == 0.9 and rows[0]["flagged_of_successes"] == 3 / 40
+    assert rows[0]["success_interval"] == [0.67, 0.89]
+    assert math.isnan(rows[1]["flagged_of_failures"])  # no failed run to flag
+    with pytest.raises(ValueError, match="no gate"):
+        cell_shift_rows({"shift:dim_light@0.2": {**cell, "gate": None}}, None)
 
 
 def test_bars_pool_the_flags_over_runs_beyond_the_range():

@@ -1,9 +1,10 @@
 """``lerobot-suture robustness-report``: policies side by side under the shifts, inside and beyond what
 their training data varied, with the gate's flags and the paper's bars.
 
-Reads the ``detectors.json`` that ``lerobot-suture benchmark-ood`` wrote for each policy (and, optionally,
-the ``metrics.json`` of ``lerobot-suture experiments``), and writes ``robustness.md``, ``robustness.json``
-and ``robustness.png`` into ``output_dir``:
+Reads, for each policy, the ``detectors.json`` that ``lerobot-suture benchmark-ood`` wrote (and, optionally,
+the ``metrics.json`` of ``lerobot-suture experiments``) or its row of a ``lerobot-suture leaderboard`` board
+(fifty episodes a shift cell, with Wilson intervals), and writes ``robustness.md``, ``robustness.json`` and
+``robustness.png`` into ``output_dir``:
 
 - per shift x magnitude and policy: success, flagged of the failed runs, flagged of the successful runs,
   and whether the magnitude lies inside the policy's training range (its dataset's appearance
@@ -15,9 +16,10 @@ and ``robustness.png`` into ``output_dir``:
   experiments, the paper-scenario figures (nominal success, AUROC of the drop and of the phantom moved
   after insertion, servo runs flagged, drop delay, false alarms).
 
-The gate is the ``detector`` row of the benchmark (the ensemble's covariance by default), calibrated as
-the benchmark calibrates it: per-episode threshold at alpha on nominal validation runs of the training
-distribution.
+From a benchmark the gate is its ``detector`` row (the ensemble's covariance by default), calibrated as the
+benchmark calibrates it: per-episode threshold at alpha on nominal validation runs of the training
+distribution. From a leaderboard it is the policy's own calibrated gate, as the board ran it (no per-run
+scores: the any-threshold figures are n/a).
 """
 
 from __future__ import annotations
@@ -28,7 +30,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from lerobot_suture.experiments.benchmark_ood_report import fmt
+from lerobot_suture.experiments.leaderboard import SHIFT_PREFIX
 from lerobot_suture.experiments.metrics import auroc, most_failures_flagged
+from lerobot_suture.runtime.calibration import dataset_appearance
 from lerobot_suture.sim.shifts import Shift, within_training_range
 
 RANGE_LABELS = {True: "inside", False: "beyond", None: "untrained"}
@@ -54,17 +58,29 @@ class RobustnessReportConfig:
     runs: ``NAME=DIR`` of each policy's benchmark-ood output (holding ``detectors.json``), baseline first.
     experiments: ``NAME=DIR`` of the same policies' experiments outputs (holding ``metrics.json``); optional.
     detector: the benchmark row that plays the gate.
+    leaderboard: a ``leaderboard.json`` of ``lerobot-suture leaderboard`` to read ``rows`` from.
+    rows: ``NAME=ROW`` of each policy's row on the leaderboard's ``task`` (after the ``runs``).
+    task: the leaderboard task whose shift cells are read.
+    training_data: ``NAME=DATASET_ROOT`` of each leaderboard row whose training data was recorded with
+        appearance randomization (its ranges decide inside / beyond; a row not named is untrained).
     output_dir: where ``robustness.md``, ``robustness.json`` and ``robustness.png`` go.
     """
 
     runs: list[str] = field(default_factory=list)
     experiments: list[str] = field(default_factory=list)
     detector: str = "ensemble_covariance"
+    leaderboard: Path | None = None
+    rows: list[str] = field(default_factory=list)
+    task: str = "insertion"
+    training_data: list[str] = field(default_factory=list)
     output_dir: Path = Path("outputs/robustness")
 
     def __post_init__(self):
-        if not self.runs:
-            raise ValueError("`runs` must name at least one benchmark-ood output: --runs='[reference=DIR]'.")
+        if not self.runs and not self.rows:
+            raise ValueError(
+                "Name at least one policy: --runs='[reference=DIR]' (benchmark-ood outputs) or "
+                "--leaderboard=docs/results/leaderboard/leaderboard.json --rows='[reference=ensemble_diffusion]'."
+            )
         for name, path in _named_dirs(self.runs, "runs").items():
             if not (path / "detectors.json").is_file():
                 raise ValueError(
@@ -74,6 +90,33 @@ class RobustnessReportConfig:
         for name, path in _named_dirs(self.experiments, "experiments").items():
             if not (path / "metrics.json").is_file():
                 raise ValueError(f"{path} (experiments {name}) holds no metrics.json.")
+        rows = {name: str(row) for name, row in _named_dirs(self.rows, "rows").items()}
+        if rows:
+            if self.leaderboard is None or not Path(self.leaderboard).is_file():
+                raise ValueError(
+                    f"`rows` are read from a leaderboard: pass --leaderboard=PATH/leaderboard.json (got "
+                    f"{self.leaderboard})."
+                )
+            board = json.loads(Path(self.leaderboard).read_text()).get("tasks", {}).get(self.task, {})
+            missing = sorted(set(rows.values()) - set(board))
+            if missing:
+                raise ValueError(
+                    f"The leaderboard {self.leaderboard} has no row {missing} on task {self.task!r}; its rows: "
+                    f"{sorted(board)}."
+                )
+        clash = sorted(set(rows) & set(_named_dirs(self.runs, "runs")))
+        if clash:
+            raise ValueError(f"{clash} name both a run and a leaderboard row: give each policy one name.")
+        for name, root in _named_dirs(self.training_data, "training_data").items():
+            if not (root / "meta" / "info.json").is_file():
+                raise ValueError(
+                    f"`training_data` {name}={root} holds no LeRobotDataset (no meta/info.json)."
+                )
+        stray = sorted(set(_named_dirs(self.training_data, "training_data")) - set(rows))
+        if stray:
+            raise ValueError(
+                f"`training_data` names {stray}, which are not leaderboard rows (a benchmark run keeps its own)."
+            )
 
 
 def shift_rows(benchmark: dict, detector: str) -> list[dict]:
@@ -98,6 +141,38 @@ def shift_rows(benchmark: dict, detector: str) -> list[dict]:
                 # Per run (benchmarks from before these were kept have none): any threshold's flags.
                 "run_max_scores": m.get("run_max_scores"),
                 "run_successes": m.get("run_successes"),
+            }
+        )
+    return rows
+
+
+def cell_shift_rows(row: dict, training_appearance: dict | None) -> list[dict]:
+    """One row per shift cell of a leaderboard row, with :func:`shift_rows`' fields and the success's Wilson
+    interval; the gate is the policy's own (a row without one has nothing to report here)."""
+    rows = []
+    for condition, cell in row.items():
+        if not condition.startswith(SHIFT_PREFIX):
+            continue
+        if cell["gate"] is None:
+            raise ValueError(f"The row's cell {condition} has no gate (the policy has no O.O.D. gate).")
+        shift = Shift.parse(condition[len(SHIFT_PREFIX) :])
+        runs, successes, gate = cell["episodes"], cell["successes"], cell["gate"]
+        failures = runs - successes
+        rows.append(
+            {
+                "shift": shift.label,
+                "family": shift.family,
+                "range": RANGE_LABELS[within_training_range(shift, training_appearance)],
+                "runs": runs,
+                "failures": failures,
+                "success_rate": cell["success_rate"],
+                "success_interval": cell["success_interval"],
+                "flagged_of_failures": gate["flagged_failures"] / failures if failures else math.nan,
+                "flagged_of_successes": (gate["flagged"] - gate["flagged_failures"]) / successes
+                if successes
+                else math.nan,
+                "run_max_scores": None,
+                "run_successes": None,
             }
         )
     return rows
@@ -161,10 +236,11 @@ def render(result: dict) -> str:
     lines = [
         "# Robustness under shifts",
         "",
-        f"Gate: the `{result['detector']}` detector of `lerobot-suture benchmark-ood`, thresholded per episode "
-        "on nominal validation runs of each policy's training distribution. Each cell: success; flagged of "
-        "the failed runs / flagged of the successful runs. Range: inside or beyond the appearance range "
-        "the policy's data was randomized over, or untrained (no recipe varies it).",
+        "Each cell: success (with its 95% Wilson interval where the source keeps it); flagged of the failed "
+        "runs / flagged of the successful runs. Range: inside or beyond the appearance range the policy's "
+        "data was randomized over, or untrained (no recipe varies it). The gate of each policy:",
+        "",
+        *[f"- {n}: {result['policies'][n]['gate']}" for n in names],
         "",
         "| shift | family | "
         + " | ".join(f"{n}: range | {n}: success | {n}: flagged F / S" for n in names)
@@ -179,9 +255,12 @@ def render(result: dict) -> str:
             if r is None:
                 cells += ["", "", ""]
                 continue
+            success = fmt(r["success_rate"], 2)
+            if r.get("success_interval"):
+                success += " [{:.2f}, {:.2f}]".format(*r["success_interval"])
             cells += [
                 r["range"],
-                fmt(r["success_rate"], 2),
+                success,
                 f"{fmt(r['flagged_of_failures'], 2)} / {fmt(r['flagged_of_successes'], 2)}",
             ]
         lines.append(f"| {label} | {Shift.parse(label).family} | " + " | ".join(cells) + " |")
@@ -277,12 +356,34 @@ def build_report(cfg: RobustnessReportConfig) -> dict:
             metrics = json.loads((experiments[name] / "metrics.json").read_text())
         policies[name] = {
             "benchmark": str(path),
+            "gate": f"the `{cfg.detector}` detector of `lerobot-suture benchmark-ood` ({path}), thresholded "
+            "per episode on nominal validation runs of its training distribution",
             "policy_success_rate": benchmark["policy_success_rate"],
             "training_appearance": benchmark.get("training_appearance"),
             "shifts": rows,
             "bars": bars(rows, metrics),
         }
         shifts += [r["shift"] for r in rows if r["shift"] not in shifts]
+    if cfg.rows:
+        board = json.loads(Path(cfg.leaderboard).read_text())
+        data = _named_dirs(cfg.training_data, "training_data")
+        for name, row_name in _named_dirs(cfg.rows, "rows").items():
+            row = board["tasks"][cfg.task][str(row_name)]
+            appearance = dataset_appearance(data.get(name)).get("appearance")
+            try:
+                rows = cell_shift_rows(row, appearance)
+            except ValueError as exc:
+                raise ValueError(f"Leaderboard row {row_name!r}: {exc}") from exc
+            policies[name] = {
+                "leaderboard": f"{cfg.leaderboard}: {cfg.task} / {row_name}",
+                "gate": f"its own calibrated gate, row `{row_name}` of {cfg.leaderboard} "
+                f"({board['episodes']} episodes a cell, seeds from {board['seed']})",
+                "policy_success_rate": {c: cell["success_rate"] for c, cell in row.items()},
+                "training_appearance": appearance,
+                "shifts": rows,
+                "bars": bars(rows, None),
+            }
+            shifts += [r["shift"] for r in rows if r["shift"] not in shifts]
     result = {"detector": cfg.detector, "shifts": shifts, "policies": policies}
     cfg.output_dir.mkdir(parents=True, exist_ok=True)
     (cfg.output_dir / "robustness.json").write_text(json.dumps(result, indent=2))
