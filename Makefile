@@ -51,7 +51,9 @@ reproduce: install
 	$(BIN)/lerobot-suture reproduce
 
 bench: install
-	for b in benchmarks/[!_]*.py; do echo "== $$b"; $(BIN)/python $$b; done
+	@for b in benchmarks/[!_]*.py; do \
+	  if grep -q "required=True" $$b; then echo "== $$b: needs a trained policy or dataset, skipped ($(BIN)/python $$b --help)"; continue; fi; \
+	  echo "== $$b"; $(BIN)/python $$b; done
 
 lint: install
 	$(BIN)/ruff check lerobot_suture envs policies robots tests benchmarks
