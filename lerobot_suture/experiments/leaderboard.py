@@ -140,8 +140,9 @@ def row_summary(row: dict, conditions: Sequence[str] | None = None) -> dict:
     """One policy's row in a few figures: nominal success, the mean success over the perturbation scenarios
     and over the shifts, and the gate's false alarms on nominal (None without a gate).
 
-    ``conditions`` are the task's conditions on the board (default: the row's own); a mean over a group the
-    row holds only part of is None, as it would not compare with the other rows' means."""
+    ``conditions`` are the board's conditions of the task (default: the row's own); a mean over a group the
+    row holds only part of is None, as it would not compare with the other rows' means, and cells beyond
+    them (a joining row's further shifts) count in no mean."""
     conditions = list(row) if conditions is None else list(conditions)
     nominal = row.get("nominal")
 
@@ -157,8 +158,8 @@ def row_summary(row: dict, conditions: Sequence[str] | None = None) -> dict:
         ),
         "shift_success_mean": mean([c for c in conditions if c.startswith(SHIFT_PREFIX)]),
         "nominal_false_alarms": nominal["gate"]["flagged_rate"] if nominal and nominal["gate"] else None,
-        "cbf_violating_episodes": sum(c["cbf"]["violating_episodes"] for c in row.values()),
-        "episodes": sum(c["episodes"] for c in row.values()),
+        "cbf_violating_episodes": sum(row[c]["cbf"]["violating_episodes"] for c in conditions if c in row),
+        "episodes": sum(row[c]["episodes"] for c in conditions if c in row),
     }
 
 
@@ -175,12 +176,15 @@ def render(board: dict) -> str:
         f"{board['episodes']} episodes a cell, the same test seeds for every policy; the CBF filters every "
         "action; gates report and never stop a run. Success % [95% Wilson interval]; `gate` is the share of "
         "episodes the policy's O.O.D. gate flagged (false alarms on nominal); `CBF` is the share of its "
-        "active steps the filter changed and the episodes that left the safe set.",
+        "active steps the filter changed and the episodes that left the safe set. The summary is over the "
+        "board's conditions; a condition some rows lack (a joining row's further shifts) is a line of the "
+        "second table only.",
         "",
     ]
     for task, rows in board["tasks"].items():
         policies = list(rows)
         conds = task_conditions(rows)
+        board_conds = conditions(task, board.get("shifts", []))
         lines += [
             f"## {task}",
             "",
@@ -189,7 +193,7 @@ def render(board: dict) -> str:
             "|---|---|---|---|---|---|",
         ]
         for policy in policies:
-            s = row_summary(rows[policy], conds)
+            s = row_summary(rows[policy], board_conds)
             lines.append(
                 f"| {policy} | {_percent(s['nominal_success'])} | {_percent(s['scenario_success_mean'])} | "
                 f"{_percent(s['shift_success_mean'])} | {_percent(s['nominal_false_alarms'])} | "

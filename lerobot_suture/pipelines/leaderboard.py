@@ -25,8 +25,7 @@ from pathlib import Path
 from lerobot_suture.experiments import leaderboard as cells
 from lerobot_suture.pipelines.stages import StageTimings, calibrate_policy, code_commit, record_recipe
 from lerobot_suture.runtime.config import PolicyPathConfig
-from lerobot_suture.sim.shifts import Shift
-from lerobot_suture.sim.shifts import default_shifts as every_shift
+from lerobot_suture.sim.shifts import MAGNITUDES, SHIFTS, Shift
 from lerobot_suture.sim.tasks import TASK_NAMES
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -44,9 +43,9 @@ POLICY_PRESETS = {"act": PRESETS / "act.json", "diffusion": PRESETS / "diffusion
 
 
 def default_shifts() -> list[str]:
-    """The detector benchmark's shifts: every shift at both magnitudes (the smaller inside the randomized
-    recipe's range where it has one, the larger beyond it)."""
-    return [s.label for s in every_shift()]
+    """Every shift at its smaller magnitude (inside the randomized recipe's range where it has one); the
+    larger ones join with ``--shifts`` (:func:`lerobot_suture.sim.shifts.default_shifts` lists both)."""
+    return [Shift(name, MAGNITUDES[name][0]).label for name in SHIFTS]
 
 
 @dataclass
@@ -63,8 +62,10 @@ class LeaderboardConfig:
     policy_name: the row's name for ``--policy.path`` (default: the policy's type, with ``S=`` / ``K=``
         when approximated).
     episodes: episodes a cell, >= 1 (50: the LIBERO protocol's count per task).
-    shifts: distribution shifts run in the nominal scene, ``NAME@MAGNITUDE`` (default: every shift at both
-        magnitudes, as the detector benchmark runs them); ``[]`` for the scenarios only.
+    shifts: distribution shifts run in the nominal scene, ``NAME@MAGNITUDE`` (default: every shift at its
+        smaller magnitude); ``[]`` for the scenarios only. A run that trains or takes the board's policies
+        sets the board's shifts, which its summary averages over; a joining row's further shifts add lines
+        to its table.
     seed: base of the test seeds (disjoint from recording, calibration and the other commands' seeds).
     batch_envs: envs run in lockstep with one batched policy call, >= 1 (a seed gives the same episode at
         any value).
@@ -226,9 +227,9 @@ def run_leaderboard(cfg: LeaderboardConfig) -> dict:
                 f"The board in {results} was run with --{key}={board[key]}; this run has "
                 f"--{key}={getattr(cfg, key)}. Pass --{key}={board[key]} to join it, or another --results_dir."
             )
-    # The shifts the board holds: those of its rows so far and this run's.
-    board.update(episodes=cfg.episodes, shifts=list(dict.fromkeys([*board.get("shifts", []), *cfg.shifts])))
-    board["seed"] = cfg.seed
+    board.update(episodes=cfg.episodes, seed=cfg.seed)
+    if cfg.policy.path is None or "shifts" not in board:  # a joining row keeps the board's conditions
+        board["shifts"] = cfg.shifts
     board.setdefault("tasks", {})
     timings = StageTimings(cfg.output_dir / "timings.json")
     if cfg.policy.path is not None:  # a user's checkpoint joins the board
@@ -262,7 +263,10 @@ def run_leaderboard(cfg: LeaderboardConfig) -> dict:
                 board["tasks"].setdefault(task, {})[policy] = row
                 timings.seconds[f"evaluate {task} {policy}"] = _rollout_seconds(row)
     board["summary"] = {
-        task: {name: cells.row_summary(row, cells.task_conditions(rows)) for name, row in rows.items()}
+        task: {
+            name: cells.row_summary(row, cells.conditions(task, board["shifts"]))
+            for name, row in rows.items()
+        }
         for task, rows in board["tasks"].items()
     }
     # The rows already on the board keep their times; this run's stages add or update theirs.
