@@ -53,8 +53,13 @@ def condition_seeds(base: int, task: str, condition: str, n: int) -> list[int]:
     return episode_seeds(base + TASK_NAMES.index(task) * 1000 * 10_000, group, n)
 
 
+def condition_shift(condition: str) -> Shift | None:
+    """The shift of a ``shift:NAME@MAGNITUDE`` condition; None for a scenario."""
+    return Shift.parse(condition.removeprefix(SHIFT_PREFIX)) if condition.startswith(SHIFT_PREFIX) else None
+
+
 def _shift_index(condition: str) -> int:
-    return SHIFTS.index(Shift.parse(condition[len(SHIFT_PREFIX) :]).name)
+    return SHIFTS.index(condition_shift(condition).name)
 
 
 def cell_episodes(
@@ -68,9 +73,8 @@ def cell_episodes(
 ) -> tuple[list[EpisodeLog], float]:
     """Roll ``runner`` out on ``seeds`` under ``condition`` of ``task`` (``batch_envs`` in lockstep, in
     ``workers`` processes), the CBF on; returns the episodes and their wall time (s)."""
-    scenario, shift = condition, None
-    if condition.startswith(SHIFT_PREFIX):
-        scenario, shift = "nominal", Shift.parse(condition[len(SHIFT_PREFIX) :])
+    shift = condition_shift(condition)
+    scenario = condition if shift is None else "nominal"
     kwargs = {**env_kwargs, "task": task}
     start = time.perf_counter()
     logs = rollout_seeds(
@@ -82,19 +86,6 @@ def cell_episodes(
         workers=workers,
     )
     return logs, time.perf_counter() - start
-
-
-def run_cell(
-    runner,
-    env_kwargs: dict,
-    task: str,
-    condition: str,
-    seeds: Sequence[int],
-    batch_envs: int,
-    workers: int = 1,
-) -> dict:
-    """:func:`cell_episodes`, summarized (the cell's figures)."""
-    return summarize_cell(*cell_episodes(runner, env_kwargs, task, condition, seeds, batch_envs, workers))
 
 
 def summarize_cell(logs: Sequence[EpisodeLog], seconds: float) -> dict:

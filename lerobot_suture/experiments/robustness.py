@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from lerobot_suture.experiments.benchmark_ood_report import fmt
-from lerobot_suture.experiments.leaderboard import SHIFT_PREFIX
+from lerobot_suture.experiments.leaderboard import condition_shift
 from lerobot_suture.experiments.metrics import auroc, most_failures_flagged
 from lerobot_suture.runtime.calibration import dataset_appearance
 from lerobot_suture.sim.shifts import Shift, within_training_range
@@ -151,11 +151,11 @@ def cell_shift_rows(row: dict, training_appearance: dict | None) -> list[dict]:
     interval; the gate is the policy's own (a row without one has nothing to report here)."""
     rows = []
     for condition, cell in row.items():
-        if not condition.startswith(SHIFT_PREFIX):
+        shift = condition_shift(condition)
+        if shift is None:
             continue
         if cell["gate"] is None:
             raise ValueError(f"The row's cell {condition} has no gate (the policy has no O.O.D. gate).")
-        shift = Shift.parse(condition[len(SHIFT_PREFIX) :])
         runs, successes, gate = cell["episodes"], cell["successes"], cell["gate"]
         failures = runs - successes
         rows.append(

@@ -197,7 +197,9 @@ def evaluate_row(
             runner = PolicyRunner.from_pretrained(policy_dir, GateMode.REPORT, cfg.device, overrides)
             env_kwargs = env_kwargs_for_policy(runner.policy.config)
         seeds = cells.condition_seeds(cfg.seed, task, condition, cfg.episodes)
-        cell = cells.run_cell(runner, env_kwargs, task, condition, seeds, cfg.batch_envs, cfg.workers)
+        cell = cells.summarize_cell(
+            *cells.cell_episodes(runner, env_kwargs, task, condition, seeds, cfg.batch_envs, cfg.workers)
+        )
         cell["policy_path"] = str(policy_dir)
         cell["code_commit"] = commit
         if overrides:
