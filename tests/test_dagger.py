@@ -414,6 +414,57 @@ def test_merged_dataset_holds_the_training_demonstrations_and_the_new_frames(
 # ------------------------------------------------------------------ the loop
 
 
+def test_report_pairs_each_rounds_autonomy_with_round_zero_by_seed(tmp_path):
+    from lerobot_suture.dagger.config import SCENARIOS
+    from lerobot_suture.dagger.report import write_report
+
+    def evaluation(outcomes: dict[str, list[bool]], seeds_reversed: bool = False) -> dict:
+        episodes = {}
+        for scenario, autonomous in outcomes.items():
+            listed = [
+                {"seed": 100 + k, "autonomous_success": ok, "success": True}
+                for k, ok in enumerate(autonomous)
+            ]
+            episodes[scenario] = listed[::-1] if seeds_reversed else listed
+        rate = {s: float(np.mean(v)) for s, v in outcomes.items()}
+        return {
+            "scenarios": {
+                s: {"autonomous_success": rate[s], "success": 1.0, "episodes": 10} for s in outcomes
+            },
+            "overall": {
+                "autonomous_success": float(np.mean(list(rate.values()))),
+                "success": 1.0,
+                "handovers_per_episode": 0.1,
+                "surgeon_steps_per_episode": 1.0,
+            },
+            "nominal_false_alarms_per_episode": 0.0,
+            "auroc": dict.fromkeys(SCENARIOS[1:], 0.9),
+            "episodes": episodes,
+        }
+
+    before = dict.fromkeys(SCENARIOS, [True] * 2 + [False] * 8)
+    # Camera moved: four episodes turn autonomous, one stops being; the rest as before.
+    after = {**before, "camera_moved": [False, True] + [True] * 4 + [False] * 4}
+    for folder, result in (("round_0", evaluation(before)), ("gated/round_1", evaluation(after, True))):
+        (tmp_path / folder).mkdir(parents=True)
+        (tmp_path / folder / "eval.json").write_text(json.dumps(result))
+    (tmp_path / "gated" / "round_1" / "collect.json").write_text(json.dumps({"new_frames": 40, "runs": []}))
+
+    text = write_report(tmp_path, ["gated"], rounds=1)
+    first, row = json.loads((tmp_path / "dagger.json").read_text())["rows"]
+    assert "autonomous_change" not in first and first["autonomous_interval"]["nominal"][0] < 0.2
+    change = row["autonomous_change"]["camera_moved"]
+    # Paired by seed although round 1 lists its episodes in another order.
+    assert (change["improved"], change["worsened"]) == (4, 1)
+    assert change["change"] == pytest.approx(0.3) and change["p_value"] == pytest.approx(0.375)
+    assert (
+        row["autonomous_change"]["nominal"]["improved"] == 0
+        and row["autonomous_change"]["nominal"]["change"] == 0
+    )
+    assert row["autonomous_interval"]["camera_moved"][0] < 0.5 < row["autonomous_interval"]["camera_moved"][1]
+    assert "McNemar" in text and "+0.30 [" in text and ", 4 / 1, p = 0.38" in text
+
+
 @pytest.mark.slow
 def test_toy_loop_writes_the_table_and_resumes_without_redoing_a_stage(tiny_policy_dir, demo_root, tmp_path):
     from PIL import Image

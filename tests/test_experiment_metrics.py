@@ -1,4 +1,4 @@
-"""Pure metrics of the experiments: Wilson interval, AUROC, detection delay, alarm rates."""
+"""Pure metrics of the experiments: Wilson interval, paired change, AUROC, detection delay, alarm rates."""
 
 import math
 
@@ -14,6 +14,39 @@ def test_wilson_interval_known_values():
     assert metrics.wilson_interval(0, 10)[0] == 0.0
     assert metrics.wilson_interval(10, 10)[1] == pytest.approx(1.0)
     assert all(math.isnan(x) for x in metrics.wilson_interval(0, 0))
+
+
+def test_paired_change_counts_the_pairs_and_tests_them_exactly():
+    before = [True] * 5 + [False] * 45
+    after = [True] * 5 + [True] * 12 + [False] * 33
+    r = metrics.paired_change(before, after)
+    assert (r["improved"], r["worsened"], r["episodes"]) == (12, 0, 50)
+    assert r["before"] == pytest.approx(0.10) and r["after"] == pytest.approx(0.34)
+    assert r["change"] == pytest.approx(0.24)
+    assert r["p_value"] == pytest.approx(2 * 0.5**12)  # McNemar exact: 12 of 12 discordant pairs one way
+    lo, hi = r["interval"]
+    assert 0 < lo < 0.24 < hi < 1
+    # Swapping the runs mirrors everything.
+    back = metrics.paired_change(after, before)
+    assert back["change"] == pytest.approx(-0.24) and back["p_value"] == r["p_value"]
+    assert back["interval"] == pytest.approx((-hi, -lo))
+    same = metrics.paired_change(before, before)
+    assert same["change"] == 0 and same["p_value"] == 1.0 and same["interval"][0] < 0 < same["interval"][1]
+    assert math.isnan(metrics.paired_change([], [])["change"])
+    with pytest.raises(ValueError, match="as many episodes"):
+        metrics.paired_change([True], [True, False])
+
+
+def test_paired_change_interval_covers_the_true_change():
+    rng = np.random.default_rng(0)
+    # Joint outcomes (both succeed, improved, worsened, neither) of 50 paired episodes.
+    for probs in [(0.3, 0.2, 0.05, 0.45), (0.45, 0.1, 0.1, 0.35), (0.0, 0.3, 0.0, 0.7)]:
+        covered = 0
+        for _ in range(1000):
+            kind = rng.choice(4, size=50, p=probs)
+            r = metrics.paired_change(np.isin(kind, (0, 2)), np.isin(kind, (0, 1)))
+            covered += r["interval"][0] <= probs[1] - probs[2] <= r["interval"][1]
+        assert 0.93 <= covered / 1000 <= 0.995
 
 
 def test_auroc_matches_the_pairwise_definition():

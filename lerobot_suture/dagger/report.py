@@ -1,5 +1,6 @@
 """The loop's table (``dagger.md``, ``dagger.json``: a row per arm and round) and figure (``dagger.png``:
 autonomy and success against the cumulative labelled frames, a panel per scenario, the arms side by side).
+Autonomy comes with its Wilson interval and, from round 1, its paired change from round 0 on the same seeds.
 
 Round 0 (the given policy) opens every arm's rows with no new frames. Rows of rounds not finished yet are
 left out, so the table can be written from a run still under way.
@@ -15,6 +16,7 @@ from matplotlib.figure import Figure
 
 from lerobot_suture.dagger.config import ARMS, GATED, SCENARIOS
 from lerobot_suture.datasets.metadata import read_json, write_json_atomic
+from lerobot_suture.experiments import metrics
 from lerobot_suture.surgeon.takeover import GATE_RELEASED, TAKEN_OVER
 
 SHORT = {
@@ -41,9 +43,31 @@ def table_rows(output_dir: Path, arms: list[str], rounds: int) -> list[dict]:
             collect = {} if round_ == 0 else read_json(folder / "collect.json")
             new = int(collect.get("new_frames", 0))
             cumulative += new
-            rows.append(_row(arm, round_, new, cumulative, read_json(folder / "eval.json")))
+            result = read_json(folder / "eval.json")
+            rows.append(_row(arm, round_, new, cumulative, result))
+            rows[-1].update(autonomy_statistics(result, read_json(round0) if round_ else None))
             rows[-1]["collection_handovers"] = handover_reasons(collect.get("runs", []))
     return rows
+
+
+def autonomy_statistics(result: dict, round0: dict | None) -> dict:
+    """Per scenario, autonomous success's 95% Wilson interval and, given round 0's evaluation, its change
+    from round 0 on the same test seeds (:func:`~lerobot_suture.experiments.metrics.paired_change`); empty
+    for an evaluation written before its episodes were kept."""
+    if "episodes" not in result or (round0 is not None and "episodes" not in round0):
+        return {}
+    out = {"autonomous_interval": {}}
+    for scenario, episodes in result["episodes"].items():
+        after = [bool(e["autonomous_success"]) for e in episodes]
+        out["autonomous_interval"][scenario] = list(metrics.wilson_interval(sum(after), len(after)))
+        if round0 is not None:
+            by_seed = {e["seed"]: bool(e["autonomous_success"]) for e in round0["episodes"][scenario]}
+            paired = metrics.paired_change([by_seed[e["seed"]] for e in episodes], after)
+            out.setdefault("autonomous_change", {})[scenario] = {
+                **paired,
+                "interval": list(paired["interval"]),
+            }
+    return out
 
 
 def handover_reasons(runs: list[dict]) -> dict[str, int]:
@@ -122,6 +146,8 @@ def markdown(rows: list[dict], toy: bool = False) -> str:
         ]
         cells += [_fmt(row["auroc"].get(s)) for s in perturbed]
         lines.append("| " + " | ".join(str(c) for c in cells) + " |")
+    if any(row.get("autonomous_change") for row in rows):
+        lines += ["", *autonomy_table(rows)]
     lines += ["", "Success (the surgeon's rescues included) per scenario:", ""]
     lines += ["| arm | round | " + " | ".join(SHORT[s] for s in SCENARIOS) + " |"]
     lines += ["|" + "---|" * (2 + len(SCENARIOS))]
@@ -146,9 +172,43 @@ def markdown(rows: list[dict], toy: bool = False) -> str:
     return "\n".join(lines)
 
 
+def _signed(value: float) -> str:
+    return "n/a" if math.isnan(value) else f"{value:+.2f}"
+
+
+def autonomy_table(rows: list[dict]) -> list[str]:
+    """Autonomous success with its Wilson interval, and each round's change from round 0 on the same seeds."""
+    lines = [
+        "Autonomous success [95% Wilson interval]; from round 1, its change from round 0 on the same test "
+        "seeds [95% paired interval, Newcombe], the episodes that became autonomous successes / stopped "
+        "being, and McNemar's exact p of no change:",
+        "",
+        "| arm | round | " + " | ".join(SHORT[s] for s in SCENARIOS) + " |",
+        "|" + "---|" * (2 + len(SCENARIOS)),
+    ]
+    for row in rows:
+        intervals, changes = row.get("autonomous_interval", {}), row.get("autonomous_change", {})
+        cells = []
+        for scenario in SCENARIOS:
+            cell = _fmt(row["autonomous_success"].get(scenario))
+            if scenario in intervals:
+                cell += " [{}, {}]".format(*(_fmt(x) for x in intervals[scenario]))
+            change = changes.get(scenario)
+            if change:
+                lo, hi = change["interval"]
+                cell += (
+                    f"; {_signed(change['change'])} [{_signed(lo)}, {_signed(hi)}], "
+                    f"{change['improved']} / {change['worsened']}, p = {change['p_value']:.2g}"
+                )
+            cells.append(cell)
+        lines.append(f"| {row['arm']} | {row['round']} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def plot(rows: list[dict], out_path: Path) -> Path:
-    """Autonomous success (top) and success (bottom) per round against the cumulative labelled frames, a
-    column per scenario, each arm its own line, the arms nudged apart along x so equal budgets stay visible."""
+    """Autonomous success (top, with its Wilson interval) and success (bottom) per round against the
+    cumulative labelled frames, a column per scenario, each arm its own line, the arms nudged apart along x
+    so equal budgets stay visible."""
     fig = Figure(figsize=(4.0 * len(SCENARIOS), 6.4), dpi=100)
     FigureCanvasAgg(fig)
     axes = fig.subplots(2, len(SCENARIOS), sharex=True, sharey=True, squeeze=False)
@@ -163,6 +223,13 @@ def plot(rows: list[dict], out_path: Path) -> Path:
                 xs = [r["cumulative_frames"] + nudge for r in arm_rows]
                 ys = [r[key].get(scenario, math.nan) for r in arm_rows]
                 ax.plot(xs, ys, color=COLOURS[arm], marker=MARKERS[arm], lw=1.4, label=arm)
+                bounds = [r.get("autonomous_interval", {}).get(scenario) for r in arm_rows]
+                if key == "autonomous_success" and all(bounds):
+                    below = [max(0.0, y - b[0]) for y, b in zip(ys, bounds, strict=True)]
+                    above = [max(0.0, b[1] - y) for y, b in zip(ys, bounds, strict=True)]
+                    ax.errorbar(
+                        xs, ys, yerr=[below, above], fmt="none", ecolor=COLOURS[arm], alpha=0.5, capsize=2
+                    )
                 for x, y, r in zip(xs, ys, arm_rows, strict=True):
                     if k == 0 and not math.isnan(y):  # the rounds, once: every arm's lie in the same order
                         ax.annotate(

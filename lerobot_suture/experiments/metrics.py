@@ -26,6 +26,55 @@ def wilson_interval(successes: int, n: int, z: float = 1.959963984540054) -> tup
     return max(0.0, centre - half), min(1.0, centre + half)
 
 
+def paired_change(before: Sequence[bool], after: Sequence[bool], z: float = 1.959963984540054) -> dict:
+    """The change of a success rate between two runs of the same episodes (the same seeds, in order).
+
+    ``change`` is after minus before; ``interval`` its 95% interval by Newcombe's hybrid score method for
+    paired proportions (1998, method 10: the two Wilson intervals combined with the pairs' correlation,
+    continuity-corrected); ``improved`` / ``worsened`` count the episodes that turned into a success / a
+    failure; ``p_value`` is McNemar's exact two-sided test of no change (a binomial test on those two
+    counts). nan figures (and ``p_value`` 1) when there are no episodes.
+    """
+    before, after = [bool(x) for x in before], [bool(x) for x in after]
+    if len(before) != len(after):
+        raise ValueError(f"Paired runs need as many episodes: {len(before)} before, {len(after)} after.")
+    n = len(before)
+    both = sum(b and a for b, a in zip(before, after, strict=True))
+    improved = sum(a and not b for b, a in zip(before, after, strict=True))
+    worsened = sum(b and not a for b, a in zip(before, after, strict=True))
+    neither = n - both - improved - worsened
+    discordant = improved + worsened
+    tail = sum(math.comb(discordant, k) for k in range(min(improved, worsened) + 1)) / 2**discordant
+    out = {"episodes": n, "improved": improved, "worsened": worsened, "p_value": min(1.0, 2 * tail)}
+    if n == 0:
+        return {**out, "before": math.nan, "after": math.nan, "change": math.nan, "interval": (math.nan,) * 2}
+    p_after, p_before = (both + improved) / n, (both + worsened) / n
+    lo_after, hi_after = wilson_interval(both + improved, n, z)
+    lo_before, hi_before = wilson_interval(both + worsened, n, z)
+    margins = (both + improved) * (worsened + neither) * (both + worsened) * (improved + neither)
+    cross = both * neither - improved * worsened
+    corrected = cross - n / 2 if cross > n / 2 else (cross if cross < 0 else 0.0)
+    phi = corrected / math.sqrt(margins) if margins > 0 else 0.0
+    change = p_after - p_before
+    down = math.sqrt(
+        (p_after - lo_after) ** 2
+        - 2 * phi * (p_after - lo_after) * (hi_before - p_before)
+        + (hi_before - p_before) ** 2
+    )
+    up = math.sqrt(
+        (p_before - lo_before) ** 2
+        - 2 * phi * (p_before - lo_before) * (hi_after - p_after)
+        + (hi_after - p_after) ** 2
+    )
+    return {
+        **out,
+        "before": p_before,
+        "after": p_after,
+        "change": change,
+        "interval": (max(-1.0, change - down), min(1.0, change + up)),
+    }
+
+
 def _pairwise_wins(negatives: Sequence[float], positives: Sequence[float]) -> np.ndarray:
     """(positives, negatives) matrix: 1 where the positive scores higher, 0.5 on a tie; NaN scores dropped."""
     neg = np.asarray([x for x in negatives if not math.isnan(x)], dtype=np.float64)
