@@ -33,19 +33,22 @@ def table_rows(output_dir: Path, arms: list[str], rounds: int) -> list[dict]:
     """One row per arm and finished round, from the rounds' ``eval.json`` and ``collect.json``."""
     output_dir = Path(output_dir)
     round0 = output_dir / "round_0" / "eval.json"
+    if not round0.is_file():
+        return []
+    baseline = read_json(round0)
     rows = []
     for arm in arms:
         cumulative = 0
         for round_ in range(rounds + 1):
             folder = output_dir / "round_0" if round_ == 0 else output_dir / arm / f"round_{round_}"
-            if not (folder / "eval.json").is_file() or not round0.is_file():
+            if not (folder / "eval.json").is_file():
                 break
             collect = {} if round_ == 0 else read_json(folder / "collect.json")
             new = int(collect.get("new_frames", 0))
             cumulative += new
-            result = read_json(folder / "eval.json")
+            result = baseline if round_ == 0 else read_json(folder / "eval.json")
             rows.append(_row(arm, round_, new, cumulative, result))
-            rows[-1].update(autonomy_statistics(result, read_json(round0) if round_ else None))
+            rows[-1].update(autonomy_statistics(result, baseline if round_ else None))
             rows[-1]["collection_handovers"] = handover_reasons(collect.get("runs", []))
     return rows
 
