@@ -81,16 +81,21 @@ class RobustnessReportConfig:
                 "Name at least one policy: --runs='[reference=DIR]' (benchmark-ood outputs) or "
                 "--leaderboard=docs/results/leaderboard/leaderboard.json --rows='[reference=ensemble_diffusion]'."
             )
-        for name, path in _named_dirs(self.runs, "runs").items():
+        # Parsed once here; build_report reads these.
+        self.named_runs = _named_dirs(self.runs, "runs")
+        self.named_experiments = _named_dirs(self.experiments, "experiments")
+        self.named_rows = _named_dirs(self.rows, "rows")
+        self.named_training_data = _named_dirs(self.training_data, "training_data")
+        for name, path in self.named_runs.items():
             if not (path / "detectors.json").is_file():
                 raise ValueError(
                     f"{path} (run {name}) holds no detectors.json: run `lerobot-suture benchmark-ood "
                     f"--output_dir={path}` first."
                 )
-        for name, path in _named_dirs(self.experiments, "experiments").items():
+        for name, path in self.named_experiments.items():
             if not (path / "metrics.json").is_file():
                 raise ValueError(f"{path} (experiments {name}) holds no metrics.json.")
-        rows = {name: str(row) for name, row in _named_dirs(self.rows, "rows").items()}
+        rows = {name: str(row) for name, row in self.named_rows.items()}
         if rows:
             if self.leaderboard is None or not Path(self.leaderboard).is_file():
                 raise ValueError(
@@ -104,15 +109,15 @@ class RobustnessReportConfig:
                     f"The leaderboard {self.leaderboard} has no row {missing} on task {self.task!r}; its rows: "
                     f"{sorted(board)}."
                 )
-        clash = sorted(set(rows) & set(_named_dirs(self.runs, "runs")))
+        clash = sorted(set(rows) & set(self.named_runs))
         if clash:
             raise ValueError(f"{clash} name both a run and a leaderboard row: give each policy one name.")
-        for name, root in _named_dirs(self.training_data, "training_data").items():
+        for name, root in self.named_training_data.items():
             if not (root / "meta" / "info.json").is_file():
                 raise ValueError(
                     f"`training_data` {name}={root} holds no LeRobotDataset (no meta/info.json)."
                 )
-        stray = sorted(set(_named_dirs(self.training_data, "training_data")) - set(rows))
+        stray = sorted(set(self.named_training_data) - set(rows))
         if stray:
             raise ValueError(
                 f"`training_data` names {stray}, which are not leaderboard rows (a benchmark run keeps its own)."
@@ -339,8 +344,7 @@ def plot(result: dict, path: Path) -> Path:
 
 
 def build_report(cfg: RobustnessReportConfig) -> dict:
-    runs = _named_dirs(cfg.runs, "runs")
-    experiments = _named_dirs(cfg.experiments, "experiments")
+    runs, experiments = cfg.named_runs, cfg.named_experiments
     policies, shifts = {}, []
     for name, path in runs.items():
         benchmark = json.loads((path / "detectors.json").read_text())
@@ -366,8 +370,8 @@ def build_report(cfg: RobustnessReportConfig) -> dict:
         shifts += [r["shift"] for r in rows if r["shift"] not in shifts]
     if cfg.rows:
         board = json.loads(Path(cfg.leaderboard).read_text())
-        data = _named_dirs(cfg.training_data, "training_data")
-        for name, row_name in _named_dirs(cfg.rows, "rows").items():
+        data = cfg.named_training_data
+        for name, row_name in cfg.named_rows.items():
             row = board["tasks"][cfg.task][str(row_name)]
             appearance = dataset_appearance(data.get(name)).get("appearance")
             try:

@@ -1,0 +1,179 @@
+"""Where a trained policy's pickups end: reached, closed on the needle, grasped in range, lifted clear.
+
+Rolls the policy out on the leaderboard's nominal ``pickup`` test seeds (``--seed`` is the leaderboard's
+base, so the episodes are its ``nominal`` cell's: same seeds, the CBF on, each episode's noise from its
+seed, the gate reporting) and reads the simulator's privileged state at every control step. A pickup
+succeeds when the jaw holds the needle inside the grasp ranges an insertion is tested in (arc angle within
+4 degrees of 165, within 0.5 mm along the jaw, roll within 0.05 rad, the right way round) and has lifted
+all of it 5 mm clear of the tissue (``lerobot_suture.sim.pickup``). Prints one JSON object: how many
+episodes closed the jaw on the needle, how many held a grasp in range, how many lifted it clear, and, for
+each grasp the jaw closed on, its errors against those ranges (medians and the share inside each).
+
+    .venv/bin/python benchmarks/pickup_failures.py --policy-path DIR [--episodes 50] [--output F.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from _report import emit, machine  # noqa: E402
+
+import lerobot_suture  # noqa: E402,F401
+from lerobot_suture.experiments.leaderboard import condition_seeds  # noqa: E402
+from lerobot_suture.experiments.metrics import wilson_interval  # noqa: E402
+from lerobot_suture.runtime.policy import env_kwargs_for_policy, reporting_runner  # noqa: E402
+from lerobot_suture.runtime.rollout import make_scenario_env  # noqa: E402
+from lerobot_suture.safety.cbf_config import CBFConfig  # noqa: E402
+from lerobot_suture.sim.pickup import LIFT_HEIGHT  # noqa: E402
+from lerobot_suture.sim.task import GRASP_ANGLE, GRASP_RANGES  # noqa: E402
+
+TASK = "pickup"
+
+
+def grasp_errors(parameters: tuple[float, float, float], reversed_grasp: bool) -> dict:
+    """A grasp's distance from the nominal one: arc angle (deg), depth along the jaw (mm), roll (rad)."""
+    angle, depth, roll = parameters
+    return {
+        "angle_error_deg": math.degrees(abs(angle - GRASP_ANGLE)),
+        "depth_mm": 1e3 * abs(depth),
+        "roll_rad": abs(roll),
+        "reversed": bool(reversed_grasp),
+    }
+
+
+def roll_out(runner, env_kwargs: dict, seeds: list[int]) -> list[dict]:
+    """``seeds`` in lockstep (one batch), the CBF on; per episode what the jaw did with the needle."""
+    envs = [
+        make_scenario_env({**env_kwargs, "task": TASK}, "nominal", CBFConfig(enabled=True)) for _ in seeds
+    ]
+    torch.manual_seed(seeds[0])
+    observations = [env.reset(seed=seed)[0] for env, seed in zip(envs, seeds, strict=True)]
+    runner.reset(seeds=seeds)
+    tasks = [env.unwrapped.task_description for env in envs]
+    out = [
+        {"seed": s, "closed_on_needle": False, "grasp_in_range": False, "clearance_mm": None, "grasps": []}
+        for s in seeds
+    ]
+    done = [False] * len(envs)
+    max_steps = envs[0].spec.max_episode_steps
+    for _ in range(max_steps):
+        if all(done):
+            break
+        actions = runner.act_batch(observations, tasks)
+        for i, env in enumerate(envs):
+            if done[i]:
+                continue
+            observations[i], _, terminated, truncated, info = env.step(actions[i])
+            u, ep = env.unwrapped, out[i]
+            if u.needle_grasped:
+                if not ep["closed_on_needle"] or not ep["was_held"]:  # a new grasp: record how it sits
+                    ep["grasps"].append(grasp_errors(u.grasp_parameters, u.grasp_reversed))
+                ep["closed_on_needle"] = True
+                if u.needle_in_throw_grasp:
+                    ep["grasp_in_range"] = True
+                    clearance = 1e3 * u.needle_clearance
+                    ep["clearance_mm"] = max(ep["clearance_mm"] or -math.inf, clearance)
+            ep["was_held"] = bool(u.needle_grasped)
+            ep["success"] = bool(info["is_success"])
+            ep["steps"] = int(u.step_index)
+            done[i] = bool(terminated or truncated)
+    for env in envs:
+        env.close()
+    for ep in out:
+        del ep["was_held"]
+    return out
+
+
+def summarize(episodes: list[dict]) -> dict:
+    """Counts with 95% Wilson intervals, and the first grasp's errors against the ranges."""
+    n = len(episodes)
+
+    def count(key: str) -> dict:
+        k = sum(bool(ep[key]) for ep in episodes)
+        return {"episodes": k, "rate": k / n, "interval": list(wilson_interval(k, n))}
+
+    angle_range, depth_range, roll_range = GRASP_RANGES["narrow"]
+    first = [ep["grasps"][0] for ep in episodes if ep["grasps"]]
+    grasps = {}
+    if first:
+        grasps = {
+            "first_grasps": len(first),
+            "median_angle_error_deg": float(np.median([g["angle_error_deg"] for g in first])),
+            "median_depth_mm": float(np.median([g["depth_mm"] for g in first])),
+            "median_roll_rad": float(np.median([g["roll_rad"] for g in first])),
+            "angle_inside": float(
+                np.mean([g["angle_error_deg"] <= math.degrees(angle_range) for g in first])
+            ),
+            "depth_inside": float(np.mean([g["depth_mm"] <= 1e3 * depth_range for g in first])),
+            "roll_inside": float(np.mean([g["roll_rad"] <= roll_range for g in first])),
+            "reversed": float(np.mean([g["reversed"] for g in first])),
+            "grasps_per_episode_that_closed": float(
+                np.mean([len(ep["grasps"]) for ep in episodes if ep["grasps"]])
+            ),
+        }
+    lifted = sum(
+        ep["clearance_mm"] is not None and ep["clearance_mm"] >= 1e3 * LIFT_HEIGHT for ep in episodes
+    )
+    return {
+        "closed_on_needle": count("closed_on_needle"),
+        "grasp_in_range": count("grasp_in_range"),
+        "lifted_clear_in_range": lifted,
+        "success": count("success"),
+        "ranges": {
+            "angle_deg": math.degrees(angle_range),
+            "depth_mm": 1e3 * depth_range,
+            "roll_rad": roll_range,
+            "lift_mm": 1e3 * LIFT_HEIGHT,
+        },
+        **grasps,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--policy-path", type=Path, required=True, help="a trained pickup pretrained_model")
+    parser.add_argument("--episodes", type=int, default=50)
+    parser.add_argument("--seed", type=int, default=7_000_000, help="the leaderboard's base test seed")
+    parser.add_argument("--batch-envs", type=int, default=10)
+    parser.add_argument("--output", type=Path, help="write the JSON here too")
+    args = parser.parse_args()
+    if args.episodes < 1 or args.batch_envs < 1:
+        parser.error(f"--episodes and --batch-envs must be >= 1. Got {args.episodes}, {args.batch_envs}.")
+    if not (args.policy_path / "config.json").is_file():
+        sys.exit(
+            f"No trained policy at {args.policy_path} (no config.json): pass a pretrained_model directory."
+        )
+    runner = reporting_runner(args.policy_path)
+    env_kwargs = env_kwargs_for_policy(runner.policy.config)
+    seeds = condition_seeds(args.seed, TASK, "nominal", args.episodes)
+    start = time.perf_counter()
+    episodes = []
+    for k in range(0, len(seeds), args.batch_envs):
+        episodes += roll_out(runner, env_kwargs, seeds[k : k + args.batch_envs])
+        print(f"{len(episodes)}/{len(seeds)} episodes", file=sys.stderr, flush=True)
+    report = {
+        "benchmark": "pickup_failures",
+        "command": " ".join(["python", *sys.argv]),
+        "machine": {**machine(), "python": platform.python_version(), "torch": torch.__version__},
+        "policy_path": str(args.policy_path),
+        "seed": args.seed,
+        "seconds": round(time.perf_counter() - start, 1),
+        "summary": summarize(episodes),
+        "episodes": episodes,
+    }
+    emit(report, args.output)
+
+
+if __name__ == "__main__":
+    main()
