@@ -1,7 +1,8 @@
 #!/usr/bin/env python
 """Latency of one ensemble prediction: one member, the naive loop over members, the batched ensemble.
 
-Prints one JSON object. For N members at batch 1 it times, on the same observation:
+Prints one JSON object (``--output`` writes it to a file too): the command, the machine and, under
+``result``, the timings. For N members at batch 1 it times, on the same observation:
   one_member_s   one LeRobot `DiffusionModel.generate_actions` call (one member's chunk);
   naive_loop_s   that call for every member in a Python loop (what an ensemble costs without batching);
   batched_s      `EnsembleDiffusionPolicy.predict_action_distribution` with the fused members (every member's
@@ -20,10 +21,12 @@ import argparse
 import json
 import platform
 import statistics
+import sys
 import time
 from pathlib import Path
 
 import torch
+from _report import emit, machine
 from lerobot.utils.constants import OBS_IMAGES
 from lerobot_policy_ensemble_diffusion.modeling_ensemble_diffusion import EnsembleDiffusionPolicy
 from lerobot_policy_ensemble_diffusion.testing import (
@@ -93,7 +96,9 @@ def main() -> None:
         metavar="FIELD=JSON",
         help="override policy fields, e.g. down_dims=[32,64]",
     )
+    parser.add_argument("--output", type=Path, help="write the JSON here too")
     args = parser.parse_args()
+    load = machine()  # read before the timing load
 
     if args.threads > 0:
         torch.set_num_threads(args.threads)
@@ -138,7 +143,7 @@ def main() -> None:
                 ("batched_sampling_s", batched_sampling),
             )
         }
-    report = {
+    result = {
         "benchmark": "ensemble_latency",
         "preset": args.preset,
         "n_members": config.n_members,
@@ -162,7 +167,8 @@ def main() -> None:
         "speedup_batched_vs_naive_loop": round(results["naive_loop_s"][0] / results["batched_s"][0], 3),
         "batched_over_one_member": round(results["batched_s"][0] / results["one_member_s"][0], 3),
     }
-    print(json.dumps(report, indent=2))
+    command = " ".join(["python", "benchmarks/ensemble_latency.py", *sys.argv[1:]])
+    emit({"command": command, "machine": load, "result": result}, args.output)
 
 
 if __name__ == "__main__":

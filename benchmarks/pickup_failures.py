@@ -7,7 +7,9 @@ succeeds when the jaw holds the needle inside the grasp ranges an insertion is t
 4 degrees of 165, within 0.5 mm along the jaw, roll within 0.05 rad, the right way round) and has lifted
 all of it 5 mm clear of the tissue (``lerobot_suture.sim.pickup``). Prints one JSON object: how many
 episodes closed the jaw on the needle, how many held a grasp in range, how many lifted it clear, and, for
-each grasp the jaw closed on, its errors against those ranges (medians and the share inside each).
+each grasp the jaw closed on, its errors against those ranges (medians and the share inside each), and,
+for the episodes whose jaw never caught the needle, the closest its jaw came to the pose that holds the
+needle in the nominal grasp (mm and degrees).
 
     .venv/bin/python benchmarks/pickup_failures.py --policy-path DIR [--episodes 50] [--output F.json]
 """
@@ -35,6 +37,7 @@ from lerobot_suture.experiments.metrics import wilson_interval  # noqa: E402
 from lerobot_suture.runtime.policy import env_kwargs_for_policy, reporting_runner  # noqa: E402
 from lerobot_suture.runtime.rollout import make_scenario_env  # noqa: E402
 from lerobot_suture.safety.cbf_config import CBFConfig  # noqa: E402
+from lerobot_suture.sim.geometry import jaw_holding  # noqa: E402
 from lerobot_suture.sim.pickup import LIFT_HEIGHT  # noqa: E402
 from lerobot_suture.sim.task import GRASP_ANGLE, GRASP_RANGES  # noqa: E402
 
@@ -52,6 +55,15 @@ def grasp_errors(parameters: tuple[float, float, float], reversed_grasp: bool) -
     }
 
 
+def approach_error(u) -> tuple[float, float]:
+    """How far the jaw is from the pose that would hold the needle in the nominal grasp: position (mm) and
+    rotation (deg)."""
+    target_pos, target_rot = jaw_holding(*u.needle_pose(), *u.nominal_grasp_in_jaw)
+    jaw_pos, jaw_rot = u.jaw_pose()
+    cos = np.clip((np.trace(target_rot.T @ jaw_rot) - 1.0) / 2.0, -1.0, 1.0)
+    return 1e3 * float(np.linalg.norm(jaw_pos - target_pos)), math.degrees(math.acos(cos))
+
+
 def roll_out(runner, env_kwargs: dict, seeds: list[int]) -> list[dict]:
     """``seeds`` in lockstep (one batch), the CBF on; per episode what the jaw did with the needle."""
     envs = [
@@ -62,7 +74,15 @@ def roll_out(runner, env_kwargs: dict, seeds: list[int]) -> list[dict]:
     runner.reset(seeds=seeds)
     tasks = [env.unwrapped.task_description for env in envs]
     out = [
-        {"seed": s, "closed_on_needle": False, "grasp_in_range": False, "clearance_mm": None, "grasps": []}
+        {
+            "seed": s,
+            "closed_on_needle": False,
+            "grasp_in_range": False,
+            "clearance_mm": None,
+            "grasps": [],
+            "closest_mm": math.inf,
+            "closest_rotation_deg": None,
+        }
         for s in seeds
     ]
     done = [False] * len(envs)
@@ -76,6 +96,10 @@ def roll_out(runner, env_kwargs: dict, seeds: list[int]) -> list[dict]:
                 continue
             observations[i], _, terminated, truncated, info = env.step(actions[i])
             u, ep = env.unwrapped, out[i]
+            if not ep["closed_on_needle"]:  # the reach before the first grasp
+                distance, rotation = approach_error(u)
+                if distance < ep["closest_mm"]:
+                    ep["closest_mm"], ep["closest_rotation_deg"] = distance, rotation
             if u.needle_grasped:
                 if not ep["closed_on_needle"] or not ep["was_held"]:  # a new grasp: record how it sits
                     ep["grasps"].append(grasp_errors(u.grasp_parameters, u.grasp_reversed))
@@ -121,6 +145,16 @@ def summarize(episodes: list[dict]) -> dict:
             "grasps_per_episode_that_closed": float(
                 np.mean([len(ep["grasps"]) for ep in episodes if ep["grasps"]])
             ),
+        }
+    missed = [ep for ep in episodes if not ep["closed_on_needle"]]
+    if missed:  # the episodes whose jaw never caught the needle: how near its reach came
+        closest = np.array([ep["closest_mm"] for ep in missed])
+        grasps["missed"] = {
+            "episodes": len(missed),
+            "median_closest_mm": float(np.median(closest)),
+            "within_1mm": float(np.mean(closest <= 1.0)),
+            "within_3mm": float(np.mean(closest <= 3.0)),
+            "median_rotation_at_closest_deg": float(np.median([ep["closest_rotation_deg"] for ep in missed])),
         }
     lifted = sum(
         ep["clearance_mm"] is not None and ep["clearance_mm"] >= 1e3 * LIFT_HEIGHT for ep in episodes

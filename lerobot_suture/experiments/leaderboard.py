@@ -19,6 +19,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
+import matplotlib
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
@@ -221,6 +222,10 @@ def plot(board: dict, path: Path) -> Path:
     most = max((len(task_conditions(board["tasks"][t])) for t in tasks), default=0)
     fig = Figure(figsize=(max(12, 0.7 * most), 3.2 * max(1, len(tasks))), constrained_layout=True)
     FigureCanvasAgg(fig)
+    # One colour per policy across the panels, in the order the policies first appear on the board.
+    names = list(dict.fromkeys(name for t in tasks for name in board["tasks"][t]))
+    palette = matplotlib.colormaps["tab10"]
+    colour = {name: palette(i % palette.N) for i, name in enumerate(names)}
     for k, task in enumerate(tasks):
         ax = fig.add_subplot(len(tasks), 1, k + 1)
         rows = board["tasks"][task]
@@ -233,7 +238,7 @@ def plot(board: dict, path: Path) -> Path:
             rate = np.array([c["success_rate"] if c else np.nan for c in cells])
             low = np.array([c["success_interval"][0] if c else np.nan for c in cells])
             high = np.array([c["success_interval"][1] if c else np.nan for c in cells])
-            ax.bar(x, rate, width, label=policy)
+            ax.bar(x, rate, width, label=policy, color=colour[policy])
             # Clipped: at a rate of 0 or 1 the interval's end can miss the rate by a rounding error.
             yerr = np.clip([rate - low, high - rate], 0, None)
             ax.errorbar(x, rate, yerr=yerr, fmt="none", ecolor="black", capsize=2, lw=0.8)
