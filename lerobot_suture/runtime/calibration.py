@@ -36,6 +36,9 @@ from lerobot_suture.safety.ood.likelihood_ratio import false_alarm_rates
 
 logger = logging.getLogger(__name__)
 
+LOW_CALIBRATION_SUCCESS = 0.5
+"""Below this success rate on its calibration episodes, a policy's gate is calibrated on failures: warned."""
+
 SCORE_CHOICE_FIELDS = ("uncertainty_score", "uncertainty_space", "uncertainty_source", "uncertainty_steps")
 """The ensemble's config fields that choose how a prediction is scored (``lerobot-suture score-study``)."""
 
@@ -217,6 +220,14 @@ def run_calibration(cfg: CalibrateConfig) -> dict:
         "calibration_task": env_kwargs.get("task", "insertion"),
         "calibration_success_rate": float(np.mean([log.success for log in fit_logs])),
     }
+    if report["calibration_success_rate"] < LOW_CALIBRATION_SUCCESS:
+        logger.warning(
+            "The policy succeeded in %.0f%% of its %d calibration episodes: the gate takes what it did there "
+            "for normal, so it flags little of what goes wrong. Calibrate a policy that does the task (train "
+            "it longer or on more demonstrations), or read the gate's rates with this in mind.",
+            100 * report["calibration_success_rate"],
+            len(fit_seeds),
+        )
     if holdout_seeds:
         held_scores, held_ids, held_logs = collect_scores(
             runner, env_kwargs, holdout_seeds, "held-out episodes", cfg.batch_envs, cfg.workers
