@@ -47,7 +47,9 @@ def preset_file(preset: str) -> dict:
 
 def load_preset_config(preset: str, **overrides):
     """The ensemble config of a preset file (policy section), with the suture features filled in."""
+    from lerobot.configs.types import FeatureType, PolicyFeature
     from lerobot_policy_ensemble_diffusion import EnsembleDiffusionConfig
+    from lerobot_policy_ensemble_diffusion.configuration_ensemble_diffusion import NEEDLE_KEYPOINTS_KEY
 
     policy = dict(preset_file(preset)["policy"])
     policy.pop("type")
@@ -57,6 +59,9 @@ def load_preset_config(preset: str, **overrides):
     policy.update(
         input_features=dict(SUTURE_INPUT_FEATURES), output_features=dict(SUTURE_OUTPUT_FEATURES), **overrides
     )
+    if policy.get("needle_keypoints_weight", 0) > 0:
+        # A training target only (never an input, so no cost at inference), but the config checks it is there.
+        policy["input_features"][NEEDLE_KEYPOINTS_KEY] = PolicyFeature(type=FeatureType.STATE, shape=(6,))
     return EnsembleDiffusionConfig(**policy)
 
 

@@ -152,3 +152,24 @@ def test_a_task_preset_is_the_reference_on_the_task_s_recipe(task, recipe_name, 
     )
     assert pickup.dataset.episodes == list(range(99))  # the 99 training episodes of its 133
     assert recipe.num_episodes - math.ceil(recipe.num_episodes * recipe.val_fraction) == 99
+
+
+def test_latency_benchmark_times_a_preset_with_the_needle_target():
+    """`benchmarks/ensemble_latency.py --preset reference` builds the policy although the preset trains an
+    auxiliary needle target the benchmark's synthetic observation does not hold (it is no input)."""
+    import subprocess
+    import sys
+
+    preset = json.loads((PRESETS / "reference.json").read_text())
+    assert preset["policy"]["needle_keypoints_weight"] > 0  # else this test tests nothing
+    out = subprocess.run(
+        [sys.executable, "benchmarks/ensemble_latency.py", "--preset", "reference", "--n-members", "2"]
+        + ["--warmup", "0", "--repeats", "1"],
+        cwd=REPO_ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    result = json.loads(out.stdout)["result"]
+    assert result["n_members"] == 2 and result["batched_s"] > 0
