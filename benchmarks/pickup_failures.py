@@ -29,14 +29,13 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from _lockstep import roll_out_lockstep  # noqa: E402
 from _report import emit, machine  # noqa: E402
 
 import lerobot_suture  # noqa: E402,F401
 from lerobot_suture.experiments.leaderboard import condition_seeds  # noqa: E402
 from lerobot_suture.experiments.metrics import wilson_interval  # noqa: E402
 from lerobot_suture.runtime.policy import env_kwargs_for_policy, reporting_runner  # noqa: E402
-from lerobot_suture.runtime.rollout import make_scenario_env  # noqa: E402
-from lerobot_suture.safety.cbf_config import CBFConfig  # noqa: E402
 from lerobot_suture.sim.geometry import jaw_holding  # noqa: E402
 from lerobot_suture.sim.pickup import LIFT_HEIGHT  # noqa: E402
 from lerobot_suture.sim.task import GRASP_ANGLE, GRASP_RANGES  # noqa: E402
@@ -66,13 +65,6 @@ def approach_error(u) -> tuple[float, float]:
 
 def roll_out(runner, env_kwargs: dict, seeds: list[int]) -> list[dict]:
     """``seeds`` in lockstep (one batch), the CBF on; per episode what the jaw did with the needle."""
-    envs = [
-        make_scenario_env({**env_kwargs, "task": TASK}, "nominal", CBFConfig(enabled=True)) for _ in seeds
-    ]
-    torch.manual_seed(seeds[0])
-    observations = [env.reset(seed=seed)[0] for env, seed in zip(envs, seeds, strict=True)]
-    runner.reset(seeds=seeds)
-    tasks = [env.unwrapped.task_description for env in envs]
     out = [
         {
             "seed": s,
@@ -82,38 +74,30 @@ def roll_out(runner, env_kwargs: dict, seeds: list[int]) -> list[dict]:
             "grasps": [],
             "closest_mm": math.inf,
             "closest_rotation_deg": None,
+            "was_held": False,
         }
         for s in seeds
     ]
-    done = [False] * len(envs)
-    max_steps = envs[0].spec.max_episode_steps
-    for _ in range(max_steps):
-        if all(done):
-            break
-        actions = runner.act_batch(observations, tasks)
-        for i, env in enumerate(envs):
-            if done[i]:
-                continue
-            observations[i], _, terminated, truncated, info = env.step(actions[i])
-            u, ep = env.unwrapped, out[i]
-            if not ep["closed_on_needle"]:  # the reach before the first grasp
-                distance, rotation = approach_error(u)
-                if distance < ep["closest_mm"]:
-                    ep["closest_mm"], ep["closest_rotation_deg"] = distance, rotation
-            if u.needle_grasped:
-                if not ep["closed_on_needle"] or not ep["was_held"]:  # a new grasp: record how it sits
-                    ep["grasps"].append(grasp_errors(u.grasp_parameters, u.grasp_reversed))
-                ep["closed_on_needle"] = True
-                if u.needle_in_throw_grasp:
-                    ep["grasp_in_range"] = True
-                    clearance = 1e3 * u.needle_clearance
-                    ep["clearance_mm"] = max(ep["clearance_mm"] or -math.inf, clearance)
-            ep["was_held"] = bool(u.needle_grasped)
-            ep["success"] = bool(info["is_success"])
-            ep["steps"] = int(u.step_index)
-            done[i] = bool(terminated or truncated)
-    for env in envs:
-        env.close()
+
+    def on_step(i: int, u, info: dict) -> None:
+        ep = out[i]
+        if not ep["closed_on_needle"]:  # the reach before the first grasp
+            distance, rotation = approach_error(u)
+            if distance < ep["closest_mm"]:
+                ep["closest_mm"], ep["closest_rotation_deg"] = distance, rotation
+        if u.needle_grasped:
+            if not ep["was_held"]:  # a new grasp: record how it sits
+                ep["grasps"].append(grasp_errors(u.grasp_parameters, u.grasp_reversed))
+            ep["closed_on_needle"] = True
+            if u.needle_in_throw_grasp:
+                ep["grasp_in_range"] = True
+                clearance = 1e3 * u.needle_clearance
+                ep["clearance_mm"] = max(ep["clearance_mm"] or -math.inf, clearance)
+        ep["was_held"] = bool(u.needle_grasped)
+        ep["success"] = bool(info["is_success"])
+        ep["steps"] = int(u.step_index)
+
+    roll_out_lockstep(runner, env_kwargs, TASK, seeds, on_step)
     for ep in out:
         del ep["was_held"]
     return out

@@ -58,6 +58,12 @@ class PrivilegedState:
         return self._progress.first_in_tissue_step is not None
 
     @property
+    def tail_exit_error(self) -> float:
+        """Distance in the tissue surface from the exit point to where the needle's tail left the tissue
+        (m); inf until it has."""
+        return self._progress.tail_exit_error
+
+    @property
     def first_grasp_step(self) -> int | None:
         """Control step at which the jaw first held the needle this episode (0 when it starts held), or None."""
         return self._first_grasp_step

@@ -1,0 +1,178 @@
+"""Where a trained policy's extractions end: let go, regrasped near the tip, pulled out, out through the exit.
+
+Rolls the policy out on the leaderboard's nominal ``extraction`` test seeds (``--seed`` is the leaderboard's
+base, so the episodes are its ``nominal`` cell's: same seeds, the CBF on, each episode's noise from its
+seed, the gate reporting) and reads the simulator's privileged state at every control step. An episode
+starts with the needle through the tissue, held at its tail; an extraction succeeds when the jaw holds the
+needle, all of it is out of the tissue, its tail left within 2 mm of the exit point and the tissue strain
+stayed within 2 mm (``lerobot_suture.sim.extraction``). The scripted expert lets go, regrasps 0.25 rad of arc
+from the tip and pulls along the arc. Prints one JSON object: how many episodes let go of the tail,
+regrasped, pulled the needle out, and out through the exit hole within the strain bound; where the regrasps
+sat (arc angle from the tip, degrees); and, for the episodes that let go and never caught the needle again,
+the closest the jaw came to the expert's regrasp pose (mm and degrees).
+
+    .venv/bin/python benchmarks/extraction_failures.py --policy-path DIR [--episodes 50] [--output F.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from _lockstep import roll_out_lockstep  # noqa: E402
+from _report import emit, machine  # noqa: E402
+
+import lerobot_suture  # noqa: E402,F401
+from lerobot_suture.experiments.leaderboard import condition_seeds  # noqa: E402
+from lerobot_suture.experiments.metrics import wilson_interval  # noqa: E402
+from lerobot_suture.runtime.policy import env_kwargs_for_policy, reporting_runner  # noqa: E402
+from lerobot_suture.sim.extraction import REGRASP_ANGLE, STRAIN_BOUND, TAIL_EXIT_TOLERANCE  # noqa: E402
+from lerobot_suture.sim.geometry import grasp_transform, jaw_holding  # noqa: E402
+
+TASK = "extraction"
+
+
+def regrasp_error(u) -> tuple[float, float]:
+    """How far the jaw is from the pose that holds the needle where the expert regrasps it: position (mm)
+    and rotation (deg)."""
+    target_pos, target_rot = jaw_holding(*u.needle_pose(), *grasp_transform(REGRASP_ANGLE, 0.0, 0.0))
+    jaw_pos, jaw_rot = u.jaw_pose()
+    cos = np.clip((np.trace(target_rot.T @ jaw_rot) - 1.0) / 2.0, -1.0, 1.0)
+    return 1e3 * float(np.linalg.norm(jaw_pos - target_pos)), math.degrees(math.acos(cos))
+
+
+def roll_out(runner, env_kwargs: dict, seeds: list[int]) -> list[dict]:
+    """``seeds`` in lockstep (one batch), the CBF on; per episode what the jaw did with the needle."""
+    out = [
+        {
+            "seed": s,
+            "let_go": False,
+            "regrasp_angles_deg": [],
+            "extracted": False,
+            "closest_mm": math.inf,
+            "closest_rotation_deg": None,
+            "was_held": True,  # every episode starts with the needle held at its tail
+        }
+        for s in seeds
+    ]
+
+    def on_step(i: int, u, info: dict) -> None:
+        ep = out[i]
+        held = bool(u.needle_grasped)
+        if not held:
+            ep["let_go"] = True
+        if ep["let_go"] and not ep["regrasp_angles_deg"]:  # the reach before the first regrasp
+            distance, rotation = regrasp_error(u)
+            if distance < ep["closest_mm"]:
+                ep["closest_mm"], ep["closest_rotation_deg"] = distance, rotation
+        if held and not ep["was_held"]:  # a new grasp: where along the needle it sits
+            ep["regrasp_angles_deg"].append(math.degrees(u.grasp_parameters[0]))
+        ep["was_held"] = held
+        ep["extracted"] = ep["extracted"] or not u.needle_in_tissue
+        tail = u.tail_exit_error
+        ep["tail_exit_error_mm"] = None if math.isinf(tail) else 1e3 * tail
+        ep["strain_mm"] = 1e3 * float(info["tissue_strain"])
+        ep["success"] = bool(info["is_success"])
+        ep["steps"] = int(u.step_index)
+
+    roll_out_lockstep(runner, env_kwargs, TASK, seeds, on_step)
+    for ep in out:
+        del ep["was_held"]
+        if math.isinf(ep["closest_mm"]):
+            ep["closest_mm"] = None
+    return out
+
+
+def summarize(episodes: list[dict]) -> dict:
+    """Counts with 95% Wilson intervals; where the regrasps sat; how near the misses came."""
+    n = len(episodes)
+
+    def count(flags: list[bool]) -> dict:
+        k = sum(flags)
+        return {"episodes": k, "rate": k / n, "interval": list(wilson_interval(k, n))}
+
+    through_exit = [
+        ep["tail_exit_error_mm"] is not None and ep["tail_exit_error_mm"] <= 1e3 * TAIL_EXIT_TOLERANCE
+        for ep in episodes
+    ]
+    summary = {
+        "let_go": count([ep["let_go"] for ep in episodes]),
+        "regrasped": count([bool(ep["regrasp_angles_deg"]) for ep in episodes]),
+        "extracted": count([ep["extracted"] for ep in episodes]),
+        "tail_through_exit": count(through_exit),
+        "strain_within_bound": count([ep["strain_mm"] <= 1e3 * STRAIN_BOUND for ep in episodes]),
+        "success": count([ep["success"] for ep in episodes]),
+        "median_strain_mm": float(np.median([ep["strain_mm"] for ep in episodes])),
+        "bounds": {
+            "strain_mm": 1e3 * STRAIN_BOUND,
+            "tail_exit_mm": 1e3 * TAIL_EXIT_TOLERANCE,
+            "expert_regrasp_deg": math.degrees(REGRASP_ANGLE),
+        },
+    }
+    pulled = [ep["strain_mm"] for ep in episodes if ep["extracted"]]
+    if pulled:  # how far off its arc the needle went in the episodes that pulled it out
+        summary["median_strain_mm_extracted"] = float(np.median(pulled))
+    first = [ep["regrasp_angles_deg"][0] for ep in episodes if ep["regrasp_angles_deg"]]
+    if first:
+        summary["median_first_regrasp_deg"] = float(np.median(first))
+    missed = [ep for ep in episodes if ep["let_go"] and not ep["regrasp_angles_deg"]]
+    if missed:  # let go and never caught the needle again: how near the reach came to the regrasp
+        closest = np.array([ep["closest_mm"] for ep in missed])
+        summary["missed"] = {
+            "episodes": len(missed),
+            "median_closest_mm": float(np.median(closest)),
+            "within_1mm": float(np.mean(closest <= 1.0)),
+            "median_rotation_at_closest_deg": float(np.median([ep["closest_rotation_deg"] for ep in missed])),
+        }
+    return summary
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--policy-path", type=Path, required=True, help="a trained extraction pretrained_model"
+    )
+    parser.add_argument("--episodes", type=int, default=50)
+    parser.add_argument("--seed", type=int, default=7_000_000, help="the leaderboard's base test seed")
+    parser.add_argument("--batch-envs", type=int, default=10)
+    parser.add_argument("--output", type=Path, help="write the JSON here too")
+    args = parser.parse_args()
+    if args.episodes < 1 or args.batch_envs < 1:
+        parser.error(f"--episodes and --batch-envs must be >= 1. Got {args.episodes}, {args.batch_envs}.")
+    if not (args.policy_path / "config.json").is_file():
+        sys.exit(
+            f"No trained policy at {args.policy_path} (no config.json): pass a pretrained_model directory."
+        )
+    runner = reporting_runner(args.policy_path)
+    env_kwargs = env_kwargs_for_policy(runner.policy.config)
+    seeds = condition_seeds(args.seed, TASK, "nominal", args.episodes)
+    start = time.perf_counter()
+    episodes = []
+    for k in range(0, len(seeds), args.batch_envs):
+        episodes += roll_out(runner, env_kwargs, seeds[k : k + args.batch_envs])
+        print(f"{len(episodes)}/{len(seeds)} episodes", file=sys.stderr, flush=True)
+    report = {
+        "benchmark": "extraction_failures",
+        "command": " ".join(["python", *sys.argv]),
+        "machine": {**machine(), "python": platform.python_version(), "torch": torch.__version__},
+        "policy_path": str(args.policy_path),
+        "seed": args.seed,
+        "seconds": round(time.perf_counter() - start, 1),
+        "summary": summarize(episodes),
+        "episodes": episodes,
+    }
+    emit(report, args.output)
+
+
+if __name__ == "__main__":
+    main()
