@@ -2,15 +2,23 @@
 
 Shared by the benchmarks that read the simulator's privileged state while a trained policy acts (where a
 task's episodes end): the same envs (the CBF on), seeding and batching as a leaderboard cell, with a
-callback after every env step.
+callback after every env step, and the command line that runs them on the leaderboard's nominal seeds.
 """
 
 from __future__ import annotations
 
+import argparse
+import platform
+import sys
+import time
 from collections.abc import Callable
+from pathlib import Path
 
 import torch
+from _report import emit, machine
 
+from lerobot_suture.experiments.leaderboard import condition_seeds
+from lerobot_suture.runtime.policy import env_kwargs_for_policy, reporting_runner
 from lerobot_suture.runtime.rollout import make_scenario_env
 from lerobot_suture.safety.cbf_config import CBFConfig
 
@@ -40,3 +48,46 @@ def roll_out_lockstep(
             done[i] = bool(terminated or truncated)
     for env in envs:
         env.close()
+
+
+def run_nominal_seeds(
+    task: str,
+    benchmark: str,
+    description: str,
+    roll_out: Callable[[object, dict, list[int]], list[dict]],
+    summarize: Callable[[list[dict]], dict],
+) -> None:
+    """A failure benchmark's command line: ``roll_out`` a trained ``task`` policy on the leaderboard's nominal
+    seeds in batches, ``summarize`` the episodes, print (and with ``--output`` write) the JSON report."""
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("--policy-path", type=Path, required=True, help=f"a trained {task} pretrained_model")
+    parser.add_argument("--episodes", type=int, default=50)
+    parser.add_argument("--seed", type=int, default=7_000_000, help="the leaderboard's base test seed")
+    parser.add_argument("--batch-envs", type=int, default=10)
+    parser.add_argument("--output", type=Path, help="write the JSON here too")
+    args = parser.parse_args()
+    if args.episodes < 1 or args.batch_envs < 1:
+        parser.error(f"--episodes and --batch-envs must be >= 1. Got {args.episodes}, {args.batch_envs}.")
+    if not (args.policy_path / "config.json").is_file():
+        sys.exit(
+            f"No trained policy at {args.policy_path} (no config.json): pass a pretrained_model directory."
+        )
+    runner = reporting_runner(args.policy_path)
+    env_kwargs = env_kwargs_for_policy(runner.policy.config)
+    seeds = condition_seeds(args.seed, task, "nominal", args.episodes)
+    start = time.perf_counter()
+    episodes = []
+    for k in range(0, len(seeds), args.batch_envs):
+        episodes += roll_out(runner, env_kwargs, seeds[k : k + args.batch_envs])
+        print(f"{len(episodes)}/{len(seeds)} episodes", file=sys.stderr, flush=True)
+    report = {
+        "benchmark": benchmark,
+        "command": " ".join(["python", *sys.argv]),
+        "machine": {**machine(), "python": platform.python_version(), "torch": torch.__version__},
+        "policy_path": str(args.policy_path),
+        "seed": args.seed,
+        "seconds": round(time.perf_counter() - start, 1),
+        "summary": summarize(episodes),
+        "episodes": episodes,
+    }
+    emit(report, args.output)

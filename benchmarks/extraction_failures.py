@@ -16,26 +16,17 @@ the closest the jaw came to the expert's regrasp pose (mm and degrees).
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
-import platform
-import sys
-import time
-from pathlib import Path
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 import numpy as np  # noqa: E402
-import torch  # noqa: E402
-from _lockstep import roll_out_lockstep  # noqa: E402
-from _report import emit, machine  # noqa: E402
+from _lockstep import roll_out_lockstep, run_nominal_seeds  # noqa: E402
 
 import lerobot_suture  # noqa: E402,F401
-from lerobot_suture.experiments.leaderboard import condition_seeds  # noqa: E402
 from lerobot_suture.experiments.metrics import wilson_interval  # noqa: E402
-from lerobot_suture.runtime.policy import env_kwargs_for_policy, reporting_runner  # noqa: E402
 from lerobot_suture.sim.extraction import REGRASP_ANGLE, STRAIN_BOUND, TAIL_EXIT_TOLERANCE  # noqa: E402
 from lerobot_suture.sim.geometry import grasp_transform, jaw_holding  # noqa: E402
 
@@ -138,40 +129,7 @@ def summarize(episodes: list[dict]) -> dict:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument(
-        "--policy-path", type=Path, required=True, help="a trained extraction pretrained_model"
-    )
-    parser.add_argument("--episodes", type=int, default=50)
-    parser.add_argument("--seed", type=int, default=7_000_000, help="the leaderboard's base test seed")
-    parser.add_argument("--batch-envs", type=int, default=10)
-    parser.add_argument("--output", type=Path, help="write the JSON here too")
-    args = parser.parse_args()
-    if args.episodes < 1 or args.batch_envs < 1:
-        parser.error(f"--episodes and --batch-envs must be >= 1. Got {args.episodes}, {args.batch_envs}.")
-    if not (args.policy_path / "config.json").is_file():
-        sys.exit(
-            f"No trained policy at {args.policy_path} (no config.json): pass a pretrained_model directory."
-        )
-    runner = reporting_runner(args.policy_path)
-    env_kwargs = env_kwargs_for_policy(runner.policy.config)
-    seeds = condition_seeds(args.seed, TASK, "nominal", args.episodes)
-    start = time.perf_counter()
-    episodes = []
-    for k in range(0, len(seeds), args.batch_envs):
-        episodes += roll_out(runner, env_kwargs, seeds[k : k + args.batch_envs])
-        print(f"{len(episodes)}/{len(seeds)} episodes", file=sys.stderr, flush=True)
-    report = {
-        "benchmark": "extraction_failures",
-        "command": " ".join(["python", *sys.argv]),
-        "machine": {**machine(), "python": platform.python_version(), "torch": torch.__version__},
-        "policy_path": str(args.policy_path),
-        "seed": args.seed,
-        "seconds": round(time.perf_counter() - start, 1),
-        "summary": summarize(episodes),
-        "episodes": episodes,
-    }
-    emit(report, args.output)
+    run_nominal_seeds(TASK, "extraction_failures", __doc__.splitlines()[0], roll_out, summarize)
 
 
 if __name__ == "__main__":
