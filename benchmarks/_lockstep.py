@@ -8,12 +8,14 @@ callback after every env step, and the command line that runs them on the leader
 from __future__ import annotations
 
 import argparse
+import math
 import platform
 import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import torch
 from _report import emit, machine
 
@@ -21,6 +23,16 @@ from lerobot_suture.experiments.leaderboard import condition_seeds
 from lerobot_suture.runtime.policy import env_kwargs_for_policy, reporting_runner
 from lerobot_suture.runtime.rollout import make_scenario_env
 from lerobot_suture.safety.cbf_config import CBFConfig
+from lerobot_suture.sim.geometry import jaw_holding
+
+
+def jaw_pose_error(u, grasp_in_jaw: tuple[np.ndarray, np.ndarray]) -> tuple[float, float]:
+    """How far the jaw of env ``u`` is from the pose that would hold the needle in ``grasp_in_jaw`` (the
+    needle's pose in the jaw frame): position (mm) and rotation (deg)."""
+    target_pos, target_rot = jaw_holding(*u.needle_pose(), *grasp_in_jaw)
+    jaw_pos, jaw_rot = u.jaw_pose()
+    cos = np.clip((np.trace(target_rot.T @ jaw_rot) - 1.0) / 2.0, -1.0, 1.0)
+    return 1e3 * float(np.linalg.norm(jaw_pos - target_pos)), math.degrees(math.acos(cos))
 
 
 def roll_out_lockstep(

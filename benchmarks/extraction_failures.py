@@ -23,23 +23,19 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 import numpy as np  # noqa: E402
-from _lockstep import roll_out_lockstep, run_nominal_seeds  # noqa: E402
+from _lockstep import jaw_pose_error, roll_out_lockstep, run_nominal_seeds  # noqa: E402
 
 import lerobot_suture  # noqa: E402,F401
 from lerobot_suture.experiments.metrics import wilson_interval  # noqa: E402
 from lerobot_suture.sim.extraction import REGRASP_ANGLE, STRAIN_BOUND, TAIL_EXIT_TOLERANCE  # noqa: E402
-from lerobot_suture.sim.geometry import grasp_transform, jaw_holding  # noqa: E402
+from lerobot_suture.sim.geometry import grasp_transform  # noqa: E402
 
 TASK = "extraction"
 
 
 def regrasp_error(u) -> tuple[float, float]:
-    """How far the jaw is from the pose that holds the needle where the expert regrasps it: position (mm)
-    and rotation (deg)."""
-    target_pos, target_rot = jaw_holding(*u.needle_pose(), *grasp_transform(REGRASP_ANGLE, 0.0, 0.0))
-    jaw_pos, jaw_rot = u.jaw_pose()
-    cos = np.clip((np.trace(target_rot.T @ jaw_rot) - 1.0) / 2.0, -1.0, 1.0)
-    return 1e3 * float(np.linalg.norm(jaw_pos - target_pos)), math.degrees(math.acos(cos))
+    """How far the jaw is from the pose that holds the needle where the expert regrasps it (mm, deg)."""
+    return jaw_pose_error(u, grasp_transform(REGRASP_ANGLE, 0.0, 0.0))
 
 
 def roll_out(runner, env_kwargs: dict, seeds: list[int]) -> list[dict]:

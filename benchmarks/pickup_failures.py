@@ -23,11 +23,10 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 import numpy as np  # noqa: E402
-from _lockstep import roll_out_lockstep, run_nominal_seeds  # noqa: E402
+from _lockstep import jaw_pose_error, roll_out_lockstep, run_nominal_seeds  # noqa: E402
 
 import lerobot_suture  # noqa: E402,F401
 from lerobot_suture.experiments.metrics import wilson_interval  # noqa: E402
-from lerobot_suture.sim.geometry import jaw_holding  # noqa: E402
 from lerobot_suture.sim.pickup import LIFT_HEIGHT  # noqa: E402
 from lerobot_suture.sim.task import GRASP_ANGLE, GRASP_RANGES  # noqa: E402
 
@@ -46,12 +45,8 @@ def grasp_errors(parameters: tuple[float, float, float], reversed_grasp: bool) -
 
 
 def approach_error(u) -> tuple[float, float]:
-    """How far the jaw is from the pose that would hold the needle in the nominal grasp: position (mm) and
-    rotation (deg)."""
-    target_pos, target_rot = jaw_holding(*u.needle_pose(), *u.nominal_grasp_in_jaw)
-    jaw_pos, jaw_rot = u.jaw_pose()
-    cos = np.clip((np.trace(target_rot.T @ jaw_rot) - 1.0) / 2.0, -1.0, 1.0)
-    return 1e3 * float(np.linalg.norm(jaw_pos - target_pos)), math.degrees(math.acos(cos))
+    """How far the jaw is from the pose that would hold the needle in the nominal grasp (mm, deg)."""
+    return jaw_pose_error(u, u.nominal_grasp_in_jaw)
 
 
 def roll_out(runner, env_kwargs: dict, seeds: list[int]) -> list[dict]:
