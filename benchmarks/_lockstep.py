@@ -23,7 +23,7 @@ from lerobot_suture.experiments.leaderboard import condition_seeds
 from lerobot_suture.runtime.policy import env_kwargs_for_policy, reporting_runner
 from lerobot_suture.runtime.rollout import make_scenario_env
 from lerobot_suture.safety.cbf_config import CBFConfig
-from lerobot_suture.sim.geometry import jaw_holding
+from lerobot_suture.sim.geometry import jaw_holding, rotation_angle_of
 
 
 def jaw_pose_error(u, grasp_in_jaw: tuple[np.ndarray, np.ndarray]) -> tuple[float, float]:
@@ -31,8 +31,8 @@ def jaw_pose_error(u, grasp_in_jaw: tuple[np.ndarray, np.ndarray]) -> tuple[floa
     needle's pose in the jaw frame): position (mm) and rotation (deg)."""
     target_pos, target_rot = jaw_holding(*u.needle_pose(), *grasp_in_jaw)
     jaw_pos, jaw_rot = u.jaw_pose()
-    cos = np.clip((np.trace(target_rot.T @ jaw_rot) - 1.0) / 2.0, -1.0, 1.0)
-    return 1e3 * float(np.linalg.norm(jaw_pos - target_pos)), math.degrees(math.acos(cos))
+    angle = rotation_angle_of(target_rot.T @ jaw_rot)
+    return 1e3 * float(np.linalg.norm(jaw_pos - target_pos)), math.degrees(angle)
 
 
 def roll_out_lockstep(

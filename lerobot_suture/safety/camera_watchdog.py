@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lerobot_suture.sim.geometry import matrix_from_rot6
+from lerobot_suture.sim.geometry import matrix_from_rot6, rotation_angle_of
 
 
 @dataclass
@@ -53,7 +53,7 @@ def rotation_angle(rot6_a: np.ndarray, rot6_b: np.ndarray) -> float:
         relative = matrix_from_rot6(rot6_a).T @ matrix_from_rot6(rot6_b)
     except ValueError:
         return math.nan
-    return math.acos(min(1.0, max(-1.0, (float(np.trace(relative)) - 1.0) / 2.0)))
+    return rotation_angle_of(relative)
 
 
 class CameraWatchdog:

@@ -61,11 +61,16 @@ def pose_vector(position: np.ndarray, rotation: np.ndarray, jaw: float) -> np.nd
     return out
 
 
+def rotation_angle_of(rotation: np.ndarray) -> float:
+    """Angle (rad, in [0, pi]) of a rotation matrix; of ``a.T @ b`` for the angle between ``a`` and ``b``."""
+    cos = (float(rotation[0, 0] + rotation[1, 1] + rotation[2, 2]) - 1.0) * 0.5
+    # Rounding can push the trace of a near-identity or near-half-turn rotation past +-1.
+    return math.acos(min(1.0, max(-1.0, cos)))
+
+
 def rotvec_from_matrix(rotation: np.ndarray) -> np.ndarray:
     """Axis-angle vector (rad) of a rotation matrix; robust near 0 and pi."""
-    cos = (np.trace(rotation) - 1.0) * 0.5
-    cos = min(1.0, max(-1.0, cos))
-    angle = math.acos(cos)
+    angle = rotation_angle_of(rotation)
     skew = np.array(
         [
             rotation[2, 1] - rotation[1, 2],

@@ -15,6 +15,7 @@ import math
 import numpy as np
 
 from lerobot_suture.sim.controller import point_velocity
+from lerobot_suture.sim.geometry import rotation_angle_of
 
 PAD_HALF_SIZE = np.array([0.03, 0.02, 0.005])
 """Half extents of the tissue pad (m), as ``tissue_pad`` in ``assets/scene.xml``; top at z = 0."""
@@ -64,8 +65,7 @@ def off_arc_motion(
     """
     translation = float(np.linalg.norm(centre_after - centre_before))
     delta = rotation_before.T @ rotation_after  # in the needle's own frame
-    cos = min(1.0, max(-1.0, (np.trace(delta) - 1.0) * 0.5))
-    angle = math.acos(cos)
+    angle = rotation_angle_of(delta)
     if angle < 1e-9:
         return translation, 0.0
     axis = np.array([delta[2, 1] - delta[1, 2], delta[0, 2] - delta[2, 0], delta[1, 0] - delta[0, 1]])
