@@ -56,6 +56,40 @@ def test_cell_summary_counts_success_gate_and_cbf():
     assert summarize_cell([EpisodeLog(seed=3, scenario="nominal", steps=[_step()])], 1.0)["gate"] is None
 
 
+def test_a_running_suture_cell_says_how_far_into_the_suture_its_episodes_got():
+    def suture(seed, on_marks):
+        # Every throw on the marks but the last was extracted: the episode went on to the next one.
+        results = [
+            {"throw": k, "entry_error_m": 0.001, "exit_error_m": 0.001, "on_marks": ok, "over_step": 10 * k}
+            | {"extracted": ok and k < len(on_marks) - 1}
+            for k, ok in enumerate(on_marks)
+        ]
+        return EpisodeLog(
+            seed=seed,
+            scenario="nominal",
+            success=len(on_marks) == 4 and all(on_marks),
+            steps=[_step()],
+            throw_results=results,
+        )
+
+    logs = [suture(1, [True, True, False]), suture(2, [False]), suture(3, []), suture(4, [True] * 4)]
+    cell = summarize_cell(logs, 1.0, throws=4)
+    first, second, third, fourth = cell["per_throw"]["throws"]
+    assert [t["on_marks"]["count"] for t in (first, second, third, fourth)] == [2, 2, 1, 1]
+    assert first["off_marks"] == 1 and first["unfinished"] == 1 and third["reached"] == 2
+    assert cell["successes"] == 1
+    summary = row_summary({"nominal": cell}, ["nominal"])
+    assert summary["nominal_throws_on_marks"] == pytest.approx((2 + 0 + 0 + 4) / 4)
+    table = render(
+        {"episodes": 4, "shifts": [], "tasks": {"running_suture": {"ensemble": {"nominal": cell}}}}
+    )
+    assert "throws on the marks a nominal episode, mean |" in table and "| 1.50 |" in table
+    assert ", throws 1.50 |" in table
+    # A task of one throw or none has no throw figures.
+    assert "per_throw" not in summarize_cell(logs, 1.0)
+    assert row_summary({"nominal": summarize_cell(logs, 1.0)})["nominal_throws_on_marks"] is None
+
+
 def test_conditions_and_seeds_are_shared_by_policies_and_disjoint_across_cells():
     conds = conditions("insertion", ["dim_light@0.2", "action_delay@1"])
     assert conds[0] == "nominal" and conds[-2:] == ["shift:dim_light@0.2", "shift:action_delay@1"]

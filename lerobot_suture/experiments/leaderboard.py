@@ -8,7 +8,9 @@ the task's perturbation scenarios, or a distribution shift (``shift:NAME@MAGNITU
 Its summary holds the success rate with its 95% Wilson interval, what the gate did (episodes with an
 O.O.D. decision: false alarms on ``nominal``, detections under a perturbation) and what the CBF did
 (steps it was active on, the share of those it changed the action, episodes whose needle tip left the safe
-set at any physics step, the smallest barrier value).
+set at any physics step, the smallest barrier value). A task of several throws (the running suture) adds the
+outcome of each throw (:func:`~lerobot_suture.experiments.per_throw.per_throw_table`): where a policy gets
+in a suture that none finishes.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from lerobot_suture.experiments.metrics import wilson_interval
+from lerobot_suture.experiments.per_throw import per_throw_table
 from lerobot_suture.runtime.rollout import EpisodeLog, make_scenario_env, rollout_seeds
 from lerobot_suture.runtime.seeds import episode_seeds
 from lerobot_suture.safety.cbf_config import CBFConfig
@@ -89,8 +92,9 @@ def cell_episodes(
     return logs, time.perf_counter() - start
 
 
-def summarize_cell(logs: Sequence[EpisodeLog], seconds: float) -> dict:
-    """A cell's figures from its episodes (see the module docstring)."""
+def summarize_cell(logs: Sequence[EpisodeLog], seconds: float, throws: int = 1) -> dict:
+    """A cell's figures from its episodes (see the module docstring); with ``throws`` > 1 (the task's
+    ``TaskSpec.throws``) also each throw's outcome, as ``per_throw``."""
     n = len(logs)
     successes = sum(log.success for log in logs)
     low, high = wilson_interval(successes, n)
@@ -98,7 +102,7 @@ def summarize_cell(logs: Sequence[EpisodeLog], seconds: float) -> dict:
     flagged = [log for log in logs if log.first_alarm_step is not None]
     active = [s for log in logs for s in log.steps if s.cbf_active]
     h_mins = [log.h_min_physics for log in logs if not math.isnan(log.h_min_physics)]
-    return {
+    cell = {
         "episodes": n,
         "successes": int(successes),
         "success_rate": successes / n if n else math.nan,
@@ -121,6 +125,17 @@ def summarize_cell(logs: Sequence[EpisodeLog], seconds: float) -> dict:
         "seconds": round(seconds, 1),
         "per_episode": [[log.seed, bool(log.success), len(log.steps), log.first_alarm_step] for log in logs],
     }
+    if throws > 1:
+        cell["per_throw"] = per_throw_table(logs, throws)
+    return cell
+
+
+def throws_on_marks_mean(cell: dict) -> float | None:
+    """Throws on the marks per episode of a cell, on average (None for a task of one throw or none)."""
+    table = cell.get("per_throw")
+    if table is None or not table["episodes"]:
+        return None
+    return sum(t["on_marks"]["count"] for t in table["throws"]) / table["episodes"]
 
 
 def task_conditions(rows: dict) -> list[str]:
@@ -130,7 +145,8 @@ def task_conditions(rows: dict) -> list[str]:
 
 def row_summary(row: dict, conditions: Sequence[str] | None = None) -> dict:
     """One policy's row in a few figures: nominal success, the mean success over the perturbation scenarios
-    and over the shifts, and the gate's false alarms on nominal (None without a gate).
+    and over the shifts, the gate's false alarms on nominal (None without a gate), and on a task of several
+    throws the throws on the marks per nominal episode (otherwise None).
 
     ``conditions`` are the board's conditions of the task (default: the row's own); a mean over a group the
     row holds only part of is None, as it would not compare with the other rows' means, and cells beyond
@@ -150,6 +166,7 @@ def row_summary(row: dict, conditions: Sequence[str] | None = None) -> dict:
         ),
         "shift_success_mean": mean([c for c in conditions if c.startswith(SHIFT_PREFIX)]),
         "nominal_false_alarms": nominal["gate"]["flagged_rate"] if nominal and nominal["gate"] else None,
+        "nominal_throws_on_marks": throws_on_marks_mean(nominal) if nominal else None,
         "cbf_violating_episodes": sum(row[c]["cbf"]["violating_episodes"] for c in conditions if c in row),
         "episodes": sum(row[c]["episodes"] for c in conditions if c in row),
     }
@@ -177,20 +194,27 @@ def render(board: dict) -> str:
         policies = list(rows)
         conds = task_conditions(rows)
         board_conds = conditions(task, board.get("shifts", []))
+        summaries = {policy: row_summary(rows[policy], board_conds) for policy in policies}
+        # A suture of several throws: how far into it the policies get, beside success.
+        throws = any(s["nominal_throws_on_marks"] is not None for s in summaries.values())
         lines += [
             f"## {task}",
             "",
             "| policy | nominal success | mean over the scenarios | mean over the shifts | gate false alarms "
-            "| episodes out of the safe set |",
-            "|---|---|---|---|---|---|",
+            "| episodes out of the safe set |"
+            + (" throws on the marks a nominal episode, mean |" if throws else ""),
+            "|---|---|---|---|---|---|" + ("---|" if throws else ""),
         ]
-        for policy in policies:
-            s = row_summary(rows[policy], board_conds)
-            lines.append(
+        for policy, s in summaries.items():
+            line = (
                 f"| {policy} | {_percent(s['nominal_success'])} | {_percent(s['scenario_success_mean'])} | "
                 f"{_percent(s['shift_success_mean'])} | {_percent(s['nominal_false_alarms'])} | "
                 f"{s['cbf_violating_episodes']} of {s['episodes']} |"
             )
+            if throws:
+                mean = s["nominal_throws_on_marks"]
+                line += " n/a |" if mean is None else f" {mean:.2f} |"
+            lines.append(line)
         lines += ["", "| condition | " + " | ".join(policies) + " |"]
         lines.append("|---|" + "---|" * len(policies))
         for cond in conds:
@@ -206,6 +230,8 @@ def render(board: dict) -> str:
                     text += f", gate {_percent(cell['gate']['flagged_rate'])}"
                 cbf = cell["cbf"]
                 text += f", CBF {_percent(cbf['intervention_rate'])} / {cbf['violating_episodes']}"
+                if throws_on_marks_mean(cell) is not None:
+                    text += f", throws {throws_on_marks_mean(cell):.2f}"
                 cells.append(text)
             lines.append(f"| {cond} | " + " | ".join(cells) + " |")
         lines.append("")

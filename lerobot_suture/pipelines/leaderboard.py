@@ -26,7 +26,7 @@ from lerobot_suture.experiments import leaderboard as cells
 from lerobot_suture.pipelines.stages import StageTimings, calibrate_policy, code_commit, record_recipe
 from lerobot_suture.runtime.config import PolicyPathConfig
 from lerobot_suture.sim.shifts import MAGNITUDES, SHIFTS, Shift
-from lerobot_suture.sim.tasks import TASK_NAMES
+from lerobot_suture.sim.tasks import TASK_NAMES, task_spec
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 PRESETS = REPO_ROOT / "policies" / "presets"
@@ -198,7 +198,8 @@ def evaluate_row(
             env_kwargs = env_kwargs_for_policy(runner.policy.config)
         seeds = cells.condition_seeds(cfg.seed, task, condition, cfg.episodes)
         cell = cells.summarize_cell(
-            *cells.cell_episodes(runner, env_kwargs, task, condition, seeds, cfg.batch_envs, cfg.workers)
+            *cells.cell_episodes(runner, env_kwargs, task, condition, seeds, cfg.batch_envs, cfg.workers),
+            throws=task_spec(task).throws,
         )
         cell["policy_path"] = str(policy_dir)
         cell["code_commit"] = commit
