@@ -10,6 +10,7 @@ from lerobot_suture.cli import main as cli_main
 from lerobot_suture.experiments.leaderboard import (
     condition_seeds,
     conditions,
+    plot,
     render,
     row_summary,
     summarize_cell,
@@ -56,7 +57,7 @@ def test_cell_summary_counts_success_gate_and_cbf():
     assert summarize_cell([EpisodeLog(seed=3, scenario="nominal", steps=[_step()])], 1.0)["gate"] is None
 
 
-def test_a_running_suture_cell_says_how_far_into_the_suture_its_episodes_got():
+def test_a_running_suture_cell_says_how_far_into_the_suture_its_episodes_got(tmp_path):
     def suture(seed, on_marks):
         # Every throw on the marks but the last was extracted: the episode went on to the next one.
         results = [
@@ -85,6 +86,10 @@ def test_a_running_suture_cell_says_how_far_into_the_suture_its_episodes_got():
     )
     assert "throws on the marks a nominal episode, mean |" in table and "| 1.50 |" in table
     assert ", throws 1.50 |" in table
+    # The figure gives the suture a second panel, the throws on the marks: two panels' height.
+    board = {"episodes": 4, "shifts": [], "tasks": {"running_suture": {"ensemble": {"nominal": cell}}}}
+    with Image.open(plot(board, tmp_path / "board.png")) as image:
+        assert image.size == (12 * 110, int(2 * 3.2 * 110))
     # A task of one throw or none has no throw figures.
     assert "per_throw" not in summarize_cell(logs, 1.0)
     assert row_summary({"nominal": summarize_cell(logs, 1.0)})["nominal_throws_on_marks"] is None

@@ -242,38 +242,57 @@ def render(board: dict) -> str:
     return "\n".join(lines)
 
 
+def _bars(ax, rows: dict, conds: list[str], colour: dict, value, interval=None) -> None:
+    """One bar per policy and condition: ``value(cell)``, with ``interval(cell)`` as error bars if given."""
+    policies = list(rows)
+    width = 0.8 / max(1, len(policies))
+    for j, policy in enumerate(policies):
+        x = np.arange(len(conds)) + (j - (len(policies) - 1) / 2) * width
+        cells = [rows[policy].get(c) for c in conds]
+        height = np.array([value(c) if c else np.nan for c in cells], dtype=float)
+        ax.bar(x, height, width, label=policy, color=colour[policy])
+        if interval is not None:
+            low, high = np.array([interval(c) if c else (np.nan, np.nan) for c in cells], dtype=float).T
+            # Clipped: at a rate of 0 or 1 the interval's end can miss the rate by a rounding error.
+            yerr = np.clip([height - low, high - height], 0, None)
+            ax.errorbar(x, height, yerr=yerr, fmt="none", ecolor="black", capsize=2, lw=0.8)
+    ax.set_xticks(np.arange(len(conds)))
+    ax.set_xticklabels([c.removeprefix(SHIFT_PREFIX) for c in conds], rotation=35, ha="right", fontsize=8)
+    ax.legend(fontsize=8, ncol=len(policies))
+
+
 def plot(board: dict, path: Path) -> Path:
-    """Success rate with its 95% interval, per condition, one bar per policy; one panel per task."""
+    """Success rate with its 95% interval, per condition, one bar per policy; one panel per task, and for a
+    task of several throws a second panel of the throws on the marks per episode."""
     tasks = [t for t, rows in board["tasks"].items() if rows]
+    panels = []
+    for task in tasks:
+        panels.append((task, "success"))
+        cells = [cell for row in board["tasks"][task].values() for cell in row.values()]
+        if any("per_throw" in cell for cell in cells):
+            panels.append((task, "throws"))
     most = max((len(task_conditions(board["tasks"][t])) for t in tasks), default=0)
-    fig = Figure(figsize=(max(12, 0.7 * most), 3.2 * max(1, len(tasks))), constrained_layout=True)
+    fig = Figure(figsize=(max(12, 0.7 * most), 3.2 * max(1, len(panels))), constrained_layout=True)
     FigureCanvasAgg(fig)
     # One colour per policy across the panels, in the order the policies first appear on the board.
     names = list(dict.fromkeys(name for t in tasks for name in board["tasks"][t]))
     palette = matplotlib.colormaps["tab10"]
     colour = {name: palette(i % palette.N) for i, name in enumerate(names)}
-    for k, task in enumerate(tasks):
-        ax = fig.add_subplot(len(tasks), 1, k + 1)
+    for k, (task, panel) in enumerate(panels):
+        ax = fig.add_subplot(len(panels), 1, k + 1)
         rows = board["tasks"][task]
-        policies = list(rows)
         conds = task_conditions(rows)
-        width = 0.8 / max(1, len(policies))
-        for j, policy in enumerate(policies):
-            x = np.arange(len(conds)) + (j - (len(policies) - 1) / 2) * width
-            cells = [rows[policy].get(c) for c in conds]
-            rate = np.array([c["success_rate"] if c else np.nan for c in cells])
-            low = np.array([c["success_interval"][0] if c else np.nan for c in cells])
-            high = np.array([c["success_interval"][1] if c else np.nan for c in cells])
-            ax.bar(x, rate, width, label=policy, color=colour[policy])
-            # Clipped: at a rate of 0 or 1 the interval's end can miss the rate by a rounding error.
-            yerr = np.clip([rate - low, high - rate], 0, None)
-            ax.errorbar(x, rate, yerr=yerr, fmt="none", ecolor="black", capsize=2, lw=0.8)
-        ax.set_xticks(np.arange(len(conds)))
-        ax.set_xticklabels([c.removeprefix(SHIFT_PREFIX) for c in conds], rotation=35, ha="right", fontsize=8)
-        ax.set_ylim(0, 1.2)  # room for the legend above the bars
-        ax.set_ylabel("success rate")
-        ax.set_title(f"{task}: {board['episodes']} episodes a cell, 95% Wilson intervals")
-        ax.legend(fontsize=8, ncol=len(policies))
+        if panel == "success":
+            _bars(ax, rows, conds, colour, lambda c: c["success_rate"], lambda c: c["success_interval"])
+            ax.set_ylim(0, 1.2)  # room for the legend above the bars
+            ax.set_ylabel("success rate")
+            ax.set_title(f"{task}: {board['episodes']} episodes a cell, 95% Wilson intervals")
+        else:
+            n_throws = max(len(c["per_throw"]["throws"]) for row in rows.values() for c in row.values())
+            _bars(ax, rows, conds, colour, lambda c: throws_on_marks_mean(c) if "per_throw" in c else np.nan)
+            ax.set_ylim(0, 1.2 * n_throws)
+            ax.set_ylabel("throws on the marks")
+            ax.set_title(f"{task}: throws on the marks per episode, mean (of {n_throws})")
     path = Path(path)
     fig.savefig(path, dpi=110)
     return path
