@@ -87,7 +87,13 @@ def test_a_running_suture_cell_says_how_far_into_the_suture_its_episodes_got(tmp
     assert "throws on the marks a nominal episode, mean |" in table and "| 1.50 |" in table
     assert ", throws 1.50 |" in table
     # The figure gives the suture a second panel, the throws on the marks: two panels' height.
-    board = {"episodes": 4, "shifts": [], "tasks": {"running_suture": {"ensemble": {"nominal": cell}}}}
+    # A row whose cells were summarized without the throws (an earlier board) is drawn beside it.
+    older = {k: v for k, v in cell.items() if k != "per_throw"}
+    board = {
+        "episodes": 4,
+        "shifts": [],
+        "tasks": {"running_suture": {"older": {"nominal": older}, "ensemble": {"nominal": cell}}},
+    }
     with Image.open(plot(board, tmp_path / "board.png")) as image:
         assert image.size == (12 * 110, int(2 * 3.2 * 110))
     # A task of one throw or none has no throw figures.

@@ -288,7 +288,8 @@ def plot(board: dict, path: Path) -> Path:
             ax.set_ylabel("success rate")
             ax.set_title(f"{task}: {board['episodes']} episodes a cell, 95% Wilson intervals")
         else:
-            n_throws = max(len(c["per_throw"]["throws"]) for row in rows.values() for c in row.values())
+            tables = [c["per_throw"] for row in rows.values() for c in row.values() if "per_throw" in c]
+            n_throws = max(len(table["throws"]) for table in tables)
             _bars(ax, rows, conds, colour, lambda c: throws_on_marks_mean(c) if "per_throw" in c else np.nan)
             ax.set_ylim(0, 1.2 * n_throws)
             ax.set_ylabel("throws on the marks")
