@@ -138,6 +138,11 @@ def throws_on_marks_mean(cell: dict) -> float | None:
     return sum(t["on_marks"]["count"] for t in table["throws"]) / table["episodes"]
 
 
+def has_throws(rows: dict) -> bool:
+    """Whether some cell of a task's ``rows`` holds each throw's outcome (a task of several throws)."""
+    return any("per_throw" in cell for row in rows.values() for cell in row.values())
+
+
 def task_conditions(rows: dict) -> list[str]:
     """Every condition some row of a task holds, in the order they were run."""
     return list(dict.fromkeys(c for row in rows.values() for c in row))
@@ -196,7 +201,7 @@ def render(board: dict) -> str:
         board_conds = conditions(task, board.get("shifts", []))
         summaries = {policy: row_summary(rows[policy], board_conds) for policy in policies}
         # A suture of several throws: how far into it the policies get, beside success.
-        throws = any(s["nominal_throws_on_marks"] is not None for s in summaries.values())
+        throws = has_throws(rows)
         lines += [
             f"## {task}",
             "",
@@ -230,8 +235,9 @@ def render(board: dict) -> str:
                     text += f", gate {_percent(cell['gate']['flagged_rate'])}"
                 cbf = cell["cbf"]
                 text += f", CBF {_percent(cbf['intervention_rate'])} / {cbf['violating_episodes']}"
-                if throws_on_marks_mean(cell) is not None:
-                    text += f", throws {throws_on_marks_mean(cell):.2f}"
+                mean_throws = throws_on_marks_mean(cell)
+                if mean_throws is not None:
+                    text += f", throws {mean_throws:.2f}"
                 cells.append(text)
             lines.append(f"| {cond} | " + " | ".join(cells) + " |")
         lines.append("")
@@ -268,8 +274,7 @@ def plot(board: dict, path: Path) -> Path:
     panels = []
     for task in tasks:
         panels.append((task, "success"))
-        cells = [cell for row in board["tasks"][task].values() for cell in row.values()]
-        if any("per_throw" in cell for cell in cells):
+        if has_throws(board["tasks"][task]):
             panels.append((task, "throws"))
     most = max((len(task_conditions(board["tasks"][t])) for t in tasks), default=0)
     fig = Figure(figsize=(max(12, 0.7 * most), 3.2 * max(1, len(panels))), constrained_layout=True)
