@@ -30,6 +30,7 @@ from _report import emit, machine
 from lerobot.utils.constants import OBS_IMAGES
 from lerobot_policy_ensemble_diffusion.modeling_ensemble_diffusion import EnsembleDiffusionPolicy
 from lerobot_policy_ensemble_diffusion.testing import (
+    NEEDLE_KEYPOINTS_DIM,
     SUTURE_INPUT_FEATURES,
     SUTURE_OUTPUT_FEATURES,
     fake_dataset_stats,
@@ -61,7 +62,9 @@ def load_preset_config(preset: str, **overrides):
     )
     if policy.get("needle_keypoints_weight", 0) > 0:
         # A training target only (never an input, so no cost at inference), but the config checks it is there.
-        policy["input_features"][NEEDLE_KEYPOINTS_KEY] = PolicyFeature(type=FeatureType.STATE, shape=(6,))
+        policy["input_features"][NEEDLE_KEYPOINTS_KEY] = PolicyFeature(
+            type=FeatureType.STATE, shape=(NEEDLE_KEYPOINTS_DIM,)
+        )
     return EnsembleDiffusionConfig(**policy)
 
 

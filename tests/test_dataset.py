@@ -24,10 +24,12 @@ from lerobot_suture.datasets import metadata
 from lerobot_suture.datasets.features import (
     ACTION_KEY,
     ENV_STATE_KEY,
+    FPS,
     IMAGE_KEY,
     NEEDLE_KEYPOINTS_KEY,
     STATE_KEY,
     TASK,
+    dataset_features,
 )
 from lerobot_suture.datasets.record import record, regenerate_episode
 from lerobot_suture.datasets.record_config import RecordConfig
@@ -269,6 +271,18 @@ def test_split_without_a_training_episode_is_refused_as_lerobot_refuses_it(n, fr
 def test_split_rejects_bad_fraction():
     with pytest.raises(ValueError, match="val_fraction"):
         split_episodes(10, 1.0)
+
+
+def test_the_policy_packages_suture_features_are_the_recorded_datasets():
+    """The policy distribution does not import the env's, so its test and benchmark features are copies:
+    a recording that changes a shape must fail here, not on a user's checkpoint."""
+    from lerobot_policy_ensemble_diffusion import testing
+
+    recorded = dataset_features("pixels_agent_pos", testing.IMAGE_SIZE, video=False)
+    for key, spec in testing.SUTURE_DATASET_FEATURES.items():
+        assert tuple(recorded[key]["shape"]) == tuple(spec["shape"]), key
+    assert recorded[NEEDLE_KEYPOINTS_KEY]["shape"] == (testing.NEEDLE_KEYPOINTS_DIM,)
+    assert testing.IMAGE_KEY == IMAGE_KEY and testing.FPS == FPS
 
 
 # -------------------------------------------------------------------------------------------- card

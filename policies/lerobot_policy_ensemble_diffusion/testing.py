@@ -15,7 +15,7 @@
 LeRobotDataset on disk, tiny ensemble configs and random normalized observations.
 
 The suture env/dataset features: `observation.images.endoscope` (3, 96, 96), `observation.state` (10,),
-`action` (10,), 10 fps.
+`action` (10,), `observation.needle_keypoints` (6,), 10 fps.
 """
 
 from __future__ import annotations
@@ -32,6 +32,7 @@ from .configuration_ensemble_diffusion import NEEDLE_KEYPOINTS_KEY, EnsembleDiff
 IMAGE_KEY = "observation.images.endoscope"
 STATE_DIM = 10
 ACTION_DIM = 10
+NEEDLE_KEYPOINTS_DIM = 6  # x and y of the needle's tip, middle and tail in the image
 IMAGE_SIZE = 96
 FPS = 10
 
@@ -188,7 +189,7 @@ def make_synthetic_dataset(
 
     State and action follow smooth random sinusoids; the image is a smooth gradient plus a moving square, so
     that the data is learnable but meaningless. With `needle_keypoints`, the dataset also holds
-    `observation.needle_keypoints` (6,): the square's top-left corner, centre and bottom-right corner in the
+    `observation.needle_keypoints` (`NEEDLE_KEYPOINTS_DIM`,): the square's top-left corner, centre and bottom-right corner in the
     image, (x right, y down) in [-1, 1], as `lerobot-suture record` writes the needle's tip, middle and tail.
     """
     from lerobot.datasets import LeRobotDataset
@@ -196,7 +197,7 @@ def make_synthetic_dataset(
     rng = np.random.default_rng(seed)
     features = dict(SUTURE_DATASET_FEATURES)
     if needle_keypoints:
-        features[NEEDLE_KEYPOINTS_KEY] = {"dtype": "float32", "shape": (6,), "names": None}
+        features[NEEDLE_KEYPOINTS_KEY] = {"dtype": "float32", "shape": (NEEDLE_KEYPOINTS_DIM,), "names": None}
     dataset = LeRobotDataset.create(repo_id=repo_id, root=root, fps=FPS, features=features, use_videos=False)
     yy, xx = np.mgrid[0:IMAGE_SIZE, 0:IMAGE_SIZE] / IMAGE_SIZE
     for _ in range(n_episodes):
