@@ -50,9 +50,11 @@ demo: install
 reproduce: install
 	$(BIN)/lerobot-suture reproduce
 
+# A script that needs a trained policy or a dataset declares it in a top-level NEEDS = "..." line.
 bench: install
 	@for b in benchmarks/[!_]*.py; do \
-	  if grep -qE "required=True|run_nominal_seeds\(" $$b; then echo "== $$b: needs a trained policy or dataset, skipped ($(BIN)/python $$b --help)"; continue; fi; \
+	  needs=$$(sed -n 's/^NEEDS = "\(.*\)"$$/\1/p' $$b); \
+	  if [ -n "$$needs" ]; then echo "== $$b: needs $$needs, skipped ($(BIN)/python $$b --help)"; continue; fi; \
 	  echo "== $$b"; $(BIN)/python $$b; done
 
 lint: install

@@ -36,6 +36,7 @@ from lerobot_suture.pipelines.stages import code_commit
 from lerobot_suture.runtime.policy import GateMode, PolicyRunner, copy_with_overrides, env_kwargs_for_policy
 from lerobot_suture.sim.tasks import task_spec
 
+NEEDS = "a trained, calibrated ensemble (--policy-path)"
 TASK = "insertion"
 LEADERBOARD_SEED = LeaderboardConfig.seed  # the leaderboard's test seeds: the reference's cells are its own
 

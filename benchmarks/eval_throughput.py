@@ -44,6 +44,7 @@ from lerobot_suture.runtime.rollout import make_scenario_env, rollout_seeds  # n
 from lerobot_suture.runtime.seeds import episode_seeds  # noqa: E402
 from lerobot_suture.safety.cbf_config import CBFConfig  # noqa: E402
 
+NEEDS = "a trained ensemble (--policy-path)"
 TEST_SEED = 8_000_000  # apart from recording, calibration and the commands' test seeds
 
 

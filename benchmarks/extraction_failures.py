@@ -30,6 +30,7 @@ from lerobot_suture.experiments.metrics import wilson_interval  # noqa: E402
 from lerobot_suture.sim.extraction import REGRASP_ANGLE, STRAIN_BOUND, TAIL_EXIT_TOLERANCE  # noqa: E402
 from lerobot_suture.sim.geometry import grasp_transform  # noqa: E402
 
+NEEDS = "a trained extraction policy (--policy-path)"
 TASK = "extraction"
 
 

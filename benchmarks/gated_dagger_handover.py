@@ -34,6 +34,7 @@ from lerobot_suture.experiments.metrics import wilson_interval  # noqa: E402
 from lerobot_suture.experiments.paper import EXPERIMENTS  # noqa: E402
 from lerobot_suture.sim.task import TASK  # noqa: E402
 
+NEEDS = "a calibrated ensemble (--policy-path)"
 TOLERANCE_STEPS = 2
 FIRST_SEED = 4_100_000
 BIN = Path(sys.executable).parent

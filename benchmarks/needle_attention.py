@@ -54,6 +54,7 @@ import lerobot_suture  # noqa: E402
 from lerobot_suture.expert import ScriptedExpert  # noqa: E402
 from lerobot_suture.runtime.policy import GateMode, PolicyRunner, env_kwargs_for_policy  # noqa: E402
 
+NEEDS = "trained ensemble checkpoints (CHECKPOINT ...)"
 PROBE_SEED_BASE = 3_000_000
 PHANTOM_PROBE_SHIFT = np.array([0.003, 0.0, 0.0])
 """Displacement (m) of the phantom in the positive control: 1.5x the entry tolerance."""

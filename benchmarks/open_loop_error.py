@@ -36,6 +36,8 @@ from lerobot_suture.datasets.split import validation_episodes  # noqa: E402
 from lerobot_suture.runtime.policy import load_policy  # noqa: E402
 from lerobot_suture.sim.task import TASK  # noqa: E402
 
+NEEDS = "checkpoints and their dataset (CHECKPOINT ..., --dataset-root)"
+
 
 def checkpoint_dirs(paths: list[str]) -> list[Path]:
     """``pretrained_model`` directories: given ones, and every step of a given ``checkpoints`` folder."""

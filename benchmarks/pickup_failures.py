@@ -30,6 +30,7 @@ from lerobot_suture.experiments.metrics import wilson_interval  # noqa: E402
 from lerobot_suture.sim.pickup import LIFT_HEIGHT  # noqa: E402
 from lerobot_suture.sim.task import GRASP_ANGLE, GRASP_RANGES  # noqa: E402
 
+NEEDS = "a trained pickup policy (--policy-path)"
 TASK = "pickup"
 
 

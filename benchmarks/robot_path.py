@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+NEEDS = "a trained policy (--policy-path)"
 BIN = Path(sys.executable).parent
 CONTROL_PERIOD_S = 0.1
 LATE_FACTOR = 1.1

@@ -38,6 +38,7 @@ from lerobot_suture.runtime.seeds import episode_seeds  # noqa: E402
 from lerobot_suture.safety.cbf_config import CBFConfig  # noqa: E402
 from lerobot_suture.sim.running_suture import N_THROWS  # noqa: E402
 
+NEEDS = "a trained, calibrated running-suture ensemble (--policy-path)"
 TASK = "running_suture"
 
 

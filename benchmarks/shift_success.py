@@ -18,6 +18,7 @@ import json
 import os
 import sys
 
+NEEDS = "trained policies (--policy, once per policy)"
 DEFAULT_SHIFTS = (
     "dim_light@0.2",
     "smoke_haze@0.2",

@@ -31,6 +31,7 @@ from lerobot_suture.runtime.seeds import fresh_seeds  # noqa: E402
 from lerobot_suture.runtime.stac_calibration import StacScorer  # noqa: E402
 from lerobot_suture.safety.ood.chunk_consistency import StacCalibration  # noqa: E402
 
+NEEDS = "a chunking policy calibrated by lerobot-suture calibrate-stac (--policy-path)"
 SCENARIOS = ("needle_drop", "phantom_moved_after_insertion")
 SEED_OFFSET = 500_000
 AUROC_BAR, FALSE_ALARM_BAR = 0.9, 0.05

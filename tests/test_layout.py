@@ -1,7 +1,9 @@
 """The package's layering, read from the source: commands on top, imported by the CLI alone; the gate's
-mode written by the runtime layer alone; no module over 500 lines."""
+mode written by the runtime layer alone; no module over 500 lines; every benchmark that needs a trained
+policy or a dataset says so for `make bench`."""
 
 import ast
+import re
 from pathlib import Path
 
 import pytest
@@ -107,3 +109,39 @@ def test_no_module_is_over_500_lines():
         if (n := len(p.read_text().splitlines())) > MAX_MODULE_LINES
     }
     assert not long, f"modules over {MAX_MODULE_LINES} lines: {long}"
+
+
+NEEDS_LINE = re.compile(r'^NEEDS = "(.*)"$', re.MULTILINE)  # what `make bench` reads (Makefile, sed)
+
+
+def _needs_an_input(tree: ast.AST) -> bool:
+    """A required option, a positional argument that must be given, or the failure benchmarks' command line."""
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.Call) or not isinstance(node.func, (ast.Attribute, ast.Name)):
+            continue
+        name = node.func.attr if isinstance(node.func, ast.Attribute) else node.func.id
+        keywords = {k.arg: k.value for k in node.keywords}
+        if name == "run_nominal_seeds":
+            return True
+        if name != "add_argument":
+            continue
+        required = keywords.get("required")
+        if isinstance(required, ast.Constant) and required.value is True:
+            return True
+        first = node.args[0] if node.args else None
+        nargs = keywords.get("nargs")
+        optional_nargs = isinstance(nargs, ast.Constant) and nargs.value in ("?", "*")
+        if isinstance(first, ast.Constant) and not str(first.value).startswith("-") and not optional_nargs:
+            return True
+    return False
+
+
+@pytest.mark.parametrize("script", sorted((ROOT / "benchmarks").glob("[!_]*.py")), ids=lambda p: p.name)
+def test_a_benchmark_that_needs_a_policy_or_dataset_declares_it_for_make_bench(script):
+    """`make bench` runs every script bare except those with a NEEDS line, which it names and skips."""
+    source = script.read_text()
+    declared = NEEDS_LINE.search(source)
+    if _needs_an_input(ast.parse(source)):
+        assert declared and declared.group(1).strip(), f'{script.name}: add NEEDS = "what to pass"'
+    else:
+        assert not declared, f"{script.name} runs bare; its NEEDS line would make `make bench` skip it"
