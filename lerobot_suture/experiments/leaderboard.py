@@ -295,7 +295,7 @@ def plot(board: dict, path: Path) -> Path:
         else:
             tables = [c["per_throw"] for row in rows.values() for c in row.values() if "per_throw" in c]
             n_throws = max(len(table["throws"]) for table in tables)
-            _bars(ax, rows, conds, colour, lambda c: throws_on_marks_mean(c) if "per_throw" in c else np.nan)
+            _bars(ax, rows, conds, colour, throws_on_marks_mean)  # None (no throws) draws no bar
             ax.set_ylim(0, 1.2 * n_throws)
             ax.set_ylabel("throws on the marks")
             ax.set_title(f"{task}: throws on the marks per episode, mean (of {n_throws})")

@@ -189,7 +189,7 @@ def make_synthetic_dataset(
 
     State and action follow smooth random sinusoids; the image is a smooth gradient plus a moving square, so
     that the data is learnable but meaningless. With `needle_keypoints`, the dataset also holds
-    `observation.needle_keypoints` (`NEEDLE_KEYPOINTS_DIM`,): the square's top-left corner, centre and bottom-right corner in the
+    `observation.needle_keypoints` (6,): the square's top-left corner, centre and bottom-right corner in the
     image, (x right, y down) in [-1, 1], as `lerobot-suture record` writes the needle's tip, middle and tail.
     """
     from lerobot.datasets import LeRobotDataset
