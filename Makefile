@@ -50,7 +50,8 @@ demo: install
 reproduce: install
 	$(BIN)/lerobot-suture reproduce
 
-# A script that needs a trained policy or a dataset declares it in a top-level NEEDS = "..." line.
+# A script that needs a trained policy or a dataset declares it in a top-level NEEDS = "..." line
+# (tests/test_layout.py holds every script to it with the same pattern).
 bench: install
 	@for b in benchmarks/[!_]*.py; do \
 	  needs=$$(sed -n 's/^NEEDS = "\(.*\)"$$/\1/p' $$b); \
