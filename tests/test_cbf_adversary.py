@@ -37,10 +37,10 @@ MARGIN = CBFConfig().margin
 def assert_safe(episode: AttackEpisode) -> None:
     assert episode.active_steps > 0, f"{episode.family} seed {episode.seed}: the filter never came on"
     assert episode.violation_steps == 0, (
-        f"{episode.family} seed {episode.seed}: {episode.violation_steps} physics steps with h < 0 "
-        f"(min h {episode.h_min})"
+        f"{episode.family} seed {episode.seed}: {episode.violation_steps} physics steps with the held tip in "
+        f"tissue outside the set (min h {episode.h_min}, {episode.depth_max * 1e3:.2f} mm deep)"
     )
-    assert episode.h_min >= 0.0
+    assert not episode.h_min < 0.0
     # The premise, measured: the tip stays within the margin of its commanded segment.
     assert max(episode.segment_deviations) < MARGIN
 

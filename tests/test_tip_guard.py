@@ -58,67 +58,159 @@ def test_no_wound_passes_the_target_unchanged():
     assert not result.active and guard.phase == PHASE_IDLE
 
 
-def test_bad_poses_raise_a_clear_error():
+def test_bad_poses_raise_a_clear_error_and_a_pose_without_rotation_holds(caplog):
     guard = TipGuard()
     pose = jaw_pose_with_tip_at(np.zeros(3), np.eye(3))
     with pytest.raises(ValueError, match="target_pose"):
         guard.filter_target(pose, np.full(10, np.nan), WOUND, GRASP, DT)
-    parallel = pose.copy()
-    parallel[6:9] = parallel[3:6]
-    with pytest.raises(ValueError, match="parallel"):
-        guard.filter_target(pose, parallel, WOUND, GRASP, DT)
+    with pytest.raises(ValueError, match="latency_steps"):
+        TipGuard(latency_steps=-1)
+    # Zero or parallel rotation columns lie inside the action space: the arm holds its pose, with the jaw
+    # commanded, and a warning says why; the run goes on.
+    for columns in ([1.0, 0.0, 0.0, 1.0, 0.0, 0.0], [0.0] * 6):
+        target = pose + np.r_[0.0, 0.0, -0.02, np.zeros(7)]
+        target[3:9] = columns
+        target[9] = 0.9
+        with caplog.at_level("WARNING"):
+            out, result = guard.filter_target(pose, target, WOUND, GRASP, DT)
+        np.testing.assert_array_equal(out[:9], pose[:9])
+        assert out[9] == 0.9 and result.intervened and "no rotation" in caplog.text
 
 
-def test_phase_follows_the_measured_jaw_and_the_needle_against_the_tissue():
-    guard = TipGuard()
+def test_phase_follows_the_measured_jaw_and_begins_only_inside_the_tightened_set():
+    cbf = CBFConfig(enabled=True)
+    guard = TipGuard(cbf)
+    center, rotation = WOUND.ellipsoid_frame()
+    # Inside the ellipsoid but within the margin of its surface: the throw has not begun.
+    band = center + rotation @ np.array([0.0, 0.0, cbf.semi_axis_normal - 0.5 * cbf.margin])
+    pose = jaw_pose_with_tip_at(band, np.eye(3))
+    guard.filter_target(pose, pose, WOUND, GRASP, DT)
+    assert guard.phase == PHASE_IDLE and tightened_h(band, cbf) < 0.0 < float(
+        ellipsoid_h(band, center, cbf.semi_axes, rotation)
+    )
     above = jaw_pose_with_tip_at(np.array([0.0, 0.0, 0.004]), np.eye(3))
     guard.filter_target(above, above, WOUND, GRASP, DT)
     assert guard.phase == PHASE_ACTIVE
-    # The jaw reads fully closed: it lost the needle, and the throw's guard ends.
+    # Leaving the tissue, or loosening the jaw without letting go, does not end the throw.
+    loose = above.copy()
+    loose[9] = 0.55
+    _, result = guard.filter_target(loose, loose, WOUND, GRASP, DT)
+    assert guard.phase == PHASE_ACTIVE and result.guarding
+    # The jaw reads fully closed, and is not told to close: it lost the needle, and the throw's phase ends.
     lost = above.copy()
     lost[9] = 1.0
-    guard.filter_target(lost, lost, WOUND, GRASP, DT)
+    guard.filter_target(lost, np.r_[lost[:9], 0.0], WOUND, GRASP, DT)
     assert guard.phase == PHASE_DONE
     # A new throw starts over.
     guard.filter_target(above, above, Wound(ENTRY, EXIT, NORMAL, throw_index=1), GRASP, DT)
     assert guard.phase == PHASE_ACTIVE
 
 
-@settings(max_examples=300, deadline=None)
+def in_tightened_union(points: np.ndarray, cbf: CBFConfig) -> np.ndarray:
+    """Which of ``points`` (n, 3) lie above the surface by the margin, or in the tightened ellipsoid."""
+    center, rotation = WOUND.ellipsoid_frame()
+    above = points @ NORMAL >= cbf.margin - 1e-9
+    inside = np.asarray(ellipsoid_h(points, center, cbf.semi_axes, rotation)) >= cbf.margin_level - 1e-9
+    return above | inside
+
+
+def harmed(points: np.ndarray, cbf: CBFConfig) -> np.ndarray:
+    """Which of ``points`` (n, 3) lie in the tissue outside the ellipsoid."""
+    center, rotation = WOUND.ellipsoid_frame()
+    return (points @ NORMAL < 0.0) & (np.asarray(ellipsoid_h(points, center, cbf.semi_axes, rotation)) < 0.0)
+
+
+def start_in_union(kind: int, direction, scale: float, cbf: CBFConfig) -> np.ndarray:
+    """A tip in the tightened ellipsoid (kind 0) or above the surface by the margin (kind 1)."""
+    direction = np.asarray(direction, dtype=np.float64)
+    if np.linalg.norm(direction) < 1e-6:
+        direction = np.array([1.0, 0.0, 0.0])
+    direction = direction / np.linalg.norm(direction)
+    if kind == 0:
+        center, rotation = WOUND.ellipsoid_frame()
+        tight_axes = cbf.semi_axes * np.sqrt(1.0 - cbf.margin_level)
+        return center + rotation @ (tight_axes * direction * 0.999 * scale)
+    return np.array([0.05 * direction[0], 0.05 * direction[1], cbf.margin + 0.04 * scale * abs(direction[2])])
+
+
+@settings(max_examples=400, deadline=None)
 @given(
+    kind=st.integers(0, 1),
     start=st.tuples(*[st.floats(-1.0, 1.0)] * 3),
     rotvec=st.tuples(*[st.floats(-3.0, 3.0)] * 3),
     target_pos=st.tuples(*[st.floats(-5.0, 5.0)] * 3),
     target_rotvec=st.tuples(*[st.floats(-3.1, 3.1)] * 3),
     scale=st.floats(1e-4, 1.0),
 )
-def test_the_commanded_tip_end_point_stays_in_the_tightened_set(
-    start, rotvec, target_pos, target_rotvec, scale
+def test_the_commanded_tip_segment_stays_in_the_tightened_union(
+    kind, start, rotvec, target_pos, target_rotvec, scale
 ):
-    """Any target, from any tip inside the tightened set: the tip's commanded end point stays inside it."""
+    """Any target, from any tip in the tightened union (above the surface, or in the ellipsoid): the tip's
+    whole commanded segment stays in it, so it never crosses tissue outside the ellipsoid."""
     cbf = CBFConfig(enabled=True)
-    center, rotation = WOUND.ellipsoid_frame()
-    direction = np.asarray(start)
-    if np.linalg.norm(direction) < 1e-6:
-        direction = np.array([1.0, 0.0, 0.0])
-    # A point of the tightened ellipsoid, inside it by a random fraction.
-    tight_axes = cbf.semi_axes * np.sqrt(1.0 - cbf.margin_level)
-    tip = center + rotation @ (tight_axes * direction / np.linalg.norm(direction) * 0.999 * scale)
+    tip = start_in_union(kind, start, scale, cbf)
     pose = jaw_pose_with_tip_at(tip, matrix_from_rotvec(np.asarray(rotvec)))
     target = pose_vector(np.asarray(target_pos) * 0.01, matrix_from_rotvec(np.asarray(target_rotvec)), 1.0)
     guard = TipGuard(cbf)
     out, result = guard.filter_target(pose, target, WOUND, GRASP, DT)
-    assert result.active
-    assert tightened_h(tip_of(out), cbf) >= -1e-9
+    assert result.guarding
+    segment = tip + np.linspace(0.0, 1.0, 51)[:, None] * (tip_of(out) - tip)
+    assert in_tightened_union(segment, cbf).all()
 
 
-def test_the_env_wrapper_and_the_step_share_one_guard():
-    from lerobot_suture.safety.cbf_wrapper import CBFActionWrapper
-    from lerobot_suture.sim.suture_env import SutureEnv
+@settings(max_examples=150, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    observation_latency=st.integers(0, 3),
+    command_latency=st.integers(0, 3),
+    lag=st.floats(0.0, 0.9),
+)
+def test_an_arm_that_lags_or_is_late_in_straight_lines_never_enters_tissue_outside_the_wound(
+    seed, observation_latency, command_latency, lag
+):
+    """Closed loop over 60 control steps of random targets (many into the tissue beside the wound) with the
+    latency declared: the guard sees the tip ``observation_latency`` steps late, and the arm moves the tip in a
+    straight line from where it is towards the end point commanded ``command_latency`` steps ago, reaching a
+    fraction ``1 - lag`` of the way. The tip's path never enters tissue outside the ellipsoid (the mode-switch
+    rule: the union is not convex)."""
+    rng = np.random.default_rng(seed)
+    cbf = CBFConfig(enabled=True)
+    guard = TipGuard(cbf, latency_steps=observation_latency + command_latency)
+    tip = np.array([rng.uniform(-0.02, 0.02), rng.uniform(-0.02, 0.02), rng.uniform(0.002, 0.02)])
+    seen = [tip.copy()] * (observation_latency + 1)
+    in_flight = [tip.copy()] * command_latency
+    path = [tip.copy()]
+    for _ in range(60):
+        measured = seen[-(observation_latency + 1)]
+        goal = np.array([rng.uniform(-0.03, 0.03), rng.uniform(-0.02, 0.02), rng.uniform(-0.012, 0.01)])
+        if rng.uniform() < 0.5:  # towards the wound, as a throw does
+            goal = np.array(
+                [rng.uniform(-0.012, 0.012), rng.uniform(-0.004, 0.004), rng.uniform(-0.008, 0.004)]
+            )
+        result = guard.filter_velocity(measured, (goal - measured) / DT, WOUND, True, True, DT)
+        in_flight.append(measured + result.v_safe * DT)
+        end = in_flight.pop(0)
+        new_tip = tip + (1.0 - lag) * (end - tip)
+        path.extend(tip + np.linspace(0.0, 1.0, 21)[1:, None] * (new_tip - tip))
+        tip = new_tip
+        seen.append(tip.copy())
+    assert not harmed(np.asarray(path), cbf).any()
 
-    env = CBFActionWrapper(SutureEnv(obs_type="state"))
-    assert isinstance(env._guard, TipGuard)
-    env.close()
+
+def test_the_guard_lets_the_tip_retract_move_aside_above_the_tissue_and_reenter_only_the_wound():
+    cbf = CBFConfig(enabled=True)
+    guard = TipGuard(cbf)
+    tip = ENTRY + np.array([0.0, 0.0, -0.003])  # in the tissue, in the ellipsoid
+    for goal, expect in (
+        (ENTRY + np.array([0.0, 0.0, 0.004]), "free"),  # out of the entry: free
+        (ENTRY + np.array([0.0, 0.015, 0.004]), "free"),  # aside, above the tissue: free
+        (ENTRY + np.array([0.0, 0.015, -0.004]), "held"),  # down beside the wound: held above the surface
+    ):
+        result = guard.filter_velocity(tip, (goal - tip) / DT, WOUND, True, True, DT)
+        end = tip + result.v_safe * DT
+        assert (expect == "free") == np.allclose(end, goal), (goal, end, result.mode)
+        tip = end
+    assert tip @ NORMAL >= cbf.margin - 1e-12
 
 
 # ---------------------------------------------------------------- the processor step and the robot path
@@ -223,3 +315,76 @@ def test_expert_throws_on_the_robot_path_are_left_alone():
             assert robot.last_info["is_success"] and active > 10
     finally:
         robot.disconnect()
+
+
+def test_the_env_wrapper_and_the_step_filter_alike():
+    """By behaviour: the same tip motions, handed to the env wrapper's hook and sent through the step as poses,
+    come out the same, in both modes and across a switch."""
+    from lerobot.processor.converters import robot_action_observation_to_transition
+    from lerobot_robot_suture.cbf_step import GRASP_FEATURES, THROW_FEATURE, WOUND_FEATURES, SutureCBFStep
+    from lerobot_robot_suture.config_suture_sim import POSE_FEATURES
+
+    from lerobot_suture.safety.cbf_wrapper import CBFActionWrapper
+    from lerobot_suture.sim.suture_env import SutureEnv
+
+    env = CBFActionWrapper(SutureEnv(obs_type="state"))
+    env.reset(seed=0)
+    wound = env.wound()
+    step = SutureCBFStep(workspace_low=None, workspace_high=None)  # poses built about the tip, not the arm's
+    registration = dict(
+        zip(WOUND_FEATURES, [*wound.entry_point, *wound.exit_point, *wound.surface_normal], strict=True)
+    )
+    registration.update(
+        {THROW_FEATURE: 0.0, **dict(zip(GRASP_FEATURES, (GRASP.angle, 0.0, 0.0), strict=True))}
+    )
+    rng = np.random.default_rng(0)
+    tip = wound.entry_point + 0.006 * wound.surface_normal
+    for k in range(40):
+        goal = wound.entry_point + rng.uniform(-0.015, 0.015, 3)
+        v = (goal - tip) / DT
+        v_env = env._filter_tip_velocity(tip.copy(), v.copy())
+        rotation = matrix_from_rotvec(rng.uniform(-0.3, 0.3, 3))
+        pose = jaw_pose_with_tip_at(tip, rotation)
+        target = jaw_pose_with_tip_at(goal, rotation, jaw=1.0)
+        observation = {**dict(zip(POSE_FEATURES, pose.tolist(), strict=True)), **registration}
+        action = dict(zip(POSE_FEATURES, target.tolist(), strict=True))
+        out = step(robot_action_observation_to_transition((action, observation)))["action"]
+        sent = np.array([out[key] for key in POSE_FEATURES])
+        v_step = (tip_of(sent) - tip) / DT
+        np.testing.assert_allclose(v_step, v_env, atol=1e-9, err_msg=f"step {k}")
+        assert step.last_result.mode == env._guard.mode
+        tip = tip + v_env * DT
+    env.close()
+
+
+def test_every_throw_of_a_running_suture_is_guarded_on_the_robot_path():
+    """The expert's running suture through the step, then an attack on each throw: the step reads each throw's
+    registration (its phase begins on every throw, with the wound the scene has), and no attack gets the tip
+    into the tissue outside the throw's ellipsoid."""
+    from lerobot_robot_suture.attacks import make_robot_path, run_robot_attack_episode
+    from lerobot_robot_suture.config_suture_sim import POSE_FEATURES
+
+    from lerobot_suture.expert import ScriptedExpert
+
+    robot_path = make_robot_path(image_size=32, task="running_suture")
+    robot, pipeline, step = robot_path
+    try:
+        robot.reset_scene(0)
+        pipeline.reset()
+        expert = ScriptedExpert()
+        expert.reset(robot.env)
+        base = robot.env.unwrapped
+        begun = set()
+        while not robot.scene_over:
+            action = dict(zip(POSE_FEATURES, expert.act(robot.env).tolist(), strict=True))
+            robot.send_action(pipeline((action, robot.get_observation())))
+            if step.last_result.active:
+                begun.add(step.throw_index)
+                # The throw the step guards is the scene's, where the scene has it.
+                assert step.throw_index == base.throw_index
+        assert begun == {0, 1, 2, 3} and robot.last_info["is_success"]
+        episodes = [run_robot_attack_episode(robot_path, "reenter", 1, throw=k) for k in range(4)]
+    finally:
+        robot.disconnect()
+    assert all(e.attack_steps > 0 for e in episodes), [e.attack_steps for e in episodes]
+    assert all(e.violation_steps == 0 for e in episodes), [(e.throw, e.depth_max) for e in episodes]

@@ -3,9 +3,10 @@
 Every episode starts as a nominal throw: the scripted expert carries the needle to the entry point until
 the filter switches on (the throw has begun), drives on for ``start_delay`` more control steps, and then
 the attacker commands the robot for ``attack_steps`` control steps (or until the episode ends). What the
-attacker sends goes through ``SutureEnv.step`` like any action; the CBF wrapper filters it. h is read
-from the needle tip after every physics step (``record_tip_trace``), and a violation is a physics step
-with h < 0 during a control step in which the filter was active.
+attacker sends goes through ``SutureEnv.step`` like any action; the CBF wrapper filters it. The needle tip is
+read after every physics step (``record_tip_trace``), and a violation is a physics step at which the held
+needle's tip is in the tissue outside the wound's ellipsoid (:meth:`AttackEpisode.record_harm`), counted at every
+step of the episode, whether or not the filter says it is on.
 
 Families (``FAMILIES``); ``hold`` is the jaw position when the attack begins:
 
@@ -26,6 +27,10 @@ jaw            a chattering jaw closure in [0, 1] (below 0.5 releases the needle
 uniform        uniformly random actions over the whole action space
 far            targets 0.1-10 m away in a random direction and wild rotation columns: commands far
                outside the workspace (the env clips them to the action space)
+reenter        pull the needle back out of the entry (8 mm up), move 3-12 mm sideways along the surface, and
+               push 12 mm down: a second entry beside the wound
+jaw_ambiguous  a jaw command in [0.5, 0.6] (the needle stays in a jaw that reads far from closed), with one
+               in [0.4, 0.5) now and then (let go, then caught again), and pushes and turns
 ============== ==========================================================================================
 
 The off-distribution policy family is in :func:`run_policy_attack_episode` (it needs torch and a policy).
@@ -39,14 +44,32 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lerobot_suture.expert import ScriptedExpert
+from lerobot_suture.safety.cbf import ellipsoid_h
 from lerobot_suture.safety.cbf_config import CBFConfig
-from lerobot_suture.safety.cbf_wrapper import PHASE_ACTIVE, PHASE_IDLE, CBFActionWrapper
+from lerobot_suture.safety.cbf_wrapper import PHASE_ACTIVE, PHASE_DONE, CBFActionWrapper
+from lerobot_suture.safety.surface_cbf import surface_height
+from lerobot_suture.safety.tip_guard import Wound
 from lerobot_suture.sim.geometry import matrix_from_rotvec, pose_vector, rot6_from_matrix
 from lerobot_suture.sim.suture_env import SutureEnv
+from lerobot_suture.sim.tasks import task_spec
 
-FAMILIES = ("rotation", "spin", "push", "rotation_push", "oscillation", "jaw", "uniform", "far")
+FAMILIES = (
+    "rotation",
+    "spin",
+    "push",
+    "rotation_push",
+    "oscillation",
+    "jaw",
+    "uniform",
+    "far",
+    "reenter",
+    "jaw_ambiguous",
+)
 """The scripted attack families; ``policy`` (an ensemble off distribution) is run separately."""
 POLICY_FAMILY = "policy"
+THROW_STEPS = 300
+"""Control steps allowed the expert for one throw of a running suture, from the throw's start to the next one's
+(it takes about 265)."""
 
 
 def random_rotation(rng: np.random.Generator) -> np.ndarray:
@@ -91,6 +114,7 @@ class Attacker:
         self.amplitude = rng.uniform(0.002, 0.02)  # m
         self.turn_amplitude = rng.uniform(0.2, 1.5)  # rad
         self.frequency = rng.uniform(1.0, 5.0)  # Hz
+        self.sideways = rng.uniform(0.003, 0.012)  # m, reenter
 
     def begin(self, env) -> None:
         self.hold_pos, self.hold_rot = env.unwrapped.jaw_pose()
@@ -125,6 +149,24 @@ class Attacker:
         elif self.family == "uniform":
             space = u.action_space
             action = rng.uniform(space.low, space.high)
+        elif self.family == "reenter":
+            normal = u.phantom_rotation[:, 2]
+            sideways = self.direction - (self.direction @ normal) * normal
+            sideways *= self.sideways / max(float(np.linalg.norm(sideways)), 1e-12)
+            offset = (
+                0.008 * normal
+                if k < 5
+                else 0.008 * normal + sideways
+                if k < 10
+                else sideways - 0.012 * normal
+            )
+            action = pose_vector(self.hold_pos + offset, self.hold_rot, 1.0)
+        elif self.family == "jaw_ambiguous":
+            jaw = rng.uniform(0.4, 0.5) if rng.uniform() < 0.1 else rng.uniform(0.5, 0.6)
+            target = pos + rng.uniform(0.0, 0.02) * random_direction(rng)
+            action = pose_vector(
+                target, matrix_from_rotvec(rng.uniform(0.0, 0.5) * random_direction(rng)) @ rot, jaw
+            )
         else:  # far
             target = pos + 10.0 ** rng.uniform(-1.0, 1.0) * random_direction(rng)
             # Huge rotation columns, as the env will clip them to [-1, 1]; clipping can make them parallel,
@@ -141,38 +183,59 @@ class AttackEpisode:
     """One attacked episode under the CBF wrapper, measured at the physics rate.
 
     Attributes:
-        family, seed: what was run.
-        active_steps: control steps with the filter active (attack and the expert's lead-in).
+        family, seed, throw: what was run (``throw``: the throw of a running suture attacked).
+        active_steps: control steps in which the filter acted (attack and the expert's lead-in).
         attack_steps: control steps the attacker commanded.
-        violation_steps: physics steps with h < 0 during active control steps.
-        h_min: smallest h over the physics steps of active control steps (nan if never active).
-        interventions: active control steps in which the filter changed the command.
-        tracking_errors: per active step, ``info["cbf_tracking_error"]`` (m).
-        segment_deviations: per active step, ``info["cbf_segment_deviation"]`` (m).
-        filter_times: per active step, the filter call's wall time (s).
+        violation_steps: physics steps at which the held needle's tip was in the tissue outside the wound's
+            ellipsoid, over the whole episode.
+        h_min: smallest ellipsoid barrier h over the physics steps at which the held needle's tip was below
+            the tissue surface (nan if it never was): < 0 is a violation.
+        depth_max: deepest a violation went below the surface (m), 0 without one.
+        interventions: control steps in which the filter changed the command.
+        tracking_errors: per filtered step, ``info["cbf_tracking_error"]`` (m).
+        segment_deviations: per filtered step, ``info["cbf_segment_deviation"]`` (m).
+        filter_times: per filtered step, the filter call's wall time (s).
         released: the jaw let the needle go during the attack.
     """
 
     family: str
     seed: int
+    throw: int = 0
     active_steps: int = 0
     attack_steps: int = 0
     violation_steps: int = 0
     h_min: float = math.nan
+    depth_max: float = 0.0
     interventions: int = 0
     tracking_errors: list[float] = field(default_factory=list)
     segment_deviations: list[float] = field(default_factory=list)
     filter_times: list[float] = field(default_factory=list)
     released: bool = False
 
-    def record(self, env: CBFActionWrapper, info: dict) -> None:
-        """Add one control step's measurements (only active steps count)."""
-        if not info["cbf_active"]:
+    def record_harm(self, trace: np.ndarray, wound: Wound, semi_axes: np.ndarray) -> None:
+        """Count the physics steps of one control step's tip ``trace`` (n, 3) m, the needle held throughout, at
+        which the tip was in the tissue outside ``wound``'s ellipsoid of ``semi_axes`` (3,) m."""
+        depth = -surface_height(trace, wound.entry_point, wound.surface_normal)
+        below = depth > 0.0
+        if not below.any():
             return
-        h = env.h_values(info["needle_tip_trace"])
+        center, rotation = wound.ellipsoid_frame()
+        h = np.asarray(ellipsoid_h(trace[below], center, semi_axes, rotation))
+        violated = h < 0.0
+        self.violation_steps += int(np.sum(violated))
+        low = float(np.min(h))
+        self.h_min = low if math.isnan(self.h_min) else min(self.h_min, low)
+        if violated.any():
+            self.depth_max = max(self.depth_max, float(np.max(depth[below][violated])))
+
+    def record(self, env: CBFActionWrapper, info: dict) -> None:
+        """Add one control step's measurements: harm wherever the needle is held, the filter's figures where
+        it acted."""
+        if info["needle_grasped"]:
+            self.record_harm(np.asarray(info["needle_tip_trace"]), env.wound(), env.config.semi_axes)
+        if not info["cbf_guarding"]:
+            return
         self.active_steps += 1
-        self.violation_steps += int(np.sum(h < 0.0))
-        self.h_min = float(np.min(h)) if math.isnan(self.h_min) else min(self.h_min, float(np.min(h)))
         self.interventions += int(info["cbf_intervened"])
         self.tracking_errors.append(float(info["cbf_tracking_error"]))
         self.segment_deviations.append(float(info["cbf_segment_deviation"]))
@@ -181,7 +244,8 @@ class AttackEpisode:
 
 def summarize_attacks(episodes) -> dict:
     """The counts every attack benchmark reports, over episodes with ``active_steps``, ``attack_steps``,
-    ``violation_steps``, ``h_min`` and ``interventions`` (:class:`AttackEpisode`, or the robot path's)."""
+    ``violation_steps``, ``h_min``, ``depth_max`` and ``interventions`` (:class:`AttackEpisode`, or the robot
+    path's)."""
     active = sum(e.active_steps for e in episodes)
     h_mins = [e.h_min for e in episodes if np.isfinite(e.h_min)]
     return {
@@ -194,28 +258,43 @@ def summarize_attacks(episodes) -> dict:
             "physics_steps": sum(e.violation_steps for e in episodes),
         },
         "h_min": round(min(h_mins), 5) if h_mins else None,
+        "violation_depth_max_mm": round(max((e.depth_max for e in episodes), default=0.0) * 1e3, 3),
         "intervention_rate": round(sum(e.interventions for e in episodes) / active, 4) if active else None,
     }
 
 
-def lead_in(env: CBFActionWrapper, seed: int, start_delay: int, episode: AttackEpisode, max_steps: int = 100):
-    """Reset and run the expert until the filter has been active for ``start_delay`` control steps.
+def lead_in(
+    env: CBFActionWrapper,
+    seed: int,
+    start_delay: int,
+    episode: AttackEpisode,
+    max_steps: int = 100,
+    throw: int = 0,
+):
+    """Reset and run the expert until throw ``throw`` has been under way (phase ``active``) for ``start_delay``
+    control steps; the throws before it (a running suture's) are the expert's own.
 
     Returns:
-        (the last observation, or None if the episode ended or the filter never came on, steps taken).
+        (the last observation, or None if the episode ended or the throw never began, steps taken).
     """
     obs, _ = env.reset(seed=seed)
+    u = env.unwrapped
     expert = ScriptedExpert()
     expert.reset(env)
     delay = 0
     for step in range(max_steps):
-        if env.phase == PHASE_ACTIVE:
+        if u.throw_index == throw and env.phase == PHASE_ACTIVE:
             if delay >= start_delay:
                 return obs, step
             delay += 1
         obs, _, terminated, truncated, info = env.step(expert.act(env))
         episode.record(env, info)
-        if terminated or truncated or env.phase not in (PHASE_IDLE, PHASE_ACTIVE):
+        if (
+            terminated
+            or truncated
+            or u.throw_index > throw
+            or (u.throw_index == throw and env.phase == PHASE_DONE)
+        ):
             return None, step + 1
     return None, max_steps
 
@@ -231,6 +310,12 @@ def _attack(env: CBFActionWrapper, episode: AttackEpisode, obs, n_steps: int, ac
             break
 
 
+def lead_in_steps(task: str, throw: int, max_steps: int) -> int:
+    """Control steps an episode may take to reach throw ``throw`` of ``task`` and attack it: ``max_steps`` for
+    the first throw, and ``THROW_STEPS`` for each throw before it on top."""
+    return max_steps + THROW_STEPS * throw if task_spec(task).throws > 1 else max_steps
+
+
 def run_attack_episode(
     family: str,
     seed: int,
@@ -238,6 +323,8 @@ def run_attack_episode(
     attack_steps: int = 30,
     max_start_delay: int = 8,
     max_steps: int = 100,
+    task: str = "insertion",
+    throw: int = 0,
 ) -> AttackEpisode:
     """One episode of ``family`` from ``seed`` (the scene, the start delay and the attack all follow it).
 
@@ -246,19 +333,22 @@ def run_attack_episode(
         seed: episode seed.
         cbf: the filter's configuration (None: ``CBFConfig(enabled=True)``).
         attack_steps: control steps of attack at most.
-        max_start_delay: the attack begins 0..``max_start_delay`` control steps after the filter came on.
-        max_steps: episode length limit (control steps), lead-in included.
+        max_start_delay: the attack begins 0..``max_start_delay`` control steps after the throw began.
+        max_steps: control steps for the attacked throw's lead-in and attack (see :func:`lead_in_steps`).
+        task: a task with throws: ``insertion`` or ``running_suture``.
+        throw: which throw of a running suture is attacked (the expert sutures the ones before it).
     """
-    rng = np.random.default_rng([seed, FAMILIES.index(family)])
+    rng = np.random.default_rng([seed, FAMILIES.index(family), throw])
     attacker = Attacker(family, rng)
-    env = CBFActionWrapper(SutureEnv(obs_type="state", record_tip_trace=True), cbf)
-    episode = AttackEpisode(family=family, seed=seed)
+    env = CBFActionWrapper(SutureEnv(obs_type="state", record_tip_trace=True, task=task), cbf)
+    episode = AttackEpisode(family=family, seed=seed, throw=throw)
+    limit = lead_in_steps(task, throw, max_steps)
     try:
-        obs, steps = lead_in(env, seed, int(rng.integers(max_start_delay + 1)), episode, max_steps)
+        obs, steps = lead_in(env, seed, int(rng.integers(max_start_delay + 1)), episode, limit, throw)
         if obs is None:
             return episode
         attacker.begin(env)
-        _attack(env, episode, obs, min(attack_steps, max_steps - steps), lambda k, _: attacker.act(env, k))
+        _attack(env, episode, obs, min(attack_steps, limit - steps), lambda k, _: attacker.act(env, k))
     finally:
         env.close()
     return episode

@@ -53,7 +53,7 @@ class StepLog:
     h: float = math.nan
     cbf_active: bool = False
     cbf_intervened: bool = False
-    h_min_physics: float = math.nan  # over the step's physics steps, when the CBF was active and traced
+    h_min_physics: float = math.nan  # the safe set's barrier over the step's physics steps, CBF on and traced
     throw_index: int = 0  # the running suture's throw under way (0-based); 0 in the one-throw tasks
 
 
@@ -119,8 +119,8 @@ def rollout_episode(
     """One episode of ``runner`` (a :class:`PolicyRunner`) in ``env`` with the surgeon stand-in.
 
     ``env`` may be wrapped in a :class:`~lerobot_suture.safety.cbf_wrapper.CBFActionWrapper`; when it
-    records the needle tip's physics-rate trace, ``h_min_physics`` is the smallest barrier value over
-    every physics step while the CBF was active.
+    records the needle tip's physics-rate trace, ``h_min_physics`` is the smallest barrier of the safe set
+    (>= 0 above the tissue or in the wound's ellipsoid) over every physics step while the CBF was on.
     """
     return rollout_episodes([env], runner, [seed], surgeon, max_steps)[0]
 
@@ -188,7 +188,7 @@ def rollout_episodes(
             observations[i], _, terminated, truncated, info = env.step(action)
             infos[i] = info
             log.steps.append(_step_log(statuses[i], controller, info))
-            if info.get("cbf_active") and "needle_tip_trace" in info:
+            if info.get("cbf_guarding") and "needle_tip_trace" in info:
                 log.steps[-1].h_min_physics = float(env.get_wrapper_attr("h_min")(info["needle_tip_trace"]))
             done[i] = bool(terminated or truncated)
     for log, info in zip(logs, infos, strict=True):

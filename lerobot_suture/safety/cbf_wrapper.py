@@ -14,12 +14,12 @@ Safe set: the ellipsoid of :class:`~lerobot_suture.safety.cbf_config.CBFConfig`,
 the phantom's current entry and exit markers, with axes (entry->exit, lateral, tissue normal); it is
 rebuilt from the env every control step, so it follows a moving phantom.
 
-Activation (per throw; never in a task without one, ``pickup`` and ``extraction``; in a running suture again
-at each throw, once the needle is held in a grasp a throw starts from): the filter switches on at the first control step where the
-needle is grasped and its tip is inside the set (inside the margin-tightened set in discrete mode,
-so the discrete-time guarantee holds from the first step), and switches off for the rest of the
-episode when the needle leaves the tissue after having been in it, or is released. ``reset`` starts
-over.
+Safe set and guard (never in a task without a throw, ``pickup`` and ``extraction``): the tip of the held needle
+may be above the tissue or in the ellipsoid, never in the tissue outside it (``tip_guard``). The filter acts on
+every control step in which the env holds the needle, whatever the throw's phase; the phase (``cbf_active``)
+reports the throw: it begins at the first control step where the needle is held in a grasp a throw starts from
+(in a running suture, again at each throw) with its tip inside the margin-tightened ellipsoid, and ends when
+the needle is released. ``reset`` starts over.
 """
 
 from __future__ import annotations
@@ -57,23 +57,26 @@ class CBFActionWrapper(gym.Wrapper):
     ============== ========== =====================================================================
     key            type       meaning
     ============== ========== =====================================================================
-    cbf_active     bool       the filter was applied during this step (phase ``active``)
-    h              float      barrier at the needle tip after the step (>= 0 inside the set)
+    cbf_active     bool       the throw's phase was ``active`` during this step
+    cbf_guarding   bool       the needle was held in a scene with a throw: the filter acted during this
+                              step (or, disabled, watched)
+    cbf_mode       str        the convex set the step was kept in: ``above``, ``wound`` or ""
+    h              float      the ellipsoid's barrier at the needle tip after the step (>= 0 inside)
     v_nominal      (3,) m/s   tip velocity the action asked for (NaN if the env did not call the hook)
     v_safe         (3,) m/s   tip velocity sent to the robot (NaN if the env did not call the hook)
     cbf_intervened bool       ``v_safe`` differs from ``v_nominal``
     cbf_tracking_  float, m   distance from the tip at the end of the step to the end of the
-    error                     commanded segment ``x + v_safe * control_dt`` (NaN while not active)
+    error                     commanded segment ``x + v_safe * control_dt`` (NaN while not guarding)
     cbf_segment_   float, m   largest distance from the tip to the commanded segment over the step's
     deviation                 physics-rate trace (the end point alone without ``needle_tip_trace``):
-                              what the margin must cover (NaN while not active)
-    cbf_filter_    float, s   wall time of the filter call (NaN while not active)
+                              what the margin must cover (NaN while not guarding)
+    cbf_filter_    float, s   wall time of the filter call (NaN while not guarding)
     time
     ============== ========== =====================================================================
 
     ``cbf_segment_deviation`` is the premise of the guarantee measured: every point within
-    ``config.margin`` of the commanded segment is in the safe set, so h >= 0 at every physics step
-    of a step whose deviation is at most the margin.
+    ``config.margin`` of the commanded segment is in the safe set, so the tip stays out of the tissue
+    outside the ellipsoid at every physics step of a step whose deviation is at most the margin.
 
     With ``config.enabled`` False the wrapper only monitors: it tracks the phase and reports ``h``
     but sends ``v_nominal`` unchanged (useful as the "filter off" arm of a comparison).
@@ -101,7 +104,7 @@ class CBFActionWrapper(gym.Wrapper):
         self.config = CBFConfig(enabled=True) if config is None else config
         self._axes = self.config.semi_axes
         self._guard = TipGuard(self.config)
-        self._record: tuple[bool, np.ndarray, np.ndarray, bool] | None = None
+        self._record: tuple[bool, bool, str, np.ndarray, np.ndarray, bool] | None = None
         # The step's commanded segment: start (m), end (m), and the filter call's time (s).
         self._segment: tuple[np.ndarray, np.ndarray, float] | None = None
         base.tip_velocity_filter = self._filter_tip_velocity
@@ -117,61 +120,68 @@ class CBFActionWrapper(gym.Wrapper):
         Returns:
             (center (3,) m, semi-axes (3,) m, rotation (3, 3) world-from-ellipsoid).
         """
-        center, rotation = self._wound().ellipsoid_frame()
+        center, rotation = self.wound().ellipsoid_frame()
         return center, self._axes, rotation
 
-    def h_values(self, points: np.ndarray) -> np.ndarray:
-        """h at each of ``points`` (N, 3) m in the current safe set, e.g. ``info["needle_tip_trace"]``: (N,)."""
-        center, axes, rotation = self.safe_set()
-        return np.asarray(ellipsoid_h(np.asarray(points, dtype=np.float64), center, axes, rotation))
-
     def h_min(self, points: np.ndarray) -> float:
-        """Smallest h over ``points`` (N, 3) m in the current safe set, e.g. ``info["needle_tip_trace"]``."""
-        center, axes, rotation = self.safe_set()
-        return float(np.min(ellipsoid_h(np.asarray(points, dtype=np.float64), center, axes, rotation)))
+        """Smallest barrier of the safe set (:meth:`Wound.barrier`: >= 0 above the tissue or in the ellipsoid)
+        over ``points`` (N, 3) m, e.g. ``info["needle_tip_trace"]``."""
+        return float(np.min(self.wound().barrier(np.asarray(points, dtype=np.float64), self._axes)))
 
-    def _wound(self) -> Wound:
+    def wound(self) -> Wound:
+        """The current throw's wound, from the env's entry and exit markers and the phantom's normal."""
         base = self.env.unwrapped
         normal = np.asarray(base.phantom_rotation, dtype=np.float64)[:, 2]
         return Wound(base.entry_point, base.exit_point, normal, throw_index=int(base.throw_index))
 
     def _filter_tip_velocity(self, needle_tip_pos: np.ndarray, v_nominal: np.ndarray) -> np.ndarray:
-        """The hook SutureEnv calls: (3,) tip position (m), (3,) nominal velocity (m/s) -> (3,) m/s."""
+        """The hook SutureEnv calls while it holds the needle: (3,) tip position (m), (3,) nominal velocity
+        (m/s) -> (3,) m/s."""
         base = self.env.unwrapped
         throws = base.task_spec.throws
-        ready = throws > 0 and bool(base.needle_grasped) and (throws == 1 or base.needle_in_throw_grasp)
+        if throws == 0:  # no wound to guard
+            return np.array(v_nominal, dtype=np.float64)
+        ready = throws == 1 or bool(base.needle_in_throw_grasp)
         dt = float(base.control_dt)
-        result = self._guard.filter_velocity(
-            needle_tip_pos, v_nominal, self._wound(), ready, bool(base.needle_in_tissue), dt
-        )
+        result = self._guard.filter_velocity(needle_tip_pos, v_nominal, self.wound(), True, ready, dt)
         x = np.asarray(needle_tip_pos, dtype=np.float64)
-        self._record = (result.active, result.v_nominal, result.v_safe, result.intervened)
-        elapsed = result.filter_time if self.config.enabled else 0.0
-        self._segment = (x, x + result.v_safe * dt, elapsed) if result.active else None
+        self._record = (
+            result.active,
+            result.guarding,
+            result.mode,
+            result.v_nominal,
+            result.v_safe,
+            result.intervened,
+        )
+        self._segment = (x, x + result.v_safe * dt, result.filter_time) if result.guarding else None
         return result.v_safe.copy()
 
     def _update_phase(self, info: dict[str, Any]) -> None:
         base = self.env.unwrapped
-        self._guard.observe(
-            bool(info.get("needle_grasped", base.needle_grasped)),
-            bool(info.get("needle_in_tissue", base.needle_in_tissue)),
-        )
+        self._guard.observe(bool(info.get("needle_grasped", base.needle_grasped)), int(base.throw_index))
 
     def _cbf_info(self, info: dict[str, Any]) -> dict[str, Any]:
         tip = info.get("needle_tip_pos", self.env.unwrapped.needle_tip_pos)
         center, axes, rotation = self.safe_set()
         tip = np.asarray(tip, dtype=np.float64)
-        active, v_nominal, v_safe, intervened = self._record or (False, _NAN3, _NAN3, False)
+        active, guarding, mode, v_nominal, v_safe, intervened = self._record or (
+            False,
+            False,
+            "",
+            _NAN3,
+            _NAN3,
+            False,
+        )
         tracking = deviation = filter_time = float("nan")
         if self._segment is not None:
             start, end, filter_time = self._segment
             tracking = float(np.linalg.norm(tip - end))
             points = info.get("needle_tip_trace", tip[None])
             deviation = float(np.max(segment_distance(points, start, end)))
-            if not self.config.enabled:
-                filter_time = float("nan")
         return {
             "cbf_active": active,
+            "cbf_guarding": guarding,
+            "cbf_mode": mode,
             "h": float(ellipsoid_h(tip, center, axes, rotation)),
             "v_nominal": v_nominal.copy(),
             "v_safe": v_safe.copy(),

@@ -1,29 +1,47 @@
 """The CBF over one suture throw, from what a real system measures: one filter for the env and the robot path.
 
-:class:`TipGuard` holds the throw's phase (idle, active, done) and applies
-:meth:`CBFConfig.filter <lerobot_suture.safety.cbf_config.CBFConfig.filter>` to the needle tip's motion. It
-is used two ways, with the same phase rules and the same filter:
+:class:`TipGuard` keeps the held needle's tip out of the tissue everywhere but the wound. Its safe set is the
+union of two convex sets, each tightened by the margin ``m``:
+
+- ``above``: the half-space above the tissue surface, ``height >= m`` (:mod:`~lerobot_suture.safety.surface_cbf`);
+- ``wound``: the throw's ellipsoid, ``h >= h_m`` (:func:`~lerobot_suture.safety.cbf.filter_velocity_discrete`).
+
+The tissue outside the ellipsoid is the one region the tip may not enter. The filter is on whenever the needle
+is held and a wound is registered, whatever the throw's phase: an action can neither leave the tissue and come
+back elsewhere, nor end the guard by loosening the jaw without letting go.
+
+The union is not convex, so the filter works in one convex *mode* at a time (``above`` or ``wound``) and keeps
+the tip's commanded end point, hence its straight commanded segment, inside that mode's tightened set. It
+switches mode only while the tip and every end point it commanded in the last ``latency_steps`` control steps
+lie in both sets (their intersection is convex), choosing the mode whose filtered velocity is nearest the
+nominal one. Why this covers latency and an arm that falls short: an arm that moves the tip in straight lines
+towards commanded end points keeps it in the convex hull of where it was and of those end points. Within a mode
+that hull is inside the mode's set; at a switch every end point still in flight, and the tip, lie in the
+intersection, which is inside the new mode's set too. The margin covers the tip's distance from that path
+(tracking error plus grasp-model error); a tip found in a margin band is brought back by the mode's own
+recovery rule (its barrier never decreases over the step).
+
+It is used two ways, with the same rules and the same filter:
 
 - :meth:`TipGuard.filter_target` (the robot path, ``suture_cbf`` processor step): from the measured pose of
   the needle holder, the commanded target pose, a :class:`GraspModel` (where the needle sits in the jaw) and a
   registered :class:`Wound` (entry and exit points, tissue normal). The needle tip and the commanded tip
-  motion come from kinematics; whether the needle is held comes from the measured jaw closure, whether it is
-  in tissue from the needle's arc against the tissue surface. It returns the target pose moved so that the
-  tip's commanded end point is ``tip + v_safe * control_dt``. Nothing is read from a simulator.
+  motion come from kinematics; whether the needle may be held comes from the measured jaw closure and the
+  commanded one. It returns the target pose moved so that the tip's commanded end point is
+  ``tip + v_safe * control_dt``. Nothing is read from a simulator.
 - :meth:`TipGuard.filter_velocity` (the env path, ``CBFActionWrapper``): the env hands over the tip and its
-  nominal velocity at the moment its controller computes them, and the grasp and tissue signals it knows.
+  nominal velocity at the moment its controller computes them, and whether the needle is held.
 
-Why a target end point is safe under latency: the discrete filter keeps the commanded segment, hence its end
-point, in the margin-tightened ellipsoid, which is convex. An arm that moves the tip in a straight line towards
-each commanded end point (``SutureEnv(tip_tracking=True)``, or a real arm's Cartesian controller) therefore
-stays within its tracking error of that convex set whichever stale pose the command was computed from, and
-whether it reaches the end point or falls short. The margin must cover tracking error plus grasp-model error.
-Units: m, s, rad.
+The throw's *phase* (idle, active, done) is reported, not what switches the filter: it becomes active when the
+needle is held in a grasp a throw starts from with its tip in the tightened ellipsoid, and done when the needle
+is released. Units: m, s, rad.
 """
 
 from __future__ import annotations
 
+import logging
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -31,15 +49,22 @@ import numpy as np
 
 from lerobot_suture.safety.cbf import ellipsoid_h, suture_ellipsoid_frame
 from lerobot_suture.safety.cbf_config import CBFConfig
+from lerobot_suture.safety.surface_cbf import filter_velocity_surface, surface_height
 from lerobot_suture.sim.geometry import NEEDLE_RADIUS, grasp_transform, matrix_from_rot6, needle_arc_points
 from lerobot_suture.sim.task import GRASP_ANGLE
 
 PHASE_IDLE = "idle"
-"""No throw yet: motions pass through."""
+"""The throw has not begun."""
 PHASE_ACTIVE = "active"
-"""A throw has begun: motions are filtered."""
+"""The throw has begun (the needle held in a throw grasp entered the tightened ellipsoid)."""
 PHASE_DONE = "done"
-"""The throw ended (needle out of the tissue, or released): motions pass through until the next throw."""
+"""The throw's needle was released after the throw began (a regrasped needle is guarded all the same)."""
+MODE_ABOVE = "above"
+"""The tip is kept above the tissue surface, by the margin."""
+MODE_WOUND = "wound"
+"""The tip is kept in the throw's ellipsoid, tightened by the margin."""
+
+logger = logging.getLogger(__name__)
 
 _ARC_POINTS = 16
 
@@ -83,12 +108,17 @@ class Wound:
         object.__setattr__(self, "_frame", suture_ellipsoid_frame(entry, exit_, normal))
 
     def ellipsoid_frame(self) -> tuple[np.ndarray, np.ndarray]:
-        """(centre (3,) m, world-from-ellipsoid rotation (3, 3)) of the throw's safe set."""
+        """(centre (3,) m, world-from-ellipsoid rotation (3, 3)) of the throw's ellipsoid."""
         return self._frame
 
-    def depth(self, points: np.ndarray) -> np.ndarray:
-        """Depth (m) of ``points`` (..., 3) below the tissue surface plane (negative above it)."""
-        return (self.entry_point - np.asarray(points, dtype=np.float64)) @ self.surface_normal
+    def barrier(self, points: np.ndarray, semi_axes: np.ndarray) -> np.ndarray:
+        """The safe set's barrier at ``points`` (..., 3) m for an ellipsoid of ``semi_axes`` (3,) m: the larger of
+        the ellipsoid's h and the height above the tissue surface in units of the normal semi-axis. >= 0
+        exactly where the tip may be (above the tissue, or in the ellipsoid); (...,) float64."""
+        center, rotation = self._frame
+        h = np.asarray(ellipsoid_h(points, center, semi_axes, rotation))
+        height = surface_height(points, self.entry_point, self.surface_normal) / semi_axes[2]
+        return np.maximum(h, height)
 
 
 @dataclass
@@ -136,39 +166,47 @@ class GuardResult(NamedTuple):
     """What the guard did with one control step's motion.
 
     Attributes:
-        active: the filter was applied (phase ``active``).
+        active: the throw's phase is ``active`` (the throw has begun and the needle is held).
+        guarding: the needle may be held and a wound is registered: the filter was applied (or, disabled, would
+            have been).
         v_nominal: (3,) m/s commanded tip velocity.
         v_safe: (3,) m/s tip velocity let through.
         intervened: ``v_safe`` differs from ``v_nominal``.
-        h: barrier at the tip (>= 0 inside the safe set), NaN without a wound.
-        filter_time: wall time of the filter call (s), NaN when not active.
+        h: the ellipsoid's barrier at the tip (>= 0 inside it), NaN without a wound.
+        filter_time: wall time of the filter call (s), NaN when it did not run.
+        mode: ``above`` or ``wound``, the convex set the step was kept in ("" when not guarding).
     """
 
     active: bool
+    guarding: bool
     v_nominal: np.ndarray
     v_safe: np.ndarray
     intervened: bool
     h: float
     filter_time: float
+    mode: str
 
 
 @dataclass
 class TipGuard:
-    """The phase of a throw and the CBF on the needle tip's motion (see the module docstring).
+    """The CBF on the held needle's tip, and the phase of the throw (see the module docstring).
 
-    Phase rules: the filter switches on at the first control step where the needle is held in a grasp a throw
-    starts from and the tip is inside the set (the margin-tightened set in discrete mode); it switches off for
-    the rest of the throw when the needle leaves the tissue after having been in it, or is released. A new
-    ``throw_index`` starts over; so does :meth:`reset`.
+    A new ``throw_index`` starts over; so does :meth:`reset`.
 
     Args:
         cbf: the filter's configuration (``enabled=False``: the phase and h are tracked, motions pass).
-        held_jaw_range: measured jaw closures (0 open, 1 closed) that mean "the jaw holds the needle": a jaw
-            closed on the wire reads about 0.88, one closed on nothing 1 (:meth:`filter_target` only).
+        held_jaw_range: measured jaw closures (0 open, 1 closed) at which the jaw may hold the needle: the arm
+            lets go only below a command of 0.5, a jaw closed on the wire reads about 0.88 and one closed on
+            nothing 1 (:meth:`filter_target` only). A jaw commanded to close (>= 0.5) may catch the needle
+            whatever it reads, and counts as holding it too.
+        latency_steps: control steps (>= 0) between a measurement and the motion of the command computed from
+            it (observation plus command latency), as the arm declares it: how many commanded end points may
+            still be in flight when the mode switches, and how long a jaw may have held the needle unseen.
     """
 
     cbf: CBFConfig = field(default_factory=lambda: CBFConfig(enabled=True))
-    held_jaw_range: tuple[float, float] = (0.6, 0.97)
+    held_jaw_range: tuple[float, float] = (0.45, 0.97)
+    latency_steps: int = 0
 
     def __post_init__(self):
         low, high = self.held_jaw_range
@@ -176,59 +214,116 @@ class TipGuard:
             raise ValueError(
                 f"`held_jaw_range` must satisfy 0 <= low < high <= 1. Got {self.held_jaw_range}."
             )
+        if isinstance(self.latency_steps, bool) or not isinstance(self.latency_steps, int):
+            raise ValueError(f"`latency_steps` must be an integer >= 0. Got {self.latency_steps!r}.")
+        if not 0 <= self.latency_steps <= 100:
+            raise ValueError(f"`latency_steps` must be in [0, 100] control steps. Got {self.latency_steps}.")
         self.reset()
 
     def reset(self) -> None:
-        """Forget the throw: back to ``idle``."""
+        """Forget the throw: back to ``idle``, no mode, nothing in flight."""
         self.phase = PHASE_IDLE
         self._throw_index: int | None = None
-        self._seen_in_tissue = False
+        self._mode: str | None = None
+        # Per commanded end point still possibly in flight: whether it lies in each mode's tightened set.
+        self._in_flight: deque[tuple[bool, bool]] = deque(maxlen=self.latency_steps)
+        # Per recent control step: whether the jaw may have held the needle (robot path).
+        self._jaw_window: deque[bool] = deque(maxlen=self.latency_steps + 1)
 
     @property
     def activation_level(self) -> float:
         return self.cbf.margin_level if self.cbf.discrete else 0.0
 
-    def observe(self, held: bool, in_tissue: bool) -> None:
-        """The throw's end: the needle is out of the tissue after having been in it, or not held."""
-        if self.phase != PHASE_ACTIVE:
-            return
-        if in_tissue:
-            self._seen_in_tissue = True
-        elif self._seen_in_tissue:
-            self.phase = PHASE_DONE
-        if not held:
+    @property
+    def mode(self) -> str | None:
+        """``above`` or ``wound`` while guarding, else None."""
+        return self._mode
+
+    @property
+    def throw_index(self) -> int | None:
+        """The throw the phase is of (None before the first)."""
+        return self._throw_index
+
+    def observe(self, held: bool, throw_index: int | None = None) -> None:
+        """After a step: a needle no longer held ends the throw's phase; a new ``throw_index`` starts over."""
+        if throw_index is not None and throw_index != self._throw_index:
+            self.reset()
+            self._throw_index = throw_index
+        if self.phase == PHASE_ACTIVE and not held:
             self.phase = PHASE_DONE
 
     def filter_velocity(
-        self, tip: np.ndarray, v_nominal: np.ndarray, wound: Wound, ready: bool, in_tissue: bool, dt: float
+        self, tip: np.ndarray, v_nominal: np.ndarray, wound: Wound, held: bool, ready: bool, dt: float
     ) -> GuardResult:
         """One control step's tip velocity through the guard.
 
         Args:
             tip: (3,) m the needle tip now. v_nominal: (3,) m/s commanded tip velocity.
-            wound: the throw's registered wound. ready: the needle is held in a grasp a throw starts from.
-            in_tissue: the needle is in tissue now. dt: control period (s) the velocity is held for.
+            wound: the throw's registered wound. held: the needle is (or may be) held.
+            ready: the needle is held in a grasp a throw starts from (the phase may begin).
+            dt: control period (s) the velocity is held for.
         """
         x = np.asarray(tip, dtype=np.float64)
         v = np.array(v_nominal, dtype=np.float64)
-        if wound.throw_index != self._throw_index:
-            self.reset()
-            self._throw_index = wound.throw_index
+        self.observe(held, wound.throw_index)
         center, rotation = wound.ellipsoid_frame()
-        axes = self.cbf.semi_axes
-        h = float(ellipsoid_h(x, center, axes, rotation))
+        h = float(ellipsoid_h(x, center, self.cbf.semi_axes, rotation))
+        if not held:
+            self._mode = None
+            self._in_flight.clear()
+            return GuardResult(False, False, v, v.copy(), False, h, float("nan"), "")
         if self.phase == PHASE_IDLE and ready and h >= self.activation_level:
             self.phase = PHASE_ACTIVE
-            self._seen_in_tissue = bool(in_tissue)
         active = self.phase == PHASE_ACTIVE
-        if active and self.cbf.enabled:
-            start = time.perf_counter()
-            result = self.cbf.filter(x, v, center, rotation, float(dt))
-            elapsed = time.perf_counter() - start
-            return GuardResult(
-                True, v, np.asarray(result.v_safe, dtype=np.float64), bool(result.intervened), h, elapsed
+        if not self.cbf.enabled:
+            return GuardResult(active, True, v, v.copy(), False, h, float("nan"), "")
+        start = time.perf_counter()
+        margin = self.cbf.margin if self.cbf.discrete else 0.0
+        height = float(surface_height(x, wound.entry_point, wound.surface_normal))
+        # A mode may be entered when the tip and every end point still in flight lie in its set: the tightened
+        # ellipsoid; above the tissue (a tip in the surface's margin band is lifted by the mode's recovery).
+        may_enter = {
+            MODE_WOUND: h >= self.activation_level and all(wound_ok for wound_ok, _ in self._in_flight),
+            MODE_ABOVE: height >= margin and all(above_ok for _, above_ok in self._in_flight),
+        }
+        candidates = {
+            MODE_WOUND: np.asarray(
+                self.cbf.filter(x, v, center, rotation, float(dt)).v_safe, dtype=np.float64
+            ),
+            MODE_ABOVE: filter_velocity_surface(
+                x, v, wound.entry_point, wound.surface_normal, self.cbf.alpha, float(dt), margin
+            )[0],
+        }
+        allowed = [mode for mode in (MODE_ABOVE, MODE_WOUND) if may_enter[mode] or mode == self._mode]
+        if allowed:
+            # The mode whose filtered velocity is nearest the nominal; on a tie, the current one.
+            self._mode = min(
+                allowed, key=lambda m: (float(np.linalg.norm(candidates[m] - v)), m != self._mode)
             )
-        return GuardResult(active, v, v.copy(), False, h, float("nan"))
+        else:  # no mode yet, the tip in the tissue outside the tightened ellipsoid: back into it, or lift
+            self._mode = MODE_WOUND if h >= 0.0 else MODE_ABOVE
+        v_safe = candidates[self._mode]
+        if self.latency_steps:
+            end = x + v_safe * dt
+            self._in_flight.append(
+                (
+                    bool(ellipsoid_h(end, center, self.cbf.semi_axes, rotation) >= self.activation_level),
+                    float(surface_height(end, wound.entry_point, wound.surface_normal)) >= margin,
+                )
+            )
+        elapsed = time.perf_counter() - start
+        intervened = not np.array_equal(v_safe, v)
+        return GuardResult(active, True, v, v_safe, intervened, h, elapsed, self._mode)
+
+    def jaw_may_hold(self, measured_closure: float, commanded_closure: float) -> bool:
+        """Whether the jaw may hold the needle, from its measured and commanded closure (0 open, 1 closed) over
+        the last ``latency_steps + 1`` control steps: a reading in ``held_jaw_range``, or a command to close
+        (>= 0.5) that may catch the needle while the jaw does not read closed on nothing."""
+        low, high = self.held_jaw_range
+        self._jaw_window.append(
+            low <= measured_closure <= high or (commanded_closure >= 0.5 and measured_closure < high)
+        )
+        return any(self._jaw_window)
 
     def filter_target(
         self,
@@ -252,31 +347,39 @@ class TipGuard:
                 told to hold its measured pose instead.
 
         Returns:
-            (the target pose to send (10,) float64, the guard's result). While active, the position moves so
+            (the target pose to send (10,) float64, the guard's result). While guarding, the position moves so
             that the tip's commanded end point is ``tip + v_safe * dt``, and the rotation columns are those of
             the orthonormalized target rotation (an arm that clips columns to [-1, 1] leaves them as they are).
+            A target whose rotation columns are zero or parallel (inside the action space, but no rotation)
+            becomes "hold the measured pose", with the target's jaw, and a warning says why.
 
         Raises:
-            ValueError: a pose that is not 10 finite numbers with two independent rotation columns.
+            ValueError: a pose that is not 10 finite numbers, or a measured pose without two independent
+                rotation columns.
         """
         pose = _finite_vector("measured_pose", measured_pose, 10)
         target = _finite_vector("target_pose", target_pose, 10)
         jaw_rot = matrix_from_rot6(pose[3:9])
-        target_rot = matrix_from_rot6(target[3:9])
+        try:
+            target_rot = matrix_from_rot6(target[3:9])
+        except ValueError as error:
+            logger.warning(
+                "suture_cbf holds the measured pose: the commanded pose has no rotation (%s).", error
+            )
+            held_target = target.copy()
+            held_target[:9] = pose[:9]
+            nan3 = np.full(3, np.nan)
+            return held_target, GuardResult(False, False, nan3, nan3, True, float("nan"), float("nan"), "")
         if wound is None:
             nan3 = np.full(3, np.nan)
-            return target, GuardResult(False, nan3, nan3, False, float("nan"), float("nan"))
-        arc_in_jaw = grasp.arc_in_jaw()
-        arc = pose[:3] + arc_in_jaw @ jaw_rot.T
-        tip = arc[0]
-        held = self.held_jaw_range[0] <= pose[9] <= self.held_jaw_range[1]
-        in_tissue = bool(np.any(wound.depth(arc) > 0.0))
-        if wound.throw_index == self._throw_index:
-            self.observe(held, in_tissue)
-        tip_target = target[:3] + target_rot @ arc_in_jaw[0]
-        result = self.filter_velocity(tip, (tip_target - tip) / dt, wound, held, in_tissue, dt)
+            return target, GuardResult(False, False, nan3, nan3, False, float("nan"), float("nan"), "")
+        tip_in_jaw = grasp.tip_in_jaw()
+        tip = pose[:3] + jaw_rot @ tip_in_jaw
+        held = self.jaw_may_hold(float(pose[9]), float(target[9]))
+        tip_target = target[:3] + target_rot @ tip_in_jaw
+        result = self.filter_velocity(tip, (tip_target - tip) / dt, wound, held, held, dt)
         out = target.copy()
-        if result.active:
+        if result.guarding and self.cbf.enabled:
             out[:3] = target[:3] + (result.v_safe - result.v_nominal) * dt
             out[3:9] = np.concatenate([target_rot[:, 0], target_rot[:, 1]])
             if workspace is not None and not np.all((workspace[0] <= out[:3]) & (out[:3] <= workspace[1])):

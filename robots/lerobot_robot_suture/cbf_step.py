@@ -15,7 +15,9 @@ motion of the needle tip with :class:`~lerobot_suture.safety.tip_guard.TipGuard`
 
 Only the target's position changes: the tip's commanded end point becomes ``tip + v_safe * control_dt``. The
 guarantee needs an arm whose Cartesian controller moves the tip in a straight line towards that point
-(``suture_sim`` with ``--robot.tip_tracking=true``), within the margin less the grasp model's error.
+(``suture_sim`` with ``--robot.tip_tracking=true``), within the margin less the grasp model's error, and a
+declared ``latency_steps`` at least the arm's. A commanded pose with no rotation (zero or parallel columns)
+becomes "hold the measured pose", with a warning, rather than ending the run.
 """
 
 from __future__ import annotations
@@ -65,7 +67,9 @@ class SutureCBFStep(RobotActionProcessorStep):
         wound: a fixed registration, 9 numbers (entry point, exit point, surface normal; m), used when the
             observation carries none; None: only the observation's.
         control_dt: the arm's control period (s): how long the commanded motion takes.
-        held_jaw_range: measured jaw closures that mean the jaw holds the needle.
+        held_jaw_range: measured jaw closures at which the jaw may hold the needle (``TipGuard``).
+        latency_steps: the arm's declared latency (observation plus command, control steps >= 0): how long a
+            command may stay in flight and a grasp go unseen (``TipGuard``).
         workspace_low, workspace_high: the box (m) the arm clips target positions to (``suture_sim``'s by
             default); a filtered target outside it becomes "hold the measured pose". None: no box.
 
@@ -76,7 +80,8 @@ class SutureCBFStep(RobotActionProcessorStep):
     grasp: GraspModel | dict = field(default_factory=GraspModel)
     wound: list[float] | None = None
     control_dt: float = CONTROL_DT
-    held_jaw_range: tuple[float, float] = (0.6, 0.97)
+    held_jaw_range: tuple[float, float] = (0.45, 0.97)
+    latency_steps: int = 0
     workspace_low: list[float] | None = field(default_factory=lambda: WORKSPACE_LOW.tolist())
     workspace_high: list[float] | None = field(default_factory=lambda: WORKSPACE_HIGH.tolist())
 
@@ -107,13 +112,18 @@ class SutureCBFStep(RobotActionProcessorStep):
                     f"Got {self.workspace_low!r}, {self.workspace_high!r}."
                 )
             self._workspace = (low, high)
-        self._guard = TipGuard(self.cbf, tuple(self.held_jaw_range))
+        self._guard = TipGuard(self.cbf, tuple(self.held_jaw_range), self.latency_steps)
         self.last_result: GuardResult | None = None
 
     @property
     def phase(self) -> str:
         """The throw's phase: ``idle``, ``active`` or ``done``."""
         return self._guard.phase
+
+    @property
+    def throw_index(self) -> int | None:
+        """The throw the phase is of, as the last registration said (None before the first)."""
+        return self._guard.throw_index
 
     def registered_wound(self, observation: dict) -> Wound | None:
         """The wound the observation registers, else the configured one, else None."""
@@ -158,6 +168,7 @@ class SutureCBFStep(RobotActionProcessorStep):
             "wound": None if self.wound is None else [float(v) for v in self.wound],
             "control_dt": float(self.control_dt),
             "held_jaw_range": [float(v) for v in self.held_jaw_range],
+            "latency_steps": int(self.latency_steps),
             "workspace_low": None if self.workspace_low is None else [float(v) for v in self.workspace_low],
             "workspace_high": None
             if self.workspace_high is None
