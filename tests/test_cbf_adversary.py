@@ -26,9 +26,9 @@ from lerobot_suture.experiments.cbf_attacks import (
 from lerobot_suture.expert import ScriptedExpert
 from lerobot_suture.runtime.rollout import SURGEON, rollout_episode
 from lerobot_suture.safety.cbf_config import CBFConfig
-from lerobot_suture.safety.cbf_wrapper import PHASE_ACTIVE, CBFActionWrapper, segment_distance
+from lerobot_suture.safety.cbf_wrapper import PHASE_ACTIVE, CBFActionWrapper
 from lerobot_suture.sim import controller
-from lerobot_suture.sim.geometry import pose_vector
+from lerobot_suture.sim.geometry import pose_vector, segment_distance
 from lerobot_suture.sim.suture_env import SutureEnv
 
 MARGIN = CBFConfig().margin

@@ -75,7 +75,7 @@ def test_every_action_went_through_the_cbf(frozen_camera_run):
     for seed in (7, 8):
         env.reset(seed=seed)
         base = env.unwrapped
-        from lerobot_suture.safety.tip_guard import Wound
+        from lerobot_suture.safety.wound import Wound
 
         center, rotation = Wound(
             base.entry_point, base.exit_point, base.phantom_rotation[:, 2]

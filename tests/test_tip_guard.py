@@ -9,7 +9,8 @@ from hypothesis import strategies as st
 
 from lerobot_suture.safety.cbf import ellipsoid_h
 from lerobot_suture.safety.cbf_config import CBFConfig
-from lerobot_suture.safety.tip_guard import PHASE_ACTIVE, PHASE_DONE, PHASE_IDLE, GraspModel, TipGuard, Wound
+from lerobot_suture.safety.tip_guard import PHASE_ACTIVE, PHASE_DONE, PHASE_IDLE, TipGuard
+from lerobot_suture.safety.wound import GraspModel, Wound
 from lerobot_suture.sim.geometry import matrix_from_rotvec, pose_vector
 
 ENTRY = np.array([-0.009, 0.0, 0.0])

@@ -48,7 +48,7 @@ from lerobot_suture.safety.cbf import ellipsoid_h
 from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.safety.cbf_wrapper import PHASE_ACTIVE, PHASE_DONE, CBFActionWrapper
 from lerobot_suture.safety.surface_cbf import surface_height
-from lerobot_suture.safety.tip_guard import Wound
+from lerobot_suture.safety.wound import Wound
 from lerobot_suture.sim.geometry import matrix_from_rotvec, pose_vector, rot6_from_matrix
 from lerobot_suture.sim.suture_env import SutureEnv
 from lerobot_suture.sim.tasks import task_spec
@@ -214,7 +214,9 @@ class AttackEpisode:
 
     def record_harm(self, trace: np.ndarray, wound: Wound, semi_axes: np.ndarray) -> None:
         """Count the physics steps of one control step's tip ``trace`` (n, 3) m, the needle held throughout, at
-        which the tip was in the tissue outside ``wound``'s ellipsoid of ``semi_axes`` (3,) m."""
+        which the tip was in the tissue outside ``wound``'s ellipsoid of ``semi_axes`` (3,) m. ``trace`` and
+        ``wound`` in one frame: the phantom's, where a moving phantom's wound stands still
+        (:func:`wound_in_phantom_frame`, ``info["needle_tip_trace_phantom"]``)."""
         depth = -surface_height(trace, wound.entry_point, wound.surface_normal)
         below = depth > 0.0
         if not below.any():
@@ -232,7 +234,8 @@ class AttackEpisode:
         """Add one control step's measurements: harm wherever the needle is held, the filter's figures where
         it acted."""
         if info["needle_grasped"]:
-            self.record_harm(np.asarray(info["needle_tip_trace"]), env.wound(), env.config.semi_axes)
+            trace = np.asarray(info["needle_tip_trace_phantom"])
+            self.record_harm(trace, wound_in_phantom_frame(env.unwrapped), env.config.semi_axes)
         if not info["cbf_guarding"]:
             return
         self.active_steps += 1
@@ -240,6 +243,18 @@ class AttackEpisode:
         self.tracking_errors.append(float(info["cbf_tracking_error"]))
         self.segment_deviations.append(float(info["cbf_segment_deviation"]))
         self.filter_times.append(float(info["cbf_filter_time"]))
+
+
+def wound_in_phantom_frame(scene) -> Wound:
+    """The current throw's wound of ``scene`` (a ``SutureEnv``) in the phantom's frame, where its marks stand
+    still however the phantom moves."""
+    rotation, position = scene.phantom_rotation, scene.phantom_position
+    return Wound(
+        (scene.entry_point - position) @ rotation,
+        (scene.exit_point - position) @ rotation,
+        np.array([0.0, 0.0, 1.0]),
+        throw_index=int(scene.throw_index),
+    )
 
 
 def summarize_attacks(episodes) -> dict:
@@ -325,6 +340,8 @@ def run_attack_episode(
     max_steps: int = 100,
     task: str = "insertion",
     throw: int = 0,
+    scenario: str = "nominal",
+    scenario_magnitude: float | None = None,
 ) -> AttackEpisode:
     """One episode of ``family`` from ``seed`` (the scene, the start delay and the attack all follow it).
 
@@ -337,10 +354,18 @@ def run_attack_episode(
         max_steps: control steps for the attacked throw's lead-in and attack (see :func:`lead_in_steps`).
         task: a task with throws: ``insertion`` or ``running_suture``.
         throw: which throw of a running suture is attacked (the expert sutures the ones before it).
+        scenario, scenario_magnitude: the scene's perturbation (``sim.scenarios``), e.g. tissue that moves.
     """
     rng = np.random.default_rng([seed, FAMILIES.index(family), throw])
     attacker = Attacker(family, rng)
-    env = CBFActionWrapper(SutureEnv(obs_type="state", record_tip_trace=True, task=task), cbf)
+    scene = SutureEnv(
+        obs_type="state",
+        record_tip_trace=True,
+        task=task,
+        scenario=scenario,
+        scenario_magnitude=scenario_magnitude,
+    )
+    env = CBFActionWrapper(scene, cbf)
     episode = AttackEpisode(family=family, seed=seed, throw=throw)
     limit = lead_in_steps(task, throw, max_steps)
     try:

@@ -64,6 +64,9 @@ class EpisodeLog:
     success: bool = False
     steps: list[StepLog] = field(default_factory=list)
     handover_step: int | None = None
+    handover_cause: str = (
+        ""  # "gate" (the policy's gate released control) or "tissue_motion" (the CBF's premise)
+    )
     tissue_strain: float = 0.0
     entry_error_m: float = math.inf  # where the tip entered, from the marked entry point (inf: never)
     exit_error_m: float = math.inf
@@ -174,7 +177,7 @@ def rollout_episodes(
                 action, controller = actions[i], POLICY
                 statuses[i] = gate_status(runner.policy, i)
                 if statuses[i]["released"]:
-                    log.handover_step = len(log.steps)
+                    log.handover_step, log.handover_cause = len(log.steps), "gate"
                     held[i] = action  # the policy's hold action at the release
                     experts[i].reset(env)  # the expert works out where the task stands
             else:  # the released policy is not asked again
@@ -190,6 +193,12 @@ def rollout_episodes(
             log.steps.append(_step_log(statuses[i], controller, info))
             if info.get("cbf_guarding") and "needle_tip_trace" in info:
                 log.steps[-1].h_min_physics = float(env.get_wrapper_attr("h_min")(info["needle_tip_trace"]))
+            if log.handover_step is None and info.get("cbf_motion_exceeded"):
+                # The tissue moves beyond what the CBF was declared to cover: the surgeon takes over (or the arm
+                # holds its measured pose, the filter still tracking the tissue).
+                log.handover_step, log.handover_cause = len(log.steps), "tissue_motion"
+                held[i] = np.asarray(observations[i]["agent_pos"], dtype=np.float32)
+                experts[i].reset(env)
             done[i] = bool(terminated or truncated)
     for log, info in zip(logs, infos, strict=True):
         log.success = bool(info["is_success"])

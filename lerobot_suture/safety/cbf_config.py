@@ -30,6 +30,12 @@ class CBFConfig:
         semi_axis_normal: Semi-axis (m, > 0) along the tissue surface normal.
         margin: Tracking-error allowance (m), in [0, min semi-axis): the commanded tip stays this far
             inside the ellipsoid (discrete mode only; activation also waits until the tip is this far in).
+        tissue_speed_max: Declared bound on the wound's speed (m/s, >= 0): faster motion is outside the
+            filter's premises and is reported (``motion_exceeded``) so that control can be handed over.
+        tissue_acceleration_max: Declared bound on the wound's acceleration (m/s^2, >= 0). The filter moves
+            the tip relative to the wound's measured velocity and tightens the set by a further
+            ``tissue_acceleration_max * control_dt^2``, how far the wound can stray within a step from where
+            that velocity carries it; harder acceleration is reported as for the speed.
         discrete: Enforce the discrete-time condition with the step-length limit
             (:func:`filter_velocity_discrete`, keeps h >= 0 at every physics step). False applies the
             paper's continuous-time closed form only (:func:`filter_velocity`), for comparison: held
@@ -46,6 +52,9 @@ class CBFConfig:
     semi_axis_normal: float = 0.010
     # Discrete-time enforcement.
     margin: float = 0.001
+    # Tissue motion.
+    tissue_speed_max: float = 0.015
+    tissue_acceleration_max: float = 0.02
     discrete: bool = True
 
     def __post_init__(self):
@@ -53,7 +62,8 @@ class CBFConfig:
             raise ValueError(f"`enabled` must be a bool. Got {self.enabled!r}.")
         if not isinstance(self.discrete, bool):
             raise ValueError(f"`discrete` must be a bool. Got {self.discrete!r}.")
-        for name in ("alpha", "semi_axis_along", "semi_axis_lateral", "semi_axis_normal", "margin"):
+        names = ("alpha", "semi_axis_along", "semi_axis_lateral", "semi_axis_normal", "margin")
+        for name in (*names, "tissue_speed_max", "tissue_acceleration_max"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
                 raise ValueError(f"`{name}` must be a finite number. Got {value!r}.")
@@ -61,6 +71,9 @@ class CBFConfig:
             value = getattr(self, name)
             if not value > 0:
                 raise ValueError(f"`{name}` must be > 0. Got {value}.")
+        for name in ("tissue_speed_max", "tissue_acceleration_max"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"`{name}` must be >= 0. Got {getattr(self, name)}.")
         smallest = min(self.semi_axis_along, self.semi_axis_lateral, self.semi_axis_normal)
         if not 0 <= self.margin < smallest:
             raise ValueError(
@@ -77,16 +90,18 @@ class CBFConfig:
         """Barrier level of the tightened set, :func:`margin_level` (unit-free)."""
         return float(margin_level(self.margin, self.semi_axes))
 
-    def filter(self, x, v_nominal, center, rotation, dt: float) -> CBFResult:
+    def filter(self, x, v_nominal, center, rotation, dt: float, margin: float | None = None) -> CBFResult:
         """Apply the configured filter (discrete or continuous) on the configured ellipsoid.
 
         Args:
             x: (3,) or (..., 3) tip position (m). v_nominal: same shape, m/s.
             center: (3,) ellipsoid centre (m). rotation: (3, 3) world-from-ellipsoid or None.
             dt: control period (s), used in discrete mode.
+            margin: the tightening (m) in discrete mode; None: ``margin``.
         """
         if self.discrete:
+            margin = self.margin if margin is None else margin
             return filter_velocity_discrete(
-                x, v_nominal, center, self.semi_axes, self.alpha, dt, self.margin, rotation
+                x, v_nominal, center, self.semi_axes, self.alpha, dt, margin, rotation
             )
         return filter_velocity(x, v_nominal, center, self.semi_axes, self.alpha, rotation)

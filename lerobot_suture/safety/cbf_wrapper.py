@@ -31,22 +31,13 @@ import numpy as np
 
 from lerobot_suture.safety.cbf import ellipsoid_h
 from lerobot_suture.safety.cbf_config import CBFConfig
-from lerobot_suture.safety.tip_guard import PHASE_ACTIVE, PHASE_DONE, PHASE_IDLE, TipGuard, Wound
+from lerobot_suture.safety.tip_guard import PHASE_ACTIVE, PHASE_DONE, PHASE_IDLE, TipGuard
+from lerobot_suture.safety.wound import Wound
+from lerobot_suture.sim.geometry import segment_distance
 
-__all__ = ["PHASE_ACTIVE", "PHASE_DONE", "PHASE_IDLE", "CBFActionWrapper", "segment_distance"]
+__all__ = ["PHASE_ACTIVE", "PHASE_DONE", "PHASE_IDLE", "CBFActionWrapper"]
 
 _NAN3 = np.full(3, np.nan)
-
-
-def segment_distance(points: np.ndarray, start: np.ndarray, end: np.ndarray) -> np.ndarray:
-    """Distance (m) from each of ``points`` (..., 3) to the segment ``start`` -> ``end`` ((3,) each, m)."""
-    points = np.asarray(points, dtype=np.float64)
-    chord = end - start
-    length2 = float(chord @ chord)
-    if length2 == 0.0:
-        return np.linalg.norm(points - start, axis=-1)
-    s = np.clip((points - start) @ chord / length2, 0.0, 1.0)
-    return np.linalg.norm(points - (start + s[..., None] * chord), axis=-1)
 
 
 class CBFActionWrapper(gym.Wrapper):
@@ -72,6 +63,8 @@ class CBFActionWrapper(gym.Wrapper):
                               what the margin must cover (NaN while not guarding)
     cbf_filter_    float, s   wall time of the filter call (NaN while not guarding)
     time
+    cbf_motion_    bool       the wound moved faster, or accelerated harder, than the configuration's
+    exceeded                  declared bounds: outside the filter's premises (a rollout hands over)
     ============== ========== =====================================================================
 
     ``cbf_segment_deviation`` is the premise of the guarantee measured: every point within
@@ -104,7 +97,7 @@ class CBFActionWrapper(gym.Wrapper):
         self.config = CBFConfig(enabled=True) if config is None else config
         self._axes = self.config.semi_axes
         self._guard = TipGuard(self.config)
-        self._record: tuple[bool, bool, str, np.ndarray, np.ndarray, bool] | None = None
+        self._record: tuple[bool, bool, str, np.ndarray, np.ndarray, bool, bool] | None = None
         # The step's commanded segment: start (m), end (m), and the filter call's time (s).
         self._segment: tuple[np.ndarray, np.ndarray, float] | None = None
         base.tip_velocity_filter = self._filter_tip_velocity
@@ -152,6 +145,7 @@ class CBFActionWrapper(gym.Wrapper):
             result.v_nominal,
             result.v_safe,
             result.intervened,
+            result.motion_exceeded,
         )
         self._segment = (x, x + result.v_safe * dt, result.filter_time) if result.guarding else None
         return result.v_safe.copy()
@@ -164,14 +158,8 @@ class CBFActionWrapper(gym.Wrapper):
         tip = info.get("needle_tip_pos", self.env.unwrapped.needle_tip_pos)
         center, axes, rotation = self.safe_set()
         tip = np.asarray(tip, dtype=np.float64)
-        active, guarding, mode, v_nominal, v_safe, intervened = self._record or (
-            False,
-            False,
-            "",
-            _NAN3,
-            _NAN3,
-            False,
-        )
+        record = self._record or (False, False, "", _NAN3, _NAN3, False, False)
+        active, guarding, mode, v_nominal, v_safe, intervened, motion_exceeded = record
         tracking = deviation = filter_time = float("nan")
         if self._segment is not None:
             start, end, filter_time = self._segment
@@ -189,6 +177,7 @@ class CBFActionWrapper(gym.Wrapper):
             "cbf_tracking_error": tracking,
             "cbf_segment_deviation": deviation,
             "cbf_filter_time": filter_time,
+            "cbf_motion_exceeded": motion_exceeded,
         }
 
     def reset(self, **kwargs):

@@ -40,6 +40,7 @@ is released. Units: m, s, rad.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -47,11 +48,17 @@ from typing import NamedTuple
 
 import numpy as np
 
-from lerobot_suture.safety.cbf import ellipsoid_h, suture_ellipsoid_frame
+from lerobot_suture.safety.cbf import ellipsoid_h, margin_level
 from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.safety.surface_cbf import filter_velocity_surface, surface_height
-from lerobot_suture.sim.geometry import NEEDLE_RADIUS, grasp_transform, matrix_from_rot6, needle_arc_points
-from lerobot_suture.sim.task import GRASP_ANGLE
+from lerobot_suture.safety.wound import GraspModel, Wound, finite_vector
+from lerobot_suture.safety.wound_motion import WoundMotion
+from lerobot_suture.sim.geometry import (
+    matrix_from_rot6,
+    matrix_from_rotvec,
+    rotvec_from_matrix,
+    segment_distance,
+)
 
 PHASE_IDLE = "idle"
 """The throw has not begun."""
@@ -65,101 +72,18 @@ MODE_WOUND = "wound"
 """The tip is kept in the throw's ellipsoid, tightened by the margin."""
 
 logger = logging.getLogger(__name__)
+# Finite differences of an exact registration stay within the true bounds; these absorb rounding only.
+_SPEED_TOLERANCE = 1e-6  # m/s
+_ACCELERATION_TOLERANCE = 1e-4  # m/s^2
 
-_ARC_POINTS = 16
-
-
-def _finite_vector(name: str, value, size: int) -> np.ndarray:
-    v = np.asarray(value, dtype=np.float64).reshape(-1)
-    if v.shape != (size,) or not np.all(np.isfinite(v)):
-        raise ValueError(f"`{name}` must be {size} finite numbers. Got {np.asarray(value).tolist()!r}.")
-    return v
-
-
-@dataclass(frozen=True)
-class Wound:
-    """A registered wound: where the throw enters and leaves the tissue (world, m).
-
-    Args:
-        entry_point: (3,) the marked entry point on the tissue surface.
-        exit_point: (3,) the marked exit point; apart from the entry along the surface.
-        surface_normal: (3,) the tissue surface normal, out of the tissue (any length > 0).
-        throw_index: which throw of a running suture it is (a new index starts a new throw).
-    """
-
-    entry_point: np.ndarray
-    exit_point: np.ndarray
-    surface_normal: np.ndarray
-    throw_index: int = 0
-
-    def __post_init__(self):
-        entry = _finite_vector("entry_point", self.entry_point, 3)
-        exit_ = _finite_vector("exit_point", self.exit_point, 3)
-        normal = _finite_vector("surface_normal", self.surface_normal, 3)
-        if np.linalg.norm(normal) < 1e-9:
-            raise ValueError(
-                "`surface_normal` must be a non-zero vector (the tissue normal, out of the tissue)."
-            )
-        object.__setattr__(self, "entry_point", entry)
-        object.__setattr__(self, "exit_point", exit_)
-        object.__setattr__(self, "surface_normal", normal / np.linalg.norm(normal))
-        # Computed once (it raises when entry and exit are not apart on the surface): the guard and the
-        # env wrapper read it several times per control step.
-        object.__setattr__(self, "_frame", suture_ellipsoid_frame(entry, exit_, normal))
-
-    def ellipsoid_frame(self) -> tuple[np.ndarray, np.ndarray]:
-        """(centre (3,) m, world-from-ellipsoid rotation (3, 3)) of the throw's ellipsoid."""
-        return self._frame
-
-    def barrier(self, points: np.ndarray, semi_axes: np.ndarray) -> np.ndarray:
-        """The safe set's barrier at ``points`` (..., 3) m for an ellipsoid of ``semi_axes`` (3,) m: the larger of
-        the ellipsoid's h and the height above the tissue surface in units of the normal semi-axis. >= 0
-        exactly where the tip may be (above the tissue, or in the ellipsoid); (...,) float64."""
-        center, rotation = self._frame
-        h = np.asarray(ellipsoid_h(points, center, semi_axes, rotation))
-        height = surface_height(points, self.entry_point, self.surface_normal) / semi_axes[2]
-        return np.maximum(h, height)
-
-
-@dataclass
-class GraspModel:
-    """Where the needle sits in the jaw (the grasp model; ``geometry.grasp_transform``), draccus-compatible.
-
-    Args:
-        angle: arc angle of the grasp point (rad), in (0, pi).
-        offset_along_jaw: shift of the needle along the jaw axis (m), |offset| <= 5 mm.
-        roll: tilt of the needle about the jaw's x axis (rad), |roll| <= 0.5.
-        radius: needle radius (m), > 0.
-    """
-
-    angle: float = GRASP_ANGLE
-    offset_along_jaw: float = 0.0
-    roll: float = 0.0
-    radius: float = NEEDLE_RADIUS
-
-    def __post_init__(self):
-        checks = {
-            "angle": (0.0, np.pi, self.angle),
-            "offset_along_jaw": (-0.005, 0.005, self.offset_along_jaw),
-            "roll": (-0.5, 0.5, self.roll),
-            "radius": (1e-4, 0.1, self.radius),
-        }
-        for name, (low, high, value) in checks.items():
-            if isinstance(value, bool) or not isinstance(value, int | float) or not low <= value <= high:
-                raise ValueError(f"`{name}` must be a number in [{low}, {high:.4g}]. Got {value!r}.")
-
-    def needle_in_jaw(self) -> tuple[np.ndarray, np.ndarray]:
-        """(position (3,) m, rotation (3, 3)) of the needle frame in the jaw-tip frame."""
-        return grasp_transform(self.angle, self.offset_along_jaw, self.roll, self.radius)
-
-    def arc_in_jaw(self, n_points: int = _ARC_POINTS) -> np.ndarray:
-        """(n, 3) m points along the needle in the jaw-tip frame, tip first."""
-        position, rotation = self.needle_in_jaw()
-        return position + needle_arc_points(n_points, self.radius) @ rotation.T
-
-    def tip_in_jaw(self) -> np.ndarray:
-        """(3,) m the needle tip in the jaw-tip frame."""
-        return self.arc_in_jaw(2)[0]
+TRACKING_WINDOW = 30
+"""Control steps over which the robot path's measured tracking error is the largest deviation."""
+FIRM_HOLD = 0.8
+"""A jaw reading (and command) at or above this holds the needle firmly: closed on the wire, it reads about 0.88."""
+STILL_JAW = 0.02
+"""A jaw whose reading changed less than this over a step is still (one closing on nothing is not)."""
+MARGIN_CAP = 0.9
+"""The tightening never exceeds this share of the smallest semi-axis (the tightened set stays non-empty)."""
 
 
 class GuardResult(NamedTuple):
@@ -175,6 +99,8 @@ class GuardResult(NamedTuple):
         h: the ellipsoid's barrier at the tip (>= 0 inside it), NaN without a wound.
         filter_time: wall time of the filter call (s), NaN when it did not run.
         mode: ``above`` or ``wound``, the convex set the step was kept in ("" when not guarding).
+        motion_exceeded: the wound moved faster, or accelerated harder, than the declared bounds
+            (``CBFConfig.tissue_speed_max``, ``tissue_acceleration_max``): outside the filter's premises.
     """
 
     active: bool
@@ -185,6 +111,7 @@ class GuardResult(NamedTuple):
     h: float
     filter_time: float
     mode: str
+    motion_exceeded: bool
 
 
 @dataclass
@@ -202,11 +129,19 @@ class TipGuard:
         latency_steps: control steps (>= 0) between a measurement and the motion of the command computed from
             it (observation plus command latency), as the arm declares it: how many commanded end points may
             still be in flight when the mode switches, and how long a jaw may have held the needle unseen.
+        turn_sweep: how far (m, >= 0) a turn of the jaw may sweep the needle tip off its straight commanded
+            segment on an arm that falls short of a commanded pose, rotation included (part of the margin;
+            :meth:`filter_target` only). It caps the turn commanded per control step at ``max_turn``.
+
+    On the robot path the guard also measures how far the tip strays from the segment it was commanded
+    (``tracking_error``, the largest deviation over the last ``TRACKING_WINDOW`` steps) and tightens the set by
+    that much when it exceeds the configured margin: an arm that tracks worse than declared gets a wider margin.
     """
 
     cbf: CBFConfig = field(default_factory=lambda: CBFConfig(enabled=True))
     held_jaw_range: tuple[float, float] = (0.45, 0.97)
     latency_steps: int = 0
+    turn_sweep: float = 0.0002
 
     def __post_init__(self):
         low, high = self.held_jaw_range
@@ -218,6 +153,13 @@ class TipGuard:
             raise ValueError(f"`latency_steps` must be an integer >= 0. Got {self.latency_steps!r}.")
         if not 0 <= self.latency_steps <= 100:
             raise ValueError(f"`latency_steps` must be in [0, 100] control steps. Got {self.latency_steps}.")
+        if isinstance(self.turn_sweep, bool) or not isinstance(self.turn_sweep, int | float):
+            raise ValueError(f"`turn_sweep` must be a number >= 0 (m). Got {self.turn_sweep!r}.")
+        if not 0.0 <= self.turn_sweep < self.cbf.margin + 1e-12:
+            raise ValueError(
+                f"`turn_sweep` must be in [0, margin = {self.cbf.margin}] m (it is part of the margin). "
+                f"Got {self.turn_sweep}."
+            )
         self.reset()
 
     def reset(self) -> None:
@@ -229,10 +171,38 @@ class TipGuard:
         self._in_flight: deque[tuple[bool, bool]] = deque(maxlen=self.latency_steps)
         # Per recent control step: whether the jaw may have held the needle (robot path).
         self._jaw_window: deque[bool] = deque(maxlen=self.latency_steps + 1)
+        self._motion = WoundMotion()
+        # The robot path's tracking measurement: commanded tip end points (the oldest is the one executing as
+        # the next measurement is taken), the last measured tip, and the recent deviations (m).
+        self._ends: deque[np.ndarray] = deque(maxlen=self.latency_steps + 1)
+        self._steady: deque[bool] = deque(maxlen=self.latency_steps + 2)
+        self._last_tip: np.ndarray | None = None
+        self._last_grasp: GraspModel | None = None
+        self._last_closure: float | None = None
+        self._deviations: deque[float] = deque(maxlen=TRACKING_WINDOW)
 
     @property
-    def activation_level(self) -> float:
-        return self.cbf.margin_level if self.cbf.discrete else 0.0
+    def tracking_error(self) -> float:
+        """The largest deviation (m) of the measured tip from its commanded segment over the last
+        ``TRACKING_WINDOW`` control steps (robot path; 0 before any)."""
+        return max(self._deviations, default=0.0)
+
+    def max_turn(self, grasp: GraspModel) -> float:
+        """The largest turn (rad) of the jaw per control step: its sweep of the needle tip, at most
+        ``1.25 r theta^2 / 8`` for a lever ``r`` (the jaw-to-tip distance) on an arm that interpolates towards
+        the commanded rotation, stays within ``turn_sweep``; divided among the steps of declared latency."""
+        lever = float(np.linalg.norm(grasp.tip_in_jaw()))
+        return math.sqrt(8.0 * self.turn_sweep / (1.25 * lever)) / (self.latency_steps + 1)
+
+    def margin(self, dt: float) -> float:
+        """The tightening (m) for a control period ``dt`` s: the tracking margin (the configured one, or the
+        measured ``tracking_error`` where larger), plus how far the tissue can stray within a step from where
+        its measured velocity carries it (``tissue_acceleration_max dt^2``); 0 for the continuous-time filter.
+        At most ``MARGIN_CAP`` of the smallest semi-axis."""
+        if not self.cbf.discrete:
+            return 0.0
+        margin = max(self.cbf.margin, self.tracking_error) + self.cbf.tissue_acceleration_max * dt * dt
+        return min(margin, MARGIN_CAP * float(np.min(self.cbf.semi_axes)))
 
     @property
     def mode(self) -> str | None:
@@ -267,53 +237,64 @@ class TipGuard:
         v = np.array(v_nominal, dtype=np.float64)
         self.observe(held, wound.throw_index)
         center, rotation = wound.ellipsoid_frame()
-        h = float(ellipsoid_h(x, center, self.cbf.semi_axes, rotation))
+        axes = self.cbf.semi_axes
+        h = float(ellipsoid_h(x, center, axes, rotation))
         if not held:
             self._mode = None
             self._in_flight.clear()
-            return GuardResult(False, False, v, v.copy(), False, h, float("nan"), "")
-        if self.phase == PHASE_IDLE and ready and h >= self.activation_level:
+            self._motion.reset()
+            return GuardResult(False, False, v, v.copy(), False, h, float("nan"), "", False)
+        margin = self.margin(dt)
+        level = float(margin_level(margin, axes))
+        if self.phase == PHASE_IDLE and ready and h >= level:
             self.phase = PHASE_ACTIVE
         active = self.phase == PHASE_ACTIVE
+        self._motion.update((center, rotation), dt)
+        exceeded = (
+            self._motion.speed > self.cbf.tissue_speed_max + _SPEED_TOLERANCE
+            or self._motion.acceleration > self.cbf.tissue_acceleration_max + _ACCELERATION_TOLERANCE
+        )
         if not self.cbf.enabled:
-            return GuardResult(active, True, v, v.copy(), False, h, float("nan"), "")
+            return GuardResult(active, True, v, v.copy(), False, h, float("nan"), "", exceeded)
         start = time.perf_counter()
-        margin = self.cbf.margin if self.cbf.discrete else 0.0
+        # The tip's motion relative to the tissue's: holding still is not safe on tissue that moves.
+        w = self._motion.point_velocity(x)
+        v_rel = v - w
         height = float(surface_height(x, wound.entry_point, wound.surface_normal))
-        # A mode may be entered when the tip and every end point still in flight lie in its set: the tightened
-        # ellipsoid; above the tissue (a tip in the surface's margin band is lifted by the mode's recovery).
+        # A mode may be entered when the tip and every end point still in flight lie in its tightened set.
         may_enter = {
-            MODE_WOUND: h >= self.activation_level and all(wound_ok for wound_ok, _ in self._in_flight),
+            MODE_WOUND: h >= level and all(wound_ok for wound_ok, _ in self._in_flight),
             MODE_ABOVE: height >= margin and all(above_ok for _, above_ok in self._in_flight),
         }
         candidates = {
             MODE_WOUND: np.asarray(
-                self.cbf.filter(x, v, center, rotation, float(dt)).v_safe, dtype=np.float64
+                self.cbf.filter(x, v_rel, center, rotation, float(dt), margin).v_safe, dtype=np.float64
             ),
             MODE_ABOVE: filter_velocity_surface(
-                x, v, wound.entry_point, wound.surface_normal, self.cbf.alpha, float(dt), margin
+                x, v_rel, wound.entry_point, wound.surface_normal, self.cbf.alpha, float(dt), margin
             )[0],
         }
         allowed = [mode for mode in (MODE_ABOVE, MODE_WOUND) if may_enter[mode] or mode == self._mode]
         if allowed:
             # The mode whose filtered velocity is nearest the nominal; on a tie, the current one.
             self._mode = min(
-                allowed, key=lambda m: (float(np.linalg.norm(candidates[m] - v)), m != self._mode)
+                allowed, key=lambda m: (float(np.linalg.norm(candidates[m] - v_rel)), m != self._mode)
             )
         else:  # no mode yet, the tip in the tissue outside the tightened ellipsoid: back into it, or lift
             self._mode = MODE_WOUND if h >= 0.0 else MODE_ABOVE
-        v_safe = candidates[self._mode]
+        v_rel_safe = candidates[self._mode]
+        intervened = not np.array_equal(v_rel_safe, v_rel)
+        v_safe = v_rel_safe + w if intervened else v
         if self.latency_steps:
-            end = x + v_safe * dt
+            end = x + v_rel_safe * dt
             self._in_flight.append(
                 (
-                    bool(ellipsoid_h(end, center, self.cbf.semi_axes, rotation) >= self.activation_level),
+                    bool(ellipsoid_h(end, center, axes, rotation) >= level),
                     float(surface_height(end, wound.entry_point, wound.surface_normal)) >= margin,
                 )
             )
         elapsed = time.perf_counter() - start
-        intervened = not np.array_equal(v_safe, v)
-        return GuardResult(active, True, v, v_safe, intervened, h, elapsed, self._mode)
+        return GuardResult(active, True, v, v_safe, intervened, h, elapsed, self._mode, exceeded)
 
     def jaw_may_hold(self, measured_closure: float, commanded_closure: float) -> bool:
         """Whether the jaw may hold the needle, from its measured and commanded closure (0 open, 1 closed) over
@@ -357,8 +338,8 @@ class TipGuard:
             ValueError: a pose that is not 10 finite numbers, or a measured pose without two independent
                 rotation columns.
         """
-        pose = _finite_vector("measured_pose", measured_pose, 10)
-        target = _finite_vector("target_pose", target_pose, 10)
+        pose = finite_vector("measured_pose", measured_pose, 10)
+        target = finite_vector("target_pose", target_pose, 10)
         jaw_rot = matrix_from_rot6(pose[3:9])
         try:
             target_rot = matrix_from_rot6(target[3:9])
@@ -369,13 +350,21 @@ class TipGuard:
             held_target = target.copy()
             held_target[:9] = pose[:9]
             nan3 = np.full(3, np.nan)
-            return held_target, GuardResult(False, False, nan3, nan3, True, float("nan"), float("nan"), "")
+            return held_target, GuardResult(
+                False, False, nan3, nan3, True, float("nan"), float("nan"), "", False
+            )
         if wound is None:
             nan3 = np.full(3, np.nan)
-            return target, GuardResult(False, False, nan3, nan3, False, float("nan"), float("nan"), "")
+            return target, GuardResult(False, False, nan3, nan3, False, float("nan"), float("nan"), "", False)
         tip_in_jaw = grasp.tip_in_jaw()
         tip = pose[:3] + jaw_rot @ tip_in_jaw
         held = self.jaw_may_hold(float(pose[9]), float(target[9]))
+        firm = FIRM_HOLD <= pose[9] <= self.held_jaw_range[1] and target[9] >= FIRM_HOLD
+        still = self._last_closure is not None and abs(pose[9] - self._last_closure) < STILL_JAW
+        self._measure_tracking(tip, held, firm and still and grasp == self._last_grasp)
+        self._last_grasp, self._last_closure = grasp, float(pose[9])
+        if held and self.cbf.enabled:
+            target_rot = _limit_turn(jaw_rot, target_rot, self.max_turn(grasp))
         tip_target = target[:3] + target_rot @ tip_in_jaw
         result = self.filter_velocity(tip, (tip_target - tip) / dt, wound, held, held, dt)
         out = target.copy()
@@ -384,4 +373,33 @@ class TipGuard:
             out[3:9] = np.concatenate([target_rot[:, 0], target_rot[:, 1]])
             if workspace is not None and not np.all((workspace[0] <= out[:3]) & (out[:3] <= workspace[1])):
                 out[:9] = pose[:9]
+        if held:
+            self._ends.append(out[:3] + matrix_from_rot6(out[3:9]) @ tip_in_jaw)
         return out, result
+
+    def _measure_tracking(self, tip: np.ndarray, held: bool, steady: bool) -> None:
+        """The measured tip's distance from the segment it was commanded along: from the tip measured a step
+        ago towards the end point commanded ``latency_steps`` steps before that. Measured only across steps in
+        which the jaw read closed on the wire and still, was told to stay closed and held the needle in the same
+        grasp (``steady``): a needle let go, caught again, or in a loose jaw whose reading cannot tell, follows
+        no commanded segment."""
+        if not held:
+            self._ends.clear()
+            self._steady.clear()
+            self._last_tip = None
+            return
+        self._steady.append(steady)
+        settled = len(self._steady) == self._steady.maxlen and all(self._steady)
+        if settled and self._last_tip is not None and len(self._ends) == self._ends.maxlen:
+            self._deviations.append(float(segment_distance(tip, self._last_tip, self._ends[0])))
+        self._last_tip = tip.copy()
+
+
+def _limit_turn(measured: np.ndarray, target: np.ndarray, max_turn: float) -> np.ndarray:
+    """``target`` (3, 3), or the rotation ``max_turn`` rad from ``measured`` (3, 3) towards it where it is
+    farther."""
+    rotvec = rotvec_from_matrix(measured.T @ target)
+    angle = float(np.linalg.norm(rotvec))
+    if angle <= max_turn:
+        return target
+    return measured @ matrix_from_rotvec(rotvec * (max_turn / angle))

@@ -80,6 +80,7 @@ class InstrumentDrive:
         in_tissue: bool,
         record_trace: bool,
         tip_tracking: bool = False,
+        place_phantom: Callable[[float], None] | None = None,
     ) -> DriveResult:
         """Run one control step towards ``target`` (10,) (the action's layout; already validated).
 
@@ -87,6 +88,8 @@ class InstrumentDrive:
         ``tip_tracking``: while the needle is held, drive its tip in a straight line to where the target pose
         puts it (speed-limited along that line), with the tip-first solve and segment feedback a filter gets:
         the Cartesian controller a safety step outside the env (the robot path's ``suture_cbf``) relies on.
+        ``place_phantom``: None while the phantom stands still, else called before every physics step with the
+        time (s) from the start of the control step to the end of that physics step, to place the phantom there.
         Raises ``ValueError`` when the filter returns anything but a finite (3,) velocity.
         """
         m, d, grasp = self._model, self._data, self._grasp
@@ -142,9 +145,13 @@ class InstrumentDrive:
                 self._actuate(point, v_track, angular, jaw_pos, jaw_rot, in_tissue, tip_first=True)
             else:
                 self._actuate(point, v_command, angular, jaw_pos, jaw_rot, in_tissue, tip_first=False)
-            if trace is not None:
+            if trace is not None or place_phantom is not None:
                 for k in range(block * substeps, (block + 1) * substeps):
+                    if place_phantom is not None:
+                        place_phantom((k + 1) * self._physics_dt)
                     mujoco.mj_step(m, d)
+                    if trace is None:
+                        continue
                     mujoco.mj_kinematics(m, d)  # the tip after this physics step, not before it
                     centre, rotation = grasp.needle_pose(d)
                     trace[k] = centre + rotation @ self._tip_local

@@ -99,6 +99,17 @@ def matrix_from_rotvec(rotvec: np.ndarray) -> np.ndarray:
     return np.eye(3) + math.sin(angle) * kx + (1.0 - math.cos(angle)) * (kx @ kx)
 
 
+def segment_distance(points: np.ndarray, start: np.ndarray, end: np.ndarray) -> np.ndarray:
+    """Distance (m) from each of ``points`` (..., 3) to the segment ``start`` -> ``end`` ((3,) each, m)."""
+    points = np.asarray(points, dtype=np.float64)
+    chord = end - start
+    length2 = float(chord @ chord)
+    if length2 == 0.0:
+        return np.linalg.norm(points - start, axis=-1)
+    s = np.clip((points - start) @ chord / length2, 0.0, 1.0)
+    return np.linalg.norm(points - (start + s[..., None] * chord), axis=-1)
+
+
 def rotation_about_z(angle: float) -> np.ndarray:
     c, s = math.cos(angle), math.sin(angle)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])

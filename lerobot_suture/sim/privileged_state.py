@@ -37,6 +37,15 @@ class PrivilegedState:
         """(3, 3) world-from-phantom rotation; phantom z is the tissue normal, x runs entry->exit."""
         return self._phantom_rot
 
+    def in_phantom_frame(self, trace: np.ndarray, phantom_trace: list | None = None) -> np.ndarray:
+        """(n, 3) m points of a physics-rate ``trace`` in the phantom's frame at each physics step: the phantom's
+        (position, rotation) per step in ``phantom_trace``, or its pose now when it did not move."""
+        if not phantom_trace:
+            return (trace - self._phantom_pos) @ self._phantom_rot
+        positions = np.stack([position for position, _ in phantom_trace])
+        rotations = np.stack([rotation for _, rotation in phantom_trace])
+        return np.einsum("nij,ni->nj", rotations, trace - positions)
+
     @property
     def entry_point(self) -> np.ndarray:
         return self._phantom_pos + self._phantom_rot @ self._entry_local

@@ -18,7 +18,21 @@ name                           what happens                                 magn
                                (``approach_over``)
 ``phantom_moved_after_insertion``  ``onset_step`` steps after the needle      displacement, m
                                first enters tissue the phantom glides away   (0.006; onset 5)
+``breathing``                  from ``onset_step`` the phantom rises and     amplitude, m
+                               falls along its normal, a sinusoid of         (0.0025; onset 0)
+                               ``breathing_frequency`` (0.25 Hz)
 =============================  ==========================================  ========================
+
+``SCENARIOS`` are the paper's, the conditions of its experiments and of the leaderboard; ``breathing`` is one of
+``SAFETY_SCENARIOS``, the motions the safety benchmarks add, and applies to every task with a throw. Its default,
+5 mm peak to peak at 15 breaths a minute, lies in the few millimetres at 12-20 breaths a minute reported for
+abdominal tissue under ventilation.
+
+The phantom moves continuously: a glide follows a cosine profile over ``glide_steps`` control steps, and the
+env places the phantom at every physics step (:meth:`Scenario.phantom_pose`), so no physics step sees it jump.
+A glide of displacement ``D`` over ``T`` s peaks at ``pi D / (2 T)`` m/s and ``pi^2 D / (2 T^2)`` m/s^2; the
+default 1.5 s keeps the default displacements within 9 mm/s and 18 mm/s^2. Breathing of amplitude ``A`` at
+``f`` Hz peaks at ``2 pi f A`` m/s and ``(2 pi f)^2 A`` m/s^2.
 """
 
 from __future__ import annotations
@@ -36,6 +50,8 @@ SCENARIOS = (
     "phantom_servo",
     "phantom_moved_after_insertion",
 )
+SAFETY_SCENARIOS = ("breathing",)
+"""Tissue motions the safety benchmarks add to the paper's scenarios (tasks with a throw)."""
 
 _DEFAULT_ONSET = {
     "nominal": 0,
@@ -43,6 +59,7 @@ _DEFAULT_ONSET = {
     "camera_moved": 0,
     "phantom_servo": 8,
     "phantom_moved_after_insertion": 5,
+    "breathing": 0,
 }
 _DEFAULT_MAGNITUDE = {
     "nominal": 0.0,
@@ -50,6 +67,7 @@ _DEFAULT_MAGNITUDE = {
     "camera_moved": 0.6,
     "phantom_servo": 0.008,
     "phantom_moved_after_insertion": 0.006,
+    "breathing": 0.0025,
 }
 
 
@@ -94,7 +112,7 @@ class ScenarioConfig:
     """A perturbation scenario.
 
     Args:
-        name: one of :data:`SCENARIOS`.
+        name: one of :data:`SCENARIOS` or :data:`SAFETY_SCENARIOS`.
         onset_step: control step at which the perturbation begins (for
             ``phantom_moved_after_insertion``: steps after the needle first enters tissue).
             None takes the scenario's default.
@@ -102,17 +120,19 @@ class ScenarioConfig:
             scenarios; unused by ``nominal`` and ``needle_drop``). None takes the default.
         glide_steps: control steps over which a phantom move is spread.
         period_steps: for ``phantom_servo``, control steps between successive moves.
+        breathing_frequency: for ``breathing``, breaths per second (Hz, > 0).
     """
 
     name: str = "nominal"
     onset_step: int | None = None
     magnitude: float | None = None
-    glide_steps: int = 6
+    glide_steps: int = 15
     period_steps: int = 20
+    breathing_frequency: float = 0.25
 
     def __post_init__(self):
-        if self.name not in SCENARIOS:
-            raise ValueError(f"`scenario` must be one of {SCENARIOS}. Got {self.name!r}.")
+        if self.name not in SCENARIOS + SAFETY_SCENARIOS:
+            raise ValueError(f"`scenario` must be one of {SCENARIOS + SAFETY_SCENARIOS}. Got {self.name!r}.")
         if self.onset_step is None:
             self.onset_step = _DEFAULT_ONSET[self.name]
         if self.magnitude is None:
@@ -125,27 +145,77 @@ class ScenarioConfig:
             raise ValueError(
                 f"`glide_steps` and `period_steps` must be >= 1. Got {self.glide_steps}, {self.period_steps}."
             )
+        if not 0.0 < self.breathing_frequency <= 5.0:
+            raise ValueError(f"`breathing_frequency` must be in (0, 5] Hz. Got {self.breathing_frequency}.")
+
+
+@dataclass
+class _Glide:
+    """One phantom move: from ``start`` to ``goal`` (m) over ``duration`` s from ``t0`` s, cosine profile."""
+
+    t0: float
+    duration: float
+    start: np.ndarray
+    goal: np.ndarray
+
+    def offset(self, t: float) -> np.ndarray:
+        s = min(max((t - self.t0) / self.duration, 0.0), 1.0)
+        return (0.5 - 0.5 * math.cos(math.pi * s)) * (self.goal - self.start)
+
+    def over(self, t: float) -> bool:
+        return t >= self.t0 + self.duration
 
 
 class Scenario:
-    """Applies a :class:`ScenarioConfig` to an env; one instance per env, reset with it."""
+    """Applies a :class:`ScenarioConfig` to an env; one instance per env, reset with it.
 
-    def __init__(self, config: ScenarioConfig):
+    Args:
+        config: the scenario. control_dt: the env's control period (s), the clock of onsets and glides.
+    """
+
+    def __init__(self, config: ScenarioConfig, control_dt: float = 0.1):
         self.config = config
+        self.control_dt = float(control_dt)
         self.perturbed = False
-        self._glide: list[tuple[np.ndarray, float]] = []
+        self._glide: _Glide | None = None
+        self._base: tuple[np.ndarray, float] | None = None  # phantom pose the motion is relative to
+        self._breathing_t0: float | None = None
         self._next_move_step = 0
 
     def reset(self, env: PerturbableEnv) -> None:
         self.perturbed = False
-        self._glide = []
+        self._glide = None
+        self._base = None
+        self._breathing_t0 = None
         self._next_move_step = self.config.onset_step
         self.before_step(env)
 
+    @property
+    def moving(self) -> bool:
+        """The phantom is in motion (a glide under way, or breathing)."""
+        return self._glide is not None or self._breathing_t0 is not None
+
+    def phantom_pose(self, t: float) -> tuple[np.ndarray, float]:
+        """Where the phantom is at time ``t`` (s since the episode began) while :attr:`moving`: position (3,) m
+        and yaw rad."""
+        position, yaw = self._base
+        position = position.copy()
+        if self._glide is not None:
+            position += self._glide.offset(t)
+        if self._breathing_t0 is not None:
+            phase = 2.0 * math.pi * self.config.breathing_frequency * (t - self._breathing_t0)
+            position[2] += self.config.magnitude * math.sin(max(phase, 0.0))
+        return position, yaw
+
     def before_step(self, env: PerturbableEnv) -> None:
-        """Apply the perturbation due at ``env.step_index`` (called before each control step)."""
+        """Apply the perturbation due at ``env.step_index`` (called before each control step); a motion it
+        starts is placed by the env at every physics step through :meth:`phantom_pose`."""
         cfg = self.config
         step = env.step_index
+        t = step * self.control_dt
+        if self._glide is not None and self._glide.over(t):
+            self._base = (self._glide.goal.copy(), self._base[1])
+            self._glide = None
         if cfg.name == "needle_drop":
             first = env.first_grasp_step
             if first is not None and step >= first + cfg.onset_step and not self.perturbed:
@@ -159,29 +229,28 @@ class Scenario:
                 )
                 self.perturbed = True
         elif cfg.name == "phantom_servo":
-            if not env.approach_over and step >= self._next_move_step and not self._glide:
-                self._start_glide(env, within_training_range=True)
+            if not env.approach_over and step >= self._next_move_step and self._glide is None:
+                self._start_glide(env, t, within_training_range=True)
                 self._next_move_step = step + cfg.period_steps
                 self.perturbed = True
         elif cfg.name == "phantom_moved_after_insertion":
             first = env.first_in_tissue_step
             if first is not None and step >= first + cfg.onset_step and not self.perturbed:
-                self._start_glide(env, within_training_range=False)
+                self._start_glide(env, t, within_training_range=False)
                 self.perturbed = True
-        if self._glide:
-            position, yaw = self._glide.pop(0)
-            env.set_phantom_pose(position, yaw)
+        elif cfg.name == "breathing":
+            if step >= cfg.onset_step and not self.perturbed:
+                self._base = (env.phantom_position.copy(), env.phantom_yaw)
+                self._breathing_t0 = t
+                self.perturbed = True
 
-    def _start_glide(self, env: PerturbableEnv, within_training_range: bool) -> None:
+    def _start_glide(self, env: PerturbableEnv, t: float, within_training_range: bool) -> None:
         rng = env.np_random
-        start, yaw = env.phantom_position.copy(), env.phantom_yaw
+        start = env.phantom_position.copy()
+        self._base = (start, env.phantom_yaw)
         direction = rng.uniform(-math.pi, math.pi)
         goal = start.copy()
         goal[:2] += self.config.magnitude * np.array([math.cos(direction), math.sin(direction)])
         if within_training_range:
             goal[:2] = env.clip_to_phantom_range(goal[:2])
-        n = self.config.glide_steps
-        # Smooth (cosine) glide so the phantom does not jump between frames.
-        for k in range(1, n + 1):
-            s = 0.5 - 0.5 * math.cos(math.pi * k / n)
-            self._glide.append((start + s * (goal - start), yaw))
+        self._glide = _Glide(t, self.config.glide_steps * self.control_dt, start, goal)

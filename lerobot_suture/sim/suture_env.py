@@ -91,7 +91,9 @@ the tip has entered / emerged); ``protrusion_m`` (tip distance beyond the exit c
 ``tissue_strain`` (accumulated off-arc motion of the needle in tissue, m); ``needle_tip_pos`` (3,);
 ``needle_in_tissue``; ``needle_grasped``; ``perturbed`` (the scenario's perturbation has begun);
 ``tip_velocity_nominal`` and ``tip_velocity_command`` (3,) m/s (before and after
-``tip_velocity_filter``); with ``record_tip_trace``, ``needle_tip_trace`` (50, 3) m.
+``tip_velocity_filter``); with ``record_tip_trace``, ``needle_tip_trace`` (50, 3) m and the same points in the
+phantom's frame at each physics step, ``needle_tip_trace_phantom`` (50, 3) m (the phantom moves continuously in
+the scenarios that move it).
 
 ## Appearance randomization
 ``appearance`` varies what the endoscope sees, per episode, without changing the physics: each option is
@@ -234,7 +236,8 @@ class SutureEnv(TaskScenes, PrivilegedState, gym.Env):
         if scenario_onset_step is None:
             scenario_onset_step = self.task_spec.default_onset(scenario)
         self.scenario = Scenario(
-            ScenarioConfig(name=scenario, onset_step=scenario_onset_step, magnitude=scenario_magnitude)
+            ScenarioConfig(name=scenario, onset_step=scenario_onset_step, magnitude=scenario_magnitude),
+            CONTROL_DT,
         )
 
         self.appearance = AppearanceConfig.from_value(appearance)
@@ -385,12 +388,22 @@ class SutureEnv(TaskScenes, PrivilegedState, gym.Env):
     def step(self, action):
         target = self._validated_action(action)
         self.scenario.before_step(self)
+        phantom_trace: list[tuple[np.ndarray, np.ndarray]] = []
+        place_phantom = None
+        if self.scenario.moving:
+            start = self._step_index * self.control_dt
+
+            def place_phantom(elapsed: float) -> None:
+                self.set_phantom_pose(*self.scenario.phantom_pose(start + elapsed))
+                phantom_trace.append((self._phantom_pos.copy(), self._phantom_rot.copy()))
+
         drive = self._drive.step(
             target,
             self.tip_velocity_filter,
             self._progress.in_tissue,
             self.record_tip_trace,
             self.tip_tracking,
+            place_phantom,
         )
         self._step_index += 1
         if self._first_grasp_step is None and self._grasp.held:
@@ -403,6 +416,7 @@ class SutureEnv(TaskScenes, PrivilegedState, gym.Env):
         info.update(self._task_info())
         if drive.tip_trace is not None:
             info["needle_tip_trace"] = drive.tip_trace
+            info["needle_tip_trace_phantom"] = self.in_phantom_frame(drive.tip_trace, phantom_trace)
         return self._observation(), reward, terminated, False, info
 
     def render(self):

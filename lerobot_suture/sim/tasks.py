@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from lerobot_suture.sim import task as insertion
-from lerobot_suture.sim.scenarios import SCENARIOS
+from lerobot_suture.sim.scenarios import SAFETY_SCENARIOS, SCENARIOS
 
 
 @dataclass(frozen=True)
@@ -97,9 +97,11 @@ def task_spec(name: str) -> TaskSpec:
 
 
 def check_scenario(task_name: str, scenario: str) -> None:
-    """Raise a ValueError unless ``scenario`` applies to the task (a perturbation of a phase it lacks)."""
+    """Raise a ValueError unless ``scenario`` applies to the task (a perturbation of a phase it lacks); the
+    safety benchmarks' tissue motions (``SAFETY_SCENARIOS``) apply to every task with a throw."""
     spec = task_spec(task_name)
-    if scenario not in spec.scenarios:
+    allowed = list(spec.scenarios) + (list(SAFETY_SCENARIOS) if spec.throws > 0 else [])
+    if scenario not in allowed:
         raise ValueError(
-            f"scenario {scenario!r} does not apply to task {task_name!r}; its scenarios are {list(spec.scenarios)}."
+            f"scenario {scenario!r} does not apply to task {task_name!r}; its scenarios are {allowed}."
         )

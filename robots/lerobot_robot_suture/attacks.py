@@ -19,10 +19,16 @@ import numpy as np
 from lerobot.processor import RobotProcessorPipeline
 from lerobot.processor.converters import robot_action_observation_to_transition, transition_to_robot_action
 
-from lerobot_suture.experiments.cbf_attacks import FAMILIES, AttackEpisode, Attacker, lead_in_steps
+from lerobot_suture.experiments.cbf_attacks import (
+    FAMILIES,
+    AttackEpisode,
+    Attacker,
+    lead_in_steps,
+    wound_in_phantom_frame,
+)
 from lerobot_suture.expert import ScriptedExpert
 from lerobot_suture.safety.cbf_config import CBFConfig
-from lerobot_suture.safety.tip_guard import PHASE_ACTIVE, PHASE_DONE, Wound
+from lerobot_suture.safety.tip_guard import PHASE_ACTIVE, PHASE_DONE
 
 from .cbf_step import SutureCBFStep
 from .config_suture_sim import POSE_FEATURES, SutureSimConfig
@@ -81,9 +87,8 @@ def _send(robot, pipeline, step, action: np.ndarray, episode: RobotAttackEpisode
     info = robot.last_info
     # Harm is read from the simulator, for the measurement only: the step never sees it.
     if info["needle_grasped"]:
-        base = robot.env.unwrapped
-        wound = Wound(base.entry_point, base.exit_point, base.phantom_rotation[:, 2])
-        episode.record_harm(np.asarray(info["needle_tip_trace"]), wound, cbf.semi_axes)
+        trace = np.asarray(info["needle_tip_trace_phantom"])
+        episode.record_harm(trace, wound_in_phantom_frame(robot.env.unwrapped), cbf.semi_axes)
     else:
         episode.released = True
     if result is not None and result.guarding:

@@ -30,7 +30,8 @@ from lerobot.configs.types import PipelineFeatureType, PolicyFeature
 from lerobot.processor import ProcessorStepRegistry, RobotActionProcessorStep, TransitionKey
 
 from lerobot_suture.safety.cbf_config import CBFConfig
-from lerobot_suture.safety.tip_guard import GraspModel, GuardResult, TipGuard, Wound
+from lerobot_suture.safety.tip_guard import GuardResult, TipGuard
+from lerobot_suture.safety.wound import GraspModel, Wound
 from lerobot_suture.sim.task import CONTROL_DT, WORKSPACE_HIGH, WORKSPACE_LOW
 
 from .config_suture_sim import POSE_FEATURES

@@ -34,7 +34,7 @@ from lerobot.utils.utils import log_say
 
 from lerobot_suture.safety.camera_watchdog import CameraWatchdogConfig
 from lerobot_suture.safety.cbf_config import CBFConfig
-from lerobot_suture.safety.tip_guard import GraspModel
+from lerobot_suture.safety.wound import GraspModel
 
 from .cbf_step import SutureCBFStep
 from .rollout_gate import GATE_KINDS, GateReading, RolloutGate
