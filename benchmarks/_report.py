@@ -16,10 +16,14 @@ def machine() -> dict:
     return {"cpu_count": os.cpu_count(), "load_average_1min": round(os.getloadavg()[0], 2)}
 
 
+def write(report: dict, output: Path) -> None:
+    """Write ``report`` to ``output`` as indented JSON (its folder made): a long run's partial result."""
+    output.parent.mkdir(parents=True, exist_ok=True)
+    output.write_text(json.dumps(report, indent=2) + "\n")
+
+
 def emit(report: dict, output: Path | None) -> None:
-    """Print ``report`` as indented JSON, and write it to ``output`` too when given (its folder made)."""
-    text = json.dumps(report, indent=2)
-    print(text)
+    """Print ``report`` as indented JSON, and write it to ``output`` too when given."""
+    print(json.dumps(report, indent=2))
     if output is not None:
-        output.parent.mkdir(parents=True, exist_ok=True)
-        output.write_text(text + "\n")
+        write(report, output)

@@ -15,18 +15,20 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import lerobot_suture
-from lerobot_suture.experiments.cbf_attacks import (
-    FAMILIES,
+from lerobot_suture.experiments.attack_episodes import (
+    CONDITIONS,
     AttackEpisode,
+    EnvPath,
+    conditions_for,
     lead_in,
-    random_rotation,
     run_attack_episode,
-    run_policy_attack_episode,
+    run_policy_attack,
 )
+from lerobot_suture.experiments.cbf_attacks import FAMILIES, random_rotation
 from lerobot_suture.expert import ScriptedExpert
 from lerobot_suture.runtime.rollout import SURGEON, rollout_episode
 from lerobot_suture.safety.cbf_config import CBFConfig
-from lerobot_suture.safety.cbf_wrapper import PHASE_ACTIVE, CBFActionWrapper
+from lerobot_suture.safety.cbf_wrapper import PHASE_ACTIVE
 from lerobot_suture.sim import controller
 from lerobot_suture.sim.geometry import pose_vector, segment_distance
 from lerobot_suture.sim.suture_env import SutureEnv
@@ -119,24 +121,77 @@ def test_attack_family_never_takes_the_tip_out_of_the_set(family):
         assert_safe(run_attack_episode(family, seed, attack_steps=15))
 
 
+@pytest.mark.parametrize("condition", [c for c in conditions_for("env") if CONDITIONS[c].within_bounds])
+@pytest.mark.parametrize("family", FAMILIES)
+def test_every_family_in_every_condition_on_the_env_path(family, condition):
+    """One episode per attack family and condition (the benchmark runs 1,000 a condition): tissue still,
+    servoed, moved after insertion, breathing at the declared bound, and a running suture's throws."""
+    seed = 3
+    episode = run_attack_episode(family, seed, condition, attack_steps=15)
+    assert episode.attack_steps > 0, f"{family} in {condition}: the attack never began"
+    assert_safe(episode)
+
+
+def test_the_harm_count_sees_a_second_entry_beside_the_wound_without_the_filter():
+    """The measurement can fail: with the filter off, retracting, moving aside and pushing down enters the
+    tissue beside the wound, and the count sees it at the physics rate."""
+    episodes = [run_attack_episode("reenter", seed, cbf=CBFConfig(enabled=False)) for seed in range(4)]
+    assert sum(e.violation_steps > 0 for e in episodes) >= 2, [e.depth_max for e in episodes]
+    assert max(e.depth_max for e in episodes) > 0.002
+
+
+def test_tissue_moving_beyond_the_declared_bounds_is_flagged_and_handed_over():
+    """A glide of 30 mm over 1.5 s after insertion (66 mm/s^2 against a 20 mm/s^2 bound): the guard flags it,
+    and a rollout hands control over at the flag."""
+    path = EnvPath(CONDITIONS["beyond_bound_moved"])
+    episode = AttackEpisode(family="expert", seed=0)
+    assert lead_in(path, 0, 60, episode, 100) is None  # the expert's whole throw; the glide begins in it
+    path.close()
+    assert episode.moved_while_held and episode.motion_flagged
+    assert episode.violation_steps == 0
+
+    class ExpertPolicy:  # a policy whose gate never releases: only the CBF's premise hands over
+        def __init__(self, env):
+            self.env, self.policy, self.expert = env, self, ScriptedExpert()
+
+        def reset(self, seeds=None):
+            self.expert.reset(self.env)
+
+        def act_batch(self, observations, tasks=None):
+            return [self.expert.act(self.env)]
+
+    condition = CONDITIONS["beyond_bound_moved"]
+    env = gym.make(
+        lerobot_suture.ENV_ID,
+        disable_env_checker=True,
+        obs_type="state",
+        cbf=CBFConfig(enabled=True),
+        scenario=condition.scenario,
+        scenario_magnitude=condition.scenario_magnitude,
+    )
+    log = rollout_episode(env, ExpertPolicy(env), seed=0, surgeon="expert")
+    env.close()
+    assert log.handover_cause == "tissue_motion" and log.steps[log.handover_step].controller == SURGEON
+    assert log.steps[log.handover_step - 1].perturbed
+
+
 @pytest.mark.parametrize("seed", [2, 5, 7])
 def test_the_reported_rotation_attack_holds(seed):
     """The attack that once left the set: from the filter's first step, keep the jaw where it is and ask
     for a uniformly random jaw orientation every step while the filter is on. The rotation drove wrist
     joints into their range stops and the tip went where the filter had not allowed (h down to -0.48 in
     this pattern's episodes before the tip-first controller)."""
-    env = CBFActionWrapper(SutureEnv(obs_type="state", record_tip_trace=True), CBFConfig(enabled=True))
+    path = EnvPath(CONDITIONS["still"])
     episode = AttackEpisode(family="rotation", seed=seed)
     rng = np.random.default_rng(seed)
-    lead_in(env, seed, 0, episode)
-    while env.phase == PHASE_ACTIVE:
-        action = pose_vector(env.unwrapped.jaw_pose()[0], random_rotation(rng), 1.0)
-        *_, terminated, truncated, info = env.step(action)
+    lead_in(path, seed, 0, episode, 100)
+    while path.phase == PHASE_ACTIVE:
+        step = path.send(pose_vector(path.scene.unwrapped.jaw_pose()[0], random_rotation(rng), 1.0))
         episode.attack_steps += 1
-        episode.record(env, info)
-        if terminated or truncated:
+        episode.record(path, step)
+        if step.over:
             break
-    env.close()
+    path.close()
     assert episode.attack_steps > 5
     assert_safe(episode)
 
@@ -162,16 +217,15 @@ def action_sequences(draw):
 @settings(max_examples=12, derandomize=True, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(seed=st.integers(0, 10_000), delay=st.integers(0, 12), actions=action_sequences())
 def test_any_action_sequence_keeps_h_nonnegative_at_every_physics_step(seed, delay, actions):
-    env = CBFActionWrapper(SutureEnv(obs_type="state", record_tip_trace=True), CBFConfig(enabled=True))
+    path = EnvPath(CONDITIONS["still"])
     episode = AttackEpisode(family="property", seed=seed)
-    obs, _ = lead_in(env, seed, delay, episode)
-    if obs is not None:
+    if lead_in(path, seed, delay, episode, 100) is not None:
         for action in actions:
-            *_, terminated, truncated, info = env.step(action)
-            episode.record(env, info)
-            if terminated or truncated:
+            step = path.send(action)
+            episode.record(path, step)
+            if step.over:
                 break
-    env.close()
+    path.close()
     assert episode.violation_steps == 0, (episode.h_min, seed, delay)
     if episode.segment_deviations:
         assert max(episode.segment_deviations) < MARGIN
@@ -240,4 +294,4 @@ def test_off_distribution_policy_taking_over_a_throw_stays_in_the_set(tiny_polic
     from lerobot_suture.runtime.policy import GateMode, PolicyRunner
 
     runner = PolicyRunner.from_pretrained(tiny_policy_dir, GateMode.REPORT)
-    assert_safe(run_policy_attack_episode(runner, seed=0, attack_steps=6, max_start_delay=0))
+    assert_safe(run_policy_attack(runner, seed=0, attack_steps=6, max_start_delay=0))

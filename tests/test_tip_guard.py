@@ -7,7 +7,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from lerobot_suture.safety.cbf import ellipsoid_h
+from lerobot_suture.experiments.attack_episodes import CONDITIONS, conditions_for, run_attack
+from lerobot_suture.safety.cbf import ellipsoid_h, margin_level
 from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.safety.tip_guard import PHASE_ACTIVE, PHASE_DONE, PHASE_IDLE, TipGuard
 from lerobot_suture.safety.wound import GraspModel, Wound
@@ -214,6 +215,61 @@ def test_the_guard_lets_the_tip_retract_move_aside_above_the_tissue_and_reenter_
     assert tip @ NORMAL >= cbf.margin - 1e-12
 
 
+def test_the_guard_moves_the_tip_with_tissue_that_moves_and_flags_motion_beyond_its_bounds():
+    cbf = CBFConfig(enabled=True)
+    guard = TipGuard(cbf)
+    velocity = np.array([0.004, -0.003, 0.006])  # m/s, within the 15 mm/s bound
+    tip = ENTRY + np.array([0.001, 0.0, -0.003])  # in the tissue, in the ellipsoid
+    center, rotation = WOUND.ellipsoid_frame()
+    level = float(margin_level(guard.margin(DT), cbf.semi_axes))
+    for k in range(40):
+        shift = velocity * DT * k
+        wound = Wound(ENTRY + shift, EXIT + shift, NORMAL)
+        # Asked to hold still, in tissue that moves away under it.
+        result = guard.filter_velocity(tip, np.zeros(3), wound, True, True, DT)
+        assert not result.motion_exceeded
+        tip = tip + result.v_safe * DT
+        relative = tip - (shift + velocity * DT)  # where the tip sits in the wound at the step's end
+        assert float(ellipsoid_h(relative, center, cbf.semi_axes, rotation)) >= level - 1e-9
+    # Holding still has carried the tip to the tightened boundary: the filter now moves it with the tissue.
+    assert result.intervened
+    np.testing.assert_allclose(result.v_safe, velocity, atol=2e-4)
+    # Jerked by 5 mm in one step (50 mm/s): outside the premises, and said so.
+    wound = Wound(ENTRY + shift + 0.005 * NORMAL, EXIT + shift + 0.005 * NORMAL, NORMAL)
+    assert guard.filter_velocity(tip, np.zeros(3), wound, True, True, DT).motion_exceeded
+
+
+def test_the_margin_grows_with_the_tracking_error_measured_on_the_robot_path():
+    """An arm that lands 2 mm beside every commanded end point: the guard measures it and tightens its set by
+    that much, more than the declared 1 mm."""
+    cbf = CBFConfig(enabled=True)
+    guard = TipGuard(cbf)
+    rotation = np.eye(3)
+    tip = np.array([-0.02, 0.0, 0.01])
+    assert guard.margin(DT) == pytest.approx(cbf.margin + cbf.tissue_acceleration_max * DT**2)
+    for _ in range(8):
+        pose = jaw_pose_with_tip_at(tip, rotation)
+        target = jaw_pose_with_tip_at(tip + np.array([0.002, 0.0, 0.0]), rotation, jaw=1.0)
+        out, _ = guard.filter_target(pose, target, WOUND, GRASP, DT)
+        tip = tip_of(out) + np.array([0.0, 0.002, 0.0])  # the arm lands 2 mm off
+    assert guard.tracking_error == pytest.approx(0.002, rel=1e-6)
+    assert guard.margin(DT) == pytest.approx(0.002 + cbf.tissue_acceleration_max * DT**2)
+
+
+def test_the_jaw_turns_at_most_max_turn_a_step_while_the_needle_is_held():
+    from lerobot_suture.sim.geometry import matrix_from_rot6, rotation_angle_of
+
+    guard = TipGuard(CBFConfig(enabled=True))
+    pose = jaw_pose_with_tip_at(np.array([0.0, 0.0, 0.004]), np.eye(3))
+    target = pose_vector(pose[:3], matrix_from_rotvec(np.array([0.0, 1.2, 0.0])), 1.0)
+    out, _ = guard.filter_target(pose, target, WOUND, GRASP, DT)
+    turned = rotation_angle_of(matrix_from_rot6(out[3:9]))
+    assert turned == pytest.approx(guard.max_turn(GRASP)) and turned < 0.3
+    # The tip's sweep at that turn, on an arm interpolating towards it, stays within ``turn_sweep``.
+    lever = np.linalg.norm(GRASP.tip_in_jaw())
+    assert 1.25 * lever * turned**2 / 8.0 <= guard.turn_sweep + 1e-12
+
+
 # ---------------------------------------------------------------- the processor step and the robot path
 lerobot_robot_suture = pytest.importorskip("lerobot_robot_suture")
 
@@ -271,36 +327,38 @@ def test_step_reads_the_registration_and_names_missing_features():
         step(robot_action_observation_to_transition((action, observation)))
 
 
-@pytest.mark.parametrize(
-    "faults",
-    [{}, {"observation_latency": 3}, {"command_latency": 3}],
-    ids=["none", "observation3", "command3"],
-)
-def test_robot_path_attacks_never_leave_the_set(faults):
-    """One episode of every family through the pipeline, with the robot's ``faults``."""
-    from lerobot_robot_suture.attacks import make_robot_path, run_robot_attack_episode
-    from lerobot_robot_suture.faults import FaultConfig
+@pytest.mark.parametrize("condition", conditions_for("robot"))
+def test_every_family_in_every_condition_on_the_robot_path(condition):
+    """One episode of every family per condition (the benchmark runs 1,000 a condition) through the pipeline:
+    tissue still, moving within the bounds and beyond them, a running suture's throws, an arm that lags 10-30%
+    and 0.3 s of observation or command latency. Within the bounds, no harm; beyond, the motion is flagged."""
+    from lerobot_robot_suture.attacks import RobotPath
 
     from lerobot_suture.experiments.cbf_attacks import FAMILIES
 
-    robot_path = make_robot_path(image_size=32, faults=FaultConfig(**faults))
+    spec = CONDITIONS[condition]
+    path = RobotPath(spec)
     try:
-        episodes = [run_robot_attack_episode(robot_path, family, seed=11) for family in FAMILIES]
+        episodes = [run_attack(path, family, 11, spec.throw(11), attack_steps=15) for family in FAMILIES]
     finally:
-        robot_path[0].disconnect()
-    assert sum(e.active_steps for e in episodes) > 50
+        path.close()
+    assert all(e.attack_steps > 0 for e in episodes), [(e.family, e.attack_steps) for e in episodes]
     assert sum(e.interventions for e in episodes) > 0
-    assert all(e.violation_steps == 0 for e in episodes), [(e.family, e.h_min) for e in episodes]
+    if spec.within_bounds:
+        assert all(e.violation_steps == 0 for e in episodes), [(e.family, e.depth_max) for e in episodes]
+    else:
+        assert any(e.motion_flagged for e in episodes)
 
 
 def test_expert_throws_on_the_robot_path_are_left_alone():
     """Minimal intervention: the scripted expert's nominal throws pass the step unchanged and succeed."""
-    from lerobot_robot_suture.attacks import make_robot_path
+    from lerobot_robot_suture.attacks import RobotPath
     from lerobot_robot_suture.config_suture_sim import POSE_FEATURES
 
     from lerobot_suture.expert import ScriptedExpert
 
-    robot, pipeline, step = make_robot_path(image_size=32)
+    path = RobotPath(CONDITIONS["still"])
+    robot, pipeline, step = path.robot, path.pipeline, path.step
     try:
         for seed in range(3):
             robot.reset_scene(seed)
@@ -353,7 +411,7 @@ def test_the_env_wrapper_and_the_step_filter_alike():
         sent = np.array([out[key] for key in POSE_FEATURES])
         v_step = (tip_of(sent) - tip) / DT
         np.testing.assert_allclose(v_step, v_env, atol=1e-9, err_msg=f"step {k}")
-        assert step.last_result.mode == env._guard.mode
+        assert step.last_result.mode == env.guard.mode
         tip = tip + v_env * DT
     env.close()
 
@@ -362,13 +420,13 @@ def test_every_throw_of_a_running_suture_is_guarded_on_the_robot_path():
     """The expert's running suture through the step, then an attack on each throw: the step reads each throw's
     registration (its phase begins on every throw, with the wound the scene has), and no attack gets the tip
     into the tissue outside the throw's ellipsoid."""
-    from lerobot_robot_suture.attacks import make_robot_path, run_robot_attack_episode
+    from lerobot_robot_suture.attacks import RobotPath
     from lerobot_robot_suture.config_suture_sim import POSE_FEATURES
 
     from lerobot_suture.expert import ScriptedExpert
 
-    robot_path = make_robot_path(image_size=32, task="running_suture")
-    robot, pipeline, step = robot_path
+    path = RobotPath(CONDITIONS["running_suture"])
+    robot, pipeline, step = path.robot, path.pipeline, path.step
     try:
         robot.reset_scene(0)
         pipeline.reset()
@@ -384,7 +442,7 @@ def test_every_throw_of_a_running_suture_is_guarded_on_the_robot_path():
                 # The throw the step guards is the scene's, where the scene has it.
                 assert step.throw_index == base.throw_index
         assert begun == {0, 1, 2, 3} and robot.last_info["is_success"]
-        episodes = [run_robot_attack_episode(robot_path, "reenter", 1, throw=k) for k in range(4)]
+        episodes = [run_attack(path, "reenter", 1, throw=k) for k in range(4)]
     finally:
         robot.disconnect()
     assert all(e.attack_steps > 0 for e in episodes), [e.attack_steps for e in episodes]

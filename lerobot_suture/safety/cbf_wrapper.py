@@ -107,6 +107,11 @@ class CBFActionWrapper(gym.Wrapper):
         """``idle``, ``active`` or ``done`` (see the module docstring)."""
         return self._guard.phase
 
+    @property
+    def guard(self) -> TipGuard:
+        """The guard the hook runs (the robot path's ``suture_cbf`` runs the same class)."""
+        return self._guard
+
     def safe_set(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The current safe ellipsoid from the env's entry/exit markers.
 

@@ -10,7 +10,7 @@ from lerobot.robots.config import RobotConfig
 from lerobot_suture.datasets.features import POSE_NAMES
 from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.sim.appearance import AppearanceConfig
-from lerobot_suture.sim.scenarios import SCENARIOS
+from lerobot_suture.sim.scenarios import SAFETY_SCENARIOS, SCENARIOS
 from lerobot_suture.sim.suture_env import check_image_side
 from lerobot_suture.sim.task import GRASP_RANGES
 from lerobot_suture.sim.tasks import check_scenario, task_spec
@@ -40,7 +40,8 @@ class SutureSimConfig(RobotConfig):
         seed: seed of the scene at ``connect``; LeRobot's dataset episode ``N`` (``lerobot-record``,
             ``lerobot-rollout --strategy.type=episodic``) plays the scene of ``seed + N``.
         image_size: endoscope image side (px).
-        scenario: perturbation scenario, one of ``lerobot_suture.sim.scenarios.SCENARIOS``.
+        scenario: perturbation scenario, one of ``lerobot_suture.sim.scenarios.SCENARIOS`` (or, in a task with a
+            throw, ``SAFETY_SCENARIOS``: tissue that breathes).
         scenario_onset_step: onset (control steps); None takes the scenario's default.
         scenario_magnitude: magnitude (rad or m); None takes the scenario's default.
         grasp: grasp randomization, ``narrow`` or ``wide`` (``task.GRASP_RANGES``).
@@ -89,8 +90,10 @@ class SutureSimConfig(RobotConfig):
 
     def __post_init__(self):
         super().__post_init__()
-        if self.scenario not in SCENARIOS:
-            raise ValueError(f"`scenario` must be one of {tuple(SCENARIOS)}. Got {self.scenario!r}.")
+        if self.scenario not in SCENARIOS + SAFETY_SCENARIOS:
+            raise ValueError(
+                f"`scenario` must be one of {SCENARIOS + SAFETY_SCENARIOS}. Got {self.scenario!r}."
+            )
         check_scenario(self.task, self.scenario)
         if self.grasp not in GRASP_RANGES:
             raise ValueError(f"`grasp` must be one of {tuple(GRASP_RANGES)}. Got {self.grasp!r}.")
