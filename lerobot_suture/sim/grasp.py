@@ -5,6 +5,10 @@ by the jaw closing on it), and the wire stops the closing jaw a little open, so 
 it holds the needle, as a real needle driver's does. Released, the needle is a free body under gravity. A
 jaw that closes on a free needle catches it by the rule of ``needle_capture``.
 
+A needle lodged in the tissue is caught only as it lies: a jaw whose seat would move any point of it more than
+``LODGED_CAPTURE_TOLERANCE`` closes beside it (the tissue holds it), where a free needle would be snapped into
+the seat; the snap of a lodged needle would twist it through the tissue in an instant.
+
 A free needle lying still on the phantom, or lodged in its tissue, rests (:meth:`NeedleGrasp.rest`): static
 friction or the tissue holds it and nothing else touches it (the jaw has no contacts), so it is held in
 place kinematically, weightless and without contacts, which spares the contact solver every physics step;
@@ -20,6 +24,7 @@ from lerobot_suture.sim.geometry import (
     cross3,
     grasp_transform,
     jaw_angle_on_wire,
+    needle_arc_points,
     needle_in_world,
     quat_from_matrix,
 )
@@ -27,8 +32,12 @@ from lerobot_suture.sim.needle_capture import seat_needle
 from lerobot_suture.sim.psm import PSM
 from lerobot_suture.sim.task import GRASP_ANGLE
 
+LODGED_CAPTURE_TOLERANCE = 0.0005
+"""How far (m) a jaw's seat may move any point of a needle lodged in tissue for the jaw to catch it (a regrasp
+aligned with the needle moves it about 0.01 mm)."""
 JAW_OPEN_ANGLE = 0.6
 """The jaw joint's range (rad): a closure command of 0 opens it this far."""
+_LODGED_CHECK_POINTS = 7
 _NEEDLE_CONTACT_BIT = 2  # the needle geoms' contype in scene.xml
 
 
@@ -100,7 +109,7 @@ class NeedleGrasp:
         if closure < 0.5 and self.held:
             self.release(data, in_tissue)
         elif closing and not self.held:
-            self.try_capture(data)
+            self.try_capture(data, in_tissue)
         target = (1.0 - closure) * JAW_OPEN_ANGLE
         data.ctrl[self.jaw_ctrl] = max(target, self.held_jaw_angle()) if self.held else target
 
@@ -115,10 +124,11 @@ class NeedleGrasp:
             data.qpos[self.jaw_qpos] = held
             data.qvel[self._jaw_dof] = 0.0
 
-    def try_capture(self, data: mujoco.MjData) -> bool:
+    def try_capture(self, data: mujoco.MjData, in_tissue: bool = False) -> bool:
         """Close the jaw on the free needle: held from now on, seated as ``needle_capture.seat_needle``
-        says, if the wire lies between the faces of a jaw open wider than the wire there. Returns whether
-        it caught the needle."""
+        says, if the wire lies between the faces of a jaw open wider than the wire there, and, for a needle
+        lodged in tissue (``in_tissue``), if the seat moves it by at most ``LODGED_CAPTURE_TOLERANCE``.
+        Returns whether it caught the needle."""
         if self.held:
             return False
         jaw_pos, jaw_rot = self._arm.jaw_pose(data)
@@ -132,6 +142,12 @@ class NeedleGrasp:
         )
         if data.qpos[self.jaw_qpos] <= wire_angle:
             return False  # the jaw is already too closed for the wire to pass between its faces
+        if in_tissue:
+            arc = needle_arc_points(_LODGED_CHECK_POINTS)  # (n, 3) in the needle frame
+            seated_arc = jaw_pos + (seated.position + arc @ seated.rotation.T) @ jaw_rot.T
+            lying_arc = centre + arc @ rotation.T
+            if np.max(np.linalg.norm(seated_arc - lying_arc, axis=1)) > LODGED_CAPTURE_TOLERANCE:
+                return False  # the tissue holds the needle where it lies: the jaw closes beside it
         self.parameters = seated.parameters
         self.position, self.rotation = seated.position, seated.rotation
         self.reversed = seated.reversed
