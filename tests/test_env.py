@@ -347,6 +347,39 @@ def test_every_scenario_runs_and_its_perturbation_happens(scenario):
         assert onset >= u.first_in_tissue_step
 
 
+@pytest.mark.parametrize("scenario", ["phantom_servo", "phantom_moved_after_insertion", "breathing"])
+def test_the_phantom_moves_continuously_within_the_declared_bounds(scenario):
+    """Placed at every physics step: no physics step sees it jump, and its default motions keep within the
+    CBF's declared speed and acceleration bounds (the safety guarantee's premise)."""
+    from lerobot_suture.safety.cbf_config import CBFConfig
+
+    env = SutureEnv(obs_type="state", scenario=scenario)
+    env.reset(seed=3)
+    expert = ScriptedExpert()
+    expert.reset(env)
+    placed = []
+    original = env.set_phantom_pose
+
+    def record(position, yaw):
+        original(position, yaw)
+        placed.append(np.asarray(position, dtype=np.float64).copy())
+
+    env.set_phantom_pose = record
+    for _ in range(60):
+        *_, terminated, truncated, _ = env.step(expert.act(env))
+        if terminated or truncated:
+            break
+    positions = np.array(placed)
+    assert len(positions) > 3 * env.n_substeps, "the phantom did not move"
+    bounds = CBFConfig()
+    dt = env.physics_dt
+    speeds = np.linalg.norm(np.diff(positions, axis=0), axis=1) / dt
+    assert speeds.max() <= bounds.tissue_speed_max  # 15 mm/s: 0.03 mm a physics step at most
+    velocities = np.diff(positions, axis=0) / dt
+    steady = np.linalg.norm(np.diff(velocities, axis=0), axis=1) / dt
+    assert steady.max() <= bounds.tissue_acceleration_max
+
+
 def test_needle_tip_trace_follows_physics_steps():
     env = SutureEnv(obs_type="state", record_tip_trace=True)
     env.reset(seed=0)

@@ -160,24 +160,16 @@ def test_the_commanded_tip_segment_stays_in_the_tightened_union(
     assert in_tightened_union(segment, cbf).all()
 
 
-@settings(max_examples=150, deadline=None)
-@given(
-    seed=st.integers(0, 2**32 - 1),
-    observation_latency=st.integers(0, 3),
-    command_latency=st.integers(0, 3),
-    lag=st.floats(0.0, 0.9),
-)
-def test_an_arm_that_lags_or_is_late_in_straight_lines_never_enters_tissue_outside_the_wound(
-    seed, observation_latency, command_latency, lag
-):
-    """Closed loop over 60 control steps of random targets (many into the tissue beside the wound) with the
-    latency declared: the guard sees the tip ``observation_latency`` steps late, and the arm moves the tip in a
-    straight line from where it is towards the end point commanded ``command_latency`` steps ago, reaching a
-    fraction ``1 - lag`` of the way. The tip's path never enters tissue outside the ellipsoid (the mode-switch
-    rule: the union is not convex)."""
+def closed_loop_harms(
+    seed: int, declared: int, observation_latency: int, command_latency: int, lag: float
+) -> bool:
+    """Whether the tip's path enters tissue outside the ellipsoid over 60 control steps of random targets (many
+    into the tissue beside the wound): the guard, declaring ``declared`` steps of latency, sees the tip
+    ``observation_latency`` steps late, and the arm moves the tip in a straight line from where it is towards
+    the end point commanded ``command_latency`` steps ago, reaching a fraction ``1 - lag`` of the way."""
     rng = np.random.default_rng(seed)
     cbf = CBFConfig(enabled=True)
-    guard = TipGuard(cbf, latency_steps=observation_latency + command_latency)
+    guard = TipGuard(cbf, latency_steps=declared)
     tip = np.array([rng.uniform(-0.02, 0.02), rng.uniform(-0.02, 0.02), rng.uniform(0.002, 0.02)])
     seen = [tip.copy()] * (observation_latency + 1)
     in_flight = [tip.copy()] * command_latency
@@ -196,7 +188,31 @@ def test_an_arm_that_lags_or_is_late_in_straight_lines_never_enters_tissue_outsi
         path.extend(tip + np.linspace(0.0, 1.0, 21)[1:, None] * (new_tip - tip))
         tip = new_tip
         seen.append(tip.copy())
-    assert not harmed(np.asarray(path), cbf).any()
+    return bool(harmed(np.asarray(path), cbf).any())
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    observation_latency=st.integers(0, 3),
+    command_latency=st.integers(0, 3),
+    lag=st.floats(0.0, 0.9),
+)
+def test_an_arm_that_lags_or_is_late_in_straight_lines_never_enters_tissue_outside_the_wound(
+    seed, observation_latency, command_latency, lag
+):
+    """With the latency declared, the tip's path never enters tissue outside the ellipsoid (the mode-switch
+    rule: the union is not convex)."""
+    latency = observation_latency + command_latency
+    assert not closed_loop_harms(seed, latency, observation_latency, command_latency, lag)
+
+
+def test_latency_the_guard_was_not_told_of_can_cross_the_tissue_between_its_parts():
+    """The premise is needed: the same closed loop with 0.3 s of command latency declared as none harms in
+    almost every run (198 of 200 seeds), and in none declared."""
+    harms = [closed_loop_harms(seed, 0, 0, 3, 0.0) for seed in range(20)]
+    assert sum(harms) >= 15
+    assert not any(closed_loop_harms(seed, 3, 0, 3, 0.0) for seed in range(20))
 
 
 def test_the_guard_lets_the_tip_retract_move_aside_above_the_tissue_and_reenter_only_the_wound():
