@@ -463,3 +463,14 @@ def test_every_throw_of_a_running_suture_is_guarded_on_the_robot_path():
         robot.disconnect()
     assert all(e.attack_steps > 0 for e in episodes), [e.attack_steps for e in episodes]
     assert all(e.violation_steps == 0 for e in episodes), [(e.throw, e.depth_max) for e in episodes]
+
+
+def test_gated_dagger_declares_the_arms_latency_to_the_step():
+    from lerobot_robot_suture.config_suture_sim import SutureSimConfig
+    from lerobot_robot_suture.faults import FaultConfig
+    from lerobot_robot_suture.gated_dagger import declared_latency
+    from lerobot_robot_suture.suture_sim import SutureSim
+
+    late = SutureSim(SutureSimConfig(faults=FaultConfig(observation_latency=2, command_latency=1)))
+    assert declared_latency(late) == 3
+    assert declared_latency(SutureSim(SutureSimConfig())) == 0

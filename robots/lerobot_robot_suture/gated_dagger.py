@@ -60,6 +60,8 @@ class GatedDAggerStrategyConfig(DAggerStrategyConfig):
         camera_watchdog: flag a frozen or dropped endoscope frame (``watchdog.*`` tunes it).
         cbf: the ``suture_cbf`` step's filter (``--strategy.cbf.enabled=false``: no CBF step).
         grasp: the grasp model the CBF step uses where the arm reports none.
+        cbf_latency_steps: the latency (control steps, observation plus command) the CBF step declares for the
+            arm; None: the arm's own declaration (``suture_sim``: its faults' latencies), else 0.
         record_autonomous: record the policy's frames too (default here), not only the corrections.
         smooth_handover: LeRobot's smooth handover (off by default here: the suture teleoperators take control
             from the arm's measured pose, so there is no jump to smooth, and the slide would move the arm
@@ -71,6 +73,7 @@ class GatedDAggerStrategyConfig(DAggerStrategyConfig):
     watchdog: CameraWatchdogConfig = field(default_factory=CameraWatchdogConfig)
     cbf: CBFConfig = field(default_factory=lambda: CBFConfig(enabled=True))
     grasp: GraspModel = field(default_factory=GraspModel)
+    cbf_latency_steps: int | None = None
     record_autonomous: bool = True
     smooth_handover: bool = False
 
@@ -112,6 +115,15 @@ def next_policy_action(obs_processed: dict, ctx, interpolator) -> dict | None:
     return {key: interp[i].item() for i, key in enumerate(ctx.data.ordered_action_keys)}
 
 
+def declared_latency(robot) -> int:
+    """The control steps of latency ``robot`` declares (observation plus command): ``suture_sim``'s faults, or 0
+    for an arm that declares none."""
+    faults = getattr(getattr(robot, "config", None), "faults", None)
+    if faults is None:
+        return 0
+    return int(faults.observation_latency) + int(faults.command_latency)
+
+
 def with_cbf_step(pipeline: RobotProcessorPipeline, step: SutureCBFStep) -> RobotProcessorPipeline:
     """The robot action pipeline with ``step`` appended."""
     return RobotProcessorPipeline(
@@ -131,7 +143,10 @@ class GatedDAggerStrategy(DAggerStrategy):
         super().setup(ctx)
         self.cbf_step = None
         if self.config.cbf.enabled:
-            self.cbf_step = SutureCBFStep(cbf=self.config.cbf, grasp=self.config.grasp)
+            latency = self.config.cbf_latency_steps
+            if latency is None:
+                latency = declared_latency(ctx.hardware.robot_wrapper.inner)
+            self.cbf_step = SutureCBFStep(cbf=self.config.cbf, grasp=self.config.grasp, latency_steps=latency)
             processors = ctx.processors
             processors.robot_action_processor = with_cbf_step(
                 processors.robot_action_processor, self.cbf_step
