@@ -462,7 +462,7 @@ def run_pull(enabled: bool, release: bool = False):
 
 
 def trace_h_min(env, infos):
-    return min(env.h_min(i["needle_tip_trace"]) for i in infos if i["cbf_active"])
+    return min(env.h_min(i) for i in infos if i["cbf_active"])
 
 
 def test_wrapper_keeps_the_tip_in_the_set_at_every_physics_step():

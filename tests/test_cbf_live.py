@@ -92,7 +92,7 @@ def free_pull(seed: int, enabled: bool, direction: np.ndarray) -> tuple[float, f
             pull_action[:3] += 0.03 * rotation @ direction
         _, _, _, _, info = env.step(expert.act(env) if pull_action is None else pull_action)
         if pull_action is not None:
-            h_min = min(h_min, env.h_min(info["needle_tip_trace"]))
+            h_min = min(h_min, env.h_min(info))
     wound = env.wound()
     height = float((info["needle_tip_pos"] - wound.entry_point) @ wound.surface_normal)
     env.close()

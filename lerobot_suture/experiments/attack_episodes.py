@@ -27,7 +27,7 @@ from lerobot_suture.experiments.cbf_attacks import FAMILIES, POLICY_FAMILY, Atta
 from lerobot_suture.expert import ScriptedExpert
 from lerobot_suture.safety.cbf import ellipsoid_h
 from lerobot_suture.safety.cbf_config import CBFConfig
-from lerobot_suture.safety.cbf_wrapper import CBFActionWrapper
+from lerobot_suture.safety.cbf_wrapper import CBFActionWrapper, wound_in_phantom_frame
 from lerobot_suture.safety.surface_cbf import surface_height
 from lerobot_suture.safety.tip_guard import PHASE_ACTIVE, PHASE_DONE
 from lerobot_suture.safety.wound import Wound
@@ -179,18 +179,6 @@ class EnvPath:
 
     def close(self) -> None:
         self.env.close()
-
-
-def wound_in_phantom_frame(scene) -> Wound:
-    """The current throw's wound of ``scene`` (a ``SutureEnv``) in the phantom's frame, where its marks stand
-    still however the phantom moves."""
-    rotation, position = scene.phantom_rotation, scene.phantom_position
-    return Wound(
-        (scene.entry_point - position) @ rotation,
-        (scene.exit_point - position) @ rotation,
-        np.array([0.0, 0.0, 1.0]),
-        throw_index=int(scene.throw_index),
-    )
 
 
 @dataclass

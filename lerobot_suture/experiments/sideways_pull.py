@@ -94,7 +94,7 @@ def run_cbf_episode(
             pulled += 1
         _, _, terminated, truncated, info = env.step(action)
         if env.phase != PHASE_IDLE:
-            h = env.h_min(info["needle_tip_trace"])
+            h = env.h_min(info)
             h_all.append(h)
             if info["cbf_active"]:
                 h_active.append(h)

@@ -192,7 +192,7 @@ def rollout_episodes(
             infos[i] = info
             log.steps.append(_step_log(statuses[i], controller, info))
             if info.get("cbf_guarding") and "needle_tip_trace" in info:
-                log.steps[-1].h_min_physics = float(env.get_wrapper_attr("h_min")(info["needle_tip_trace"]))
+                log.steps[-1].h_min_physics = float(env.get_wrapper_attr("h_min")(info))
             if log.handover_step is None and info.get("cbf_motion_exceeded"):
                 # The tissue moves beyond what the CBF was declared to cover: the surgeon takes over (or the arm
                 # holds its measured pose, the filter still tracking the tissue).

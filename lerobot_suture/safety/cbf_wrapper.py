@@ -8,11 +8,11 @@ that hook. Whatever produced the action (policy, scripted surgeon) is filtered t
 
 The wrapper is a thin user of :class:`~lerobot_suture.safety.tip_guard.TipGuard`, the filter and phase rules
 that the robot path's ``suture_cbf`` processor step runs from measured kinematics: here the env supplies the
-tip, its nominal velocity, the wound (its entry and exit markers) and the grasp and tissue signals exactly.
+tip, its nominal velocity, the wound (its entry and exit markers) and whether it holds the needle, exactly.
 
-Safe set: the ellipsoid of :class:`~lerobot_suture.safety.cbf_config.CBFConfig`, centred midway between
-the phantom's current entry and exit markers, with axes (entry->exit, lateral, tissue normal); it is
-rebuilt from the env every control step, so it follows a moving phantom.
+The ellipsoid is :class:`~lerobot_suture.safety.cbf_config.CBFConfig`'s, centred midway between the phantom's
+current entry and exit markers, with axes (entry->exit, lateral, tissue normal); it is rebuilt from the env
+every control step, so it follows a moving phantom, whose measured motion the guard also filters against.
 
 Safe set and guard (never in a task without a throw, ``pickup`` and ``extraction``): the tip of the held needle
 may be above the tissue or in the ellipsoid, never in the tissue outside it (``tip_guard``). The filter acts on
@@ -35,9 +35,21 @@ from lerobot_suture.safety.tip_guard import PHASE_ACTIVE, PHASE_DONE, PHASE_IDLE
 from lerobot_suture.safety.wound import Wound
 from lerobot_suture.sim.geometry import segment_distance
 
-__all__ = ["PHASE_ACTIVE", "PHASE_DONE", "PHASE_IDLE", "CBFActionWrapper"]
+__all__ = ["PHASE_ACTIVE", "PHASE_DONE", "PHASE_IDLE", "CBFActionWrapper", "wound_in_phantom_frame"]
 
 _NAN3 = np.full(3, np.nan)
+
+
+def wound_in_phantom_frame(scene) -> Wound:
+    """The current throw's wound of ``scene`` (a ``SutureEnv``) in the phantom's frame, where its marks stand
+    still however the phantom moves (the frame of ``info["needle_tip_trace_phantom"]``)."""
+    rotation, position = scene.phantom_rotation, scene.phantom_position
+    return Wound(
+        (scene.entry_point - position) @ rotation,
+        (scene.exit_point - position) @ rotation,
+        np.array([0.0, 0.0, 1.0]),
+        throw_index=int(scene.throw_index),
+    )
 
 
 class CBFActionWrapper(gym.Wrapper):
@@ -121,10 +133,12 @@ class CBFActionWrapper(gym.Wrapper):
         center, rotation = self.wound().ellipsoid_frame()
         return center, self._axes, rotation
 
-    def h_min(self, points: np.ndarray) -> float:
+    def h_min(self, info: dict[str, Any]) -> float:
         """Smallest barrier of the safe set (:meth:`Wound.barrier`: >= 0 above the tissue or in the ellipsoid)
-        over ``points`` (N, 3) m, e.g. ``info["needle_tip_trace"]``."""
-        return float(np.min(self.wound().barrier(np.asarray(points, dtype=np.float64), self._axes)))
+        over a step's physics-rate tip trace, ``info["needle_tip_trace_phantom"]``, against the wound where it
+        was at each physics step (the env records it with ``record_tip_trace``)."""
+        points = np.asarray(info["needle_tip_trace_phantom"], dtype=np.float64)
+        return float(np.min(wound_in_phantom_frame(self.env.unwrapped).barrier(points, self._axes)))
 
     def wound(self) -> Wound:
         """The current throw's wound, from the env's entry and exit markers and the phantom's normal."""

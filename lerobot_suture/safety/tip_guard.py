@@ -12,14 +12,15 @@ back elsewhere, nor end the guard by loosening the jaw without letting go.
 
 The union is not convex, so the filter works in one convex *mode* at a time (``above`` or ``wound``) and keeps
 the tip's commanded end point, hence its straight commanded segment, inside that mode's tightened set. It
-switches mode only while the tip and every end point it commanded in the last ``latency_steps`` control steps
-lie in both sets (their intersection is convex), choosing the mode whose filtered velocity is nearest the
+enters a mode only while the tip and every end point it commanded in the last ``latency_steps`` control steps
+lie in that mode's set, choosing, among the modes it may be in, the one whose filtered velocity is nearest the
 nominal one. Why this covers latency and an arm that falls short: an arm that moves the tip in straight lines
 towards commanded end points keeps it in the convex hull of where it was and of those end points. Within a mode
-that hull is inside the mode's set; at a switch every end point still in flight, and the tip, lie in the
-intersection, which is inside the new mode's set too. The margin covers the tip's distance from that path
+that hull is inside the mode's set; at a switch the tip and every end point still in flight already lie in the
+new mode's set, and so does every end point after. The margin covers the tip's distance from that path
 (tracking error plus grasp-model error); a tip found in a margin band is brought back by the mode's own
-recovery rule (its barrier never decreases over the step).
+recovery rule (its barrier never decreases over the step). On tissue that moves, the filter works on the tip's
+motion relative to the wound's measured motion (:mod:`~lerobot_suture.safety.wound_motion`).
 
 It is used two ways, with the same rules and the same filter:
 
