@@ -412,6 +412,7 @@ class KinematicSutureEnv(gym.Env):
         self.tip_velocity_filter = None
         rotation = Rotation.from_euler("z", 0.4).as_matrix()
         self.phantom_rotation = rotation
+        self.phantom_position = np.zeros(3)
         self.entry_point = np.array([0.0, 0.0, 0.0]) + rotation @ [-0.009, 0.0, 0.0]
         self.exit_point = np.array([0.0, 0.0, 0.0]) + rotation @ [0.009, 0.0, 0.0]
 
@@ -435,6 +436,7 @@ class KinematicSutureEnv(gym.Env):
             "needle_in_tissue": self.needle_in_tissue,
             "needle_grasped": self.needle_grasped,
             "needle_tip_trace": trace,
+            "needle_tip_trace_phantom": (trace - self.phantom_position) @ self.phantom_rotation,
         }
         return self.needle_tip_pos.copy(), 0.0, False, False, info
 

@@ -12,8 +12,10 @@ import pytest
 
 from lerobot_suture.experiments.sideways_pull import CBFEpisode, run_cbf_episode
 from lerobot_suture.expert import ScriptedExpert
+from lerobot_suture.safety.cbf import margin_level
 from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.safety.cbf_wrapper import PHASE_ACTIVE, CBFActionWrapper
+from lerobot_suture.safety.tip_guard import TipGuard
 from lerobot_suture.sim.suture_env import SutureEnv
 
 PULL_DISTANCE = 0.02  # m, along the phantom's lateral axis
@@ -112,6 +114,8 @@ def test_a_free_pull_above_the_tissue_leaves_the_wound_freely(direction):
 @pytest.mark.parametrize("direction", [(0.0, 0.6, -0.8), (0.8, 0.0, -0.6), (-0.6, -0.48, -0.64)])
 def test_a_free_pull_into_the_tissue_beside_the_wound_stops_at_the_tightened_union(direction):
     config = CBFConfig()
+    margin = TipGuard(config).margin(0.1)  # the tracking margin and the tissue's
+    level = margin_level(margin, config.semi_axes)
     for seed in (0, 1):
         h_min_off, _, _ = free_pull(seed, enabled=False, direction=np.array(direction))
         h_min_on, h_end_on, height = free_pull(seed, enabled=True, direction=np.array(direction))
@@ -119,6 +123,6 @@ def test_a_free_pull_into_the_tissue_beside_the_wound_stops_at_the_tightened_uni
         # The tip slides to the boundary of the tightened union, no further at any physics step: onto the
         # surface raised by the margin beside the wound, or into the tissue up to the tightened ellipsoid.
         assert h_min_on >= 0.0
-        on_surface = 0.8 * config.margin < height < 1.5 * config.margin and h_end_on < config.margin_level
-        in_wound = abs(h_end_on - config.margin_level) < 0.02
+        on_surface = 0.8 * margin < height < 1.5 * margin and h_end_on < level
+        in_wound = abs(h_end_on - level) < 0.02
         assert on_surface or in_wound, (height, h_end_on)
