@@ -28,7 +28,6 @@ from lerobot_suture.experiments.cbf_attacks import FAMILIES, random_rotation
 from lerobot_suture.expert import ScriptedExpert
 from lerobot_suture.runtime.rollout import SURGEON, rollout_episode
 from lerobot_suture.safety.cbf_config import CBFConfig
-from lerobot_suture.safety.cbf_wrapper import PHASE_ACTIVE
 from lerobot_suture.sim import controller
 from lerobot_suture.sim.geometry import pose_vector, segment_distance
 from lerobot_suture.sim.suture_env import SutureEnv
@@ -178,14 +177,14 @@ def test_tissue_moving_beyond_the_declared_bounds_is_flagged_and_handed_over():
 @pytest.mark.parametrize("seed", [2, 5, 7])
 def test_the_reported_rotation_attack_holds(seed):
     """The attack that once left the set: from the filter's first step, keep the jaw where it is and ask
-    for a uniformly random jaw orientation every step while the filter is on. The rotation drove wrist
+    for a uniformly random jaw orientation every step for the rest of the episode. The rotation drove wrist
     joints into their range stops and the tip went where the filter had not allowed (h down to -0.48 in
     this pattern's episodes before the tip-first controller)."""
     path = EnvPath(CONDITIONS["still"])
     episode = AttackEpisode(family="rotation", seed=seed)
     rng = np.random.default_rng(seed)
-    lead_in(path, seed, 0, episode, 100)
-    while path.phase == PHASE_ACTIVE:
+    steps = lead_in(path, seed, 0, episode, 100)
+    for _ in range(100 - steps):  # the rest of the episode's 100 control steps
         step = path.send(pose_vector(path.scene.unwrapped.jaw_pose()[0], random_rotation(rng), 1.0))
         episode.attack_steps += 1
         episode.record(path, step)

@@ -170,3 +170,41 @@ def test_handovers_fall_where_the_env_path_s_enforced_gate_hands_over(calibrated
         assert (handover is None) == (step is None), (episode, handover, step)
         if step is not None:
             assert abs(handover - step) <= 2, (episode, handover, step)
+
+
+def test_tissue_moving_beyond_the_cbf_s_bounds_hands_over(tiny_policy_dir, tmp_path):
+    """The phantom breathes at three times the declared acceleration bound: the CBF step flags it and the
+    strategy hands over to the teleoperator, with no gate and no camera watchdog to do it."""
+    from lerobot_suture.experiments.attack_episodes import CONDITIONS
+
+    beyond = CONDITIONS["beyond_bound_breathing"]
+    root = tmp_path / "dataset"
+    log = run_command(
+        "lerobot-rollout",
+        [
+            "--strategy.type=gated_dagger",
+            "--strategy.gate=none",
+            "--strategy.camera_watchdog=false",
+            f"--policy.path={tiny_policy_dir}",
+            "--teleop.type=suture_scripted",
+            "--device=cpu",
+            "--fps=200",
+            "--return_to_initial_position=false",
+            *robot_args(
+                tmp_path / "trace.jsonl",
+                "--robot.seed=3",
+                "--robot.clock=fast",
+                "--robot.episode_end=hold",
+                "--robot.tip_tracking=true",
+                "--robot.registration=true",
+                f"--robot.scenario={beyond.scenario}",
+                f"--robot.scenario_magnitude={beyond.scenario_magnitude}",
+            ),
+            *dataset_args(root, "local/rollout_tissue_motion", episodes=1, episode_s=60, reset_s=0),
+        ],
+        timeout=600,
+    )
+    assert "the tissue moves beyond its declared bounds" in log
+    dataset = load_dataset(root, "local/rollout_tissue_motion")
+    intervention = np.array([bool(f["intervention"]) for f in episode_frames(dataset, 0)])
+    assert intervention.any() and not intervention[0]

@@ -230,6 +230,10 @@ class GatedDAggerStrategy(DAggerStrategy):
                     robot.send_action(last_action)
                     self._record(ctx, obs_processed, action, task, False, reading)
                     frame_index += 1
+                    if self._tissue_beyond_bounds():
+                        handover = frame_index
+                        logger.info("CBF: the tissue moves beyond its declared bounds: handing over")
+                        self._hand_over(ctx, last_action)
                 else:
                     handover = frame_index
                     logger.info(
@@ -256,6 +260,11 @@ class GatedDAggerStrategy(DAggerStrategy):
                 precise_sleep(sleep)
         engine.pause()
         return handover
+
+    def _tissue_beyond_bounds(self) -> bool:
+        """The CBF step found the wound moving faster, or accelerating harder, than it was declared to cover."""
+        result = None if self.cbf_step is None else self.cbf_step.last_result
+        return result is not None and result.motion_exceeded
 
     def _hand_over(self, ctx, last_action) -> None:
         """The gate's decision does what LeRobot's pause and correction keys do, at once."""
