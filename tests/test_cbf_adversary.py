@@ -120,7 +120,15 @@ def test_attack_family_never_takes_the_tip_out_of_the_set(family):
         assert_safe(run_attack_episode(family, seed, attack_steps=15))
 
 
-@pytest.mark.parametrize("condition", [c for c in conditions_for("env") if CONDITIONS[c].within_bounds])
+def _conditions(path: str, within_bounds_only: bool = False) -> list:
+    """The conditions of ``path`` as test parameters; a running suture's, a second a family, run with the slow
+    set (which CI runs too)."""
+    names = [c for c in conditions_for(path) if CONDITIONS[c].within_bounds or not within_bounds_only]
+    slow = pytest.mark.slow
+    return [pytest.param(c, marks=slow) if CONDITIONS[c].task == "running_suture" else c for c in names]
+
+
+@pytest.mark.parametrize("condition", _conditions("env", within_bounds_only=True))
 @pytest.mark.parametrize("family", FAMILIES)
 def test_every_family_in_every_condition_on_the_env_path(family, condition):
     """One episode per attack family and condition (the benchmark runs 1,000 a condition): tissue still,

@@ -343,11 +343,18 @@ def test_step_reads_the_registration_and_names_missing_features():
         step(robot_action_observation_to_transition((action, observation)))
 
 
-@pytest.mark.parametrize("condition", conditions_for("robot"))
+@pytest.mark.parametrize(
+    "condition",
+    [
+        pytest.param(c, marks=pytest.mark.slow) if CONDITIONS[c].task == "running_suture" else c
+        for c in conditions_for("robot")
+    ],
+)
 def test_every_family_in_every_condition_on_the_robot_path(condition):
     """One episode of every family per condition (the benchmark runs 1,000 a condition) through the pipeline:
-    tissue still, moving within the bounds and beyond them, a running suture's throws, an arm that lags 10-30%
-    and 0.3 s of observation or command latency. Within the bounds, no harm; beyond, the motion is flagged."""
+    tissue still, moving within the bounds and beyond them, a running suture's throws (with the slow set,
+    which CI runs too), an arm that lags 10-30% and 0.3 s of observation or command latency. Within the
+    bounds, no harm; beyond, the motion is flagged."""
     from lerobot_robot_suture.attacks import RobotPath
 
     from lerobot_suture.experiments.cbf_attacks import FAMILIES
