@@ -132,6 +132,7 @@ def main() -> None:
     seeds = range(args.first_seed, args.first_seed + args.episodes)
     report: dict = {
         "benchmark": "cbf_cost",
+        "command": " ".join(["python", *sys.argv]),
         "path": args.path,
         "actor": str(args.policy_path) if args.policy_path else "scripted expert",
         "seeds": [seeds.start, seeds.stop],
