@@ -133,6 +133,10 @@ class TipGuard:
         turn_sweep: how far (m, >= 0) a turn of the jaw may sweep the needle tip off its straight commanded
             segment on an arm that falls short of a commanded pose, rotation included (part of the margin;
             :meth:`filter_target` only). It caps the turn commanded per control step at ``max_turn``.
+        max_tip_speed: the arm's largest tip speed (m/s, > 0), or None (unbounded). An arm that cannot go as
+            fast as commanded falls short of the end point: harmless on still tissue, where the segment's points
+            are in the set, but behind tissue that moves. Commands are slowed, relative to the tissue, so that
+            the tip's speed stays within it.
 
     On the robot path the guard also measures how far the tip strays from the segment it was commanded
     (``tracking_error``, the largest deviation over the last ``TRACKING_WINDOW`` steps) and tightens the set by
@@ -143,6 +147,7 @@ class TipGuard:
     held_jaw_range: tuple[float, float] = (0.45, 0.97)
     latency_steps: int = 0
     turn_sweep: float = 0.0002
+    max_tip_speed: float | None = None
 
     def __post_init__(self):
         low, high = self.held_jaw_range
@@ -156,6 +161,12 @@ class TipGuard:
             raise ValueError(f"`latency_steps` must be in [0, 100] control steps. Got {self.latency_steps}.")
         if isinstance(self.turn_sweep, bool) or not isinstance(self.turn_sweep, int | float):
             raise ValueError(f"`turn_sweep` must be a number >= 0 (m). Got {self.turn_sweep!r}.")
+        if self.max_tip_speed is not None and not (
+            isinstance(self.max_tip_speed, int | float) and 0.0 < self.max_tip_speed < math.inf
+        ):
+            raise ValueError(
+                f"`max_tip_speed` must be a number > 0 (m/s) or None. Got {self.max_tip_speed!r}."
+            )
         if not 0.0 <= self.turn_sweep < self.cbf.margin + 1e-12:
             raise ValueError(
                 f"`turn_sweep` must be in [0, margin = {self.cbf.margin}] m (it is part of the margin). "
@@ -284,6 +295,9 @@ class TipGuard:
         else:  # no mode yet, the tip in the tissue outside the tightened ellipsoid: back into it, or lift
             self._mode = MODE_WOUND if h >= 0.0 else MODE_ABOVE
         v_rel_safe = candidates[self._mode]
+        if self.max_tip_speed is not None:
+            # A shorter segment of the same direction stays in the (convex) set, relative to the tissue.
+            v_rel_safe = v_rel_safe * _speed_share(v_rel_safe, w, self.max_tip_speed)
         intervened = not np.array_equal(v_rel_safe, v_rel)
         v_safe = v_rel_safe + w if intervened else v
         if self.latency_steps:
@@ -394,6 +408,18 @@ class TipGuard:
         if settled and self._last_tip is not None and len(self._ends) == self._ends.maxlen:
             self._deviations.append(float(segment_distance(tip, self._last_tip, self._ends[0])))
         self._last_tip = tip.copy()
+
+
+def _speed_share(v_rel: np.ndarray, w: np.ndarray, max_speed: float) -> float:
+    """The largest share s in [0, 1] with |s v_rel + w| <= max_speed (m/s): 1 when already within it, and the
+    tissue's own velocity ``w`` (3,) alone when that is faster (s = 0)."""
+    v_rel = np.asarray(v_rel, dtype=np.float64)
+    if float(np.linalg.norm(v_rel + w)) <= max_speed:
+        return 1.0
+    a, b, c = float(v_rel @ v_rel), float(v_rel @ w), float(w @ w) - max_speed * max_speed
+    if a == 0.0 or c > 0.0:
+        return 0.0
+    return min(max((-b + math.sqrt(b * b - a * c)) / a, 0.0), 1.0)
 
 
 def _limit_turn(measured: np.ndarray, target: np.ndarray, max_turn: float) -> np.ndarray:

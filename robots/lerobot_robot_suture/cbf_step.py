@@ -32,6 +32,7 @@ from lerobot.processor import ProcessorStepRegistry, RobotActionProcessorStep, T
 from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.safety.tip_guard import GuardResult, TipGuard
 from lerobot_suture.safety.wound import GraspModel, Wound
+from lerobot_suture.sim.psm import MAX_LINEAR_SPEED
 from lerobot_suture.sim.task import CONTROL_DT, WORKSPACE_HIGH, WORKSPACE_LOW
 
 from .config_suture_sim import POSE_FEATURES
@@ -71,6 +72,8 @@ class SutureCBFStep(RobotActionProcessorStep):
         held_jaw_range: measured jaw closures at which the jaw may hold the needle (``TipGuard``).
         latency_steps: the arm's declared latency (observation plus command, control steps >= 0): how long a
             command may stay in flight and a grasp go unseen (``TipGuard``).
+        max_tip_speed: the arm's largest tip speed (m/s; ``suture_sim``'s by default), or None: commands are
+            slowed to it relative to moving tissue, so the arm does not fall behind it (``TipGuard``).
         workspace_low, workspace_high: the box (m) the arm clips target positions to (``suture_sim``'s by
             default); a filtered target outside it becomes "hold the measured pose". None: no box.
 
@@ -83,6 +86,7 @@ class SutureCBFStep(RobotActionProcessorStep):
     control_dt: float = CONTROL_DT
     held_jaw_range: tuple[float, float] = (0.45, 0.97)
     latency_steps: int = 0
+    max_tip_speed: float | None = MAX_LINEAR_SPEED
     workspace_low: list[float] | None = field(default_factory=lambda: WORKSPACE_LOW.tolist())
     workspace_high: list[float] | None = field(default_factory=lambda: WORKSPACE_HIGH.tolist())
 
@@ -113,7 +117,9 @@ class SutureCBFStep(RobotActionProcessorStep):
                     f"Got {self.workspace_low!r}, {self.workspace_high!r}."
                 )
             self._workspace = (low, high)
-        self._guard = TipGuard(self.cbf, tuple(self.held_jaw_range), self.latency_steps)
+        self._guard = TipGuard(
+            self.cbf, tuple(self.held_jaw_range), self.latency_steps, max_tip_speed=self.max_tip_speed
+        )
         self.last_result: GuardResult | None = None
 
     @property
@@ -170,6 +176,7 @@ class SutureCBFStep(RobotActionProcessorStep):
             "control_dt": float(self.control_dt),
             "held_jaw_range": [float(v) for v in self.held_jaw_range],
             "latency_steps": int(self.latency_steps),
+            "max_tip_speed": None if self.max_tip_speed is None else float(self.max_tip_speed),
             "workspace_low": None if self.workspace_low is None else [float(v) for v in self.workspace_low],
             "workspace_high": None
             if self.workspace_high is None
