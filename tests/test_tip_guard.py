@@ -481,3 +481,18 @@ def test_gated_dagger_declares_the_arms_latency_to_the_step():
     late = SutureSim(SutureSimConfig(faults=FaultConfig(observation_latency=2, command_latency=1)))
     assert declared_latency(late) == 3
     assert declared_latency(SutureSim(SutureSimConfig())) == 0
+
+
+def test_commands_are_slowed_to_the_arm_s_tip_speed_relative_to_moving_tissue():
+    """An arm that cannot go as fast as commanded falls behind tissue that moves: the guard slows the command,
+    relative to the tissue, until the tip's speed is within the arm's."""
+    guard = TipGuard(CBFConfig(enabled=True), max_tip_speed=0.05)
+    velocity = np.array([0.0, 0.0, 0.012])  # the tissue rising, m/s
+    tip = ENTRY + np.array([0.0, 0.0, 0.004])
+    for k in range(3):
+        shift = velocity * DT * k
+        wound = Wound(ENTRY + shift, EXIT + shift, NORMAL)
+        result = guard.filter_velocity(tip + shift, np.array([0.4, 0.3, -0.2]), wound, True, True, DT)
+    assert np.linalg.norm(result.v_safe) == pytest.approx(0.05, rel=1e-9) and result.intervened
+    with pytest.raises(ValueError, match="max_tip_speed"):
+        TipGuard(max_tip_speed=0.0)

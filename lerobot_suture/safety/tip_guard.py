@@ -227,12 +227,15 @@ class TipGuard:
         return self._throw_index
 
     def observe(self, held: bool, throw_index: int | None = None) -> None:
-        """After a step: a needle no longer held ends the throw's phase; a new ``throw_index`` starts over."""
+        """After a step: a needle no longer held ends the throw's phase, and the wound's motion is measured
+        afresh once it is held again (frames steps apart are no velocity); a new ``throw_index`` starts over."""
         if throw_index is not None and throw_index != self._throw_index:
             self.reset()
             self._throw_index = throw_index
-        if self.phase == PHASE_ACTIVE and not held:
-            self.phase = PHASE_DONE
+        if not held:
+            self._motion.reset()
+            if self.phase == PHASE_ACTIVE:
+                self.phase = PHASE_DONE
 
     def filter_velocity(
         self, tip: np.ndarray, v_nominal: np.ndarray, wound: Wound, held: bool, ready: bool, dt: float
@@ -254,7 +257,6 @@ class TipGuard:
         if not held:
             self._mode = None
             self._in_flight.clear()
-            self._motion.reset()
             return GuardResult(False, False, v, v.copy(), False, h, float("nan"), "", False)
         margin = self.margin(dt)
         level = float(margin_level(margin, axes))
