@@ -412,7 +412,9 @@ def test_the_env_wrapper_and_the_step_filter_alike():
     env = CBFActionWrapper(SutureEnv(obs_type="state"))
     env.reset(seed=0)
     wound = env.wound()
-    step = SutureCBFStep(workspace_low=None, workspace_high=None)  # poses built about the tip, not the arm's
+    # Poses built about the tip, not the arm's workspace; the env's own controller caps the tip's speed, where
+    # the step declares suture_sim's.
+    step = SutureCBFStep(workspace_low=None, workspace_high=None, max_tip_speed=None)
     registration = dict(
         zip(WOUND_FEATURES, [*wound.entry_point, *wound.exit_point, *wound.surface_normal], strict=True)
     )
