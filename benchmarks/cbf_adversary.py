@@ -175,6 +175,7 @@ def main() -> None:
         total += args.policy_episodes
     report: dict = {
         "benchmark": "cbf_adversary",
+        "command": " ".join(["python", *sys.argv]),
         "path": args.path,
         "families": list(FAMILIES),
         "conditions": {},
