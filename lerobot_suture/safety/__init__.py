@@ -1,5 +1,6 @@
-"""Safety layers: the model-free control barrier function (``cbf``, its ``cbf_config``, ``cbf_wrapper``,
-``cbf_replay``) and the out-of-distribution gate (``ood``).
+"""Safety layers: the model-free control barrier function (``cbf`` and ``surface_cbf``, the math; ``cbf_config``;
+``tip_guard``, the guard over the union of the space above the tissue and the wound, with ``wound`` and
+``wound_motion``; ``cbf_wrapper``, the env path; ``cbf_replay``) and the out-of-distribution gate (``ood``).
 
 The CBF names are re-exported here; ``cbf_replay`` (matplotlib) and ``ood`` are imported from their
 modules.
