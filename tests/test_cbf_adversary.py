@@ -121,11 +121,11 @@ def test_attack_family_never_takes_the_tip_out_of_the_set(family):
 
 
 def _conditions(path: str, within_bounds_only: bool = False) -> list:
-    """The conditions of ``path`` as test parameters; a running suture's, a second a family, run with the slow
-    set (which CI runs too)."""
+    """The conditions of ``path`` as test parameters: still tissue by default, the rest with the slow set (which CI
+    runs too)."""
     names = [c for c in conditions_for(path) if CONDITIONS[c].within_bounds or not within_bounds_only]
     slow = pytest.mark.slow
-    return [pytest.param(c, marks=slow) if CONDITIONS[c].task == "running_suture" else c for c in names]
+    return [c if c == "still" else pytest.param(c, marks=slow) for c in names]
 
 
 @pytest.mark.parametrize("condition", _conditions("env", within_bounds_only=True))

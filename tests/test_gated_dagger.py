@@ -172,6 +172,7 @@ def test_handovers_fall_where_the_env_path_s_enforced_gate_hands_over(calibrated
             assert abs(handover - step) <= 2, (episode, handover, step)
 
 
+@pytest.mark.slow
 def test_tissue_moving_beyond_the_cbf_s_bounds_hands_over(tiny_policy_dir, tmp_path):
     """The phantom breathes at three times the declared acceleration bound: the CBF step flags it and the
     strategy hands over to the teleoperator, with no gate and no camera watchdog to do it."""
