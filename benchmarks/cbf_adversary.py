@@ -36,6 +36,7 @@ from pathlib import Path
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 import numpy as np  # noqa: E402
+from _attack_paths import make_path  # noqa: E402
 from _report import emit, machine, write  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
@@ -43,7 +44,6 @@ from lerobot_suture.experiments.attack_episodes import (  # noqa: E402
     CONDITIONS,
     POLICY_FAMILY,
     AttackEpisode,
-    EnvPath,
     conditions_for,
     run_attack,
     run_policy_attack,
@@ -88,14 +88,6 @@ def summarize(episodes: list[AttackEpisode]) -> dict:
             "worst": round(float(np.max(times)) * 1e6, 2),
         }
     return report
-
-
-def make_path(path: str, condition: str, config: CBFConfig):
-    if path == "env":
-        return EnvPath(CONDITIONS[condition], config)
-    from lerobot_robot_suture.attacks import RobotPath
-
-    return RobotPath(CONDITIONS[condition], config)
 
 
 def run_condition(path_name: str, condition: str, seeds: range, args, config, progress, tmp: Path) -> dict:

@@ -26,10 +26,11 @@ from pathlib import Path
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 import numpy as np  # noqa: E402
+from _attack_paths import make_path  # noqa: E402
 from _report import emit, machine, write  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from lerobot_suture.experiments.attack_episodes import CONDITIONS, AttackEpisode, EnvPath  # noqa: E402
+from lerobot_suture.experiments.attack_episodes import CONDITIONS, AttackEpisode  # noqa: E402
 from lerobot_suture.experiments.metrics import wilson_interval  # noqa: E402
 from lerobot_suture.expert import ScriptedExpert  # noqa: E402
 from lerobot_suture.safety.cbf_config import CBFConfig  # noqa: E402
@@ -93,14 +94,6 @@ def summarize(outcomes: list[dict]) -> dict:
         "episodes_harmed": sum(o["harmed"] for o in outcomes),
         "tissue_strain_mm_mean": round(float(np.mean([o["strain_mm"] for o in outcomes])), 4),
     }
-
-
-def make_path(path_name: str, condition: str, cbf: CBFConfig, env_kwargs: dict):
-    if path_name == "env":
-        return EnvPath(CONDITIONS[condition], cbf, **env_kwargs)
-    from lerobot_robot_suture.attacks import RobotPath
-
-    return RobotPath(CONDITIONS[condition], cbf)
 
 
 def main() -> None:
