@@ -120,6 +120,8 @@ def run_condition(path_name: str, condition: str, seeds: range, args, config, pr
         for f in families
         if any(e.family == f for e in episodes)
     }
+    # Each harmful episode by (family, seed, throw), to replay it with run_attack.
+    block["violating_episodes"] = [[e.family, e.seed, e.throw] for e in episodes if e.violation_steps]
     if spec.within_bounds:
         block["bar"] = {
             "episodes_min": BAR_EPISODES,

@@ -18,8 +18,10 @@ nominal one. Why this covers latency and an arm that falls short: an arm that mo
 towards commanded end points keeps it in the convex hull of where it was and of those end points. Within a mode
 that hull is inside the mode's set; at a switch the tip and every end point still in flight already lie in the
 new mode's set, and so does every end point after. The margin covers the tip's distance from that path
-(tracking error plus grasp-model error); a tip found in a margin band is brought back by the mode's own
-recovery rule (its barrier never decreases over the step). On tissue that moves, the filter works on the tip's
+(tracking error plus grasp-model error). A tip found in a margin band, in neither tightened set, is brought
+back into the ellipsoid if it is inside it, else lifted (each mode's barrier never decreases over the step),
+and the robot path lets the jaw turn no further meanwhile, so that no sweep of the tip's lever arm works
+against the recovery. On tissue that moves, the filter works on the tip's
 motion relative to the wound's measured motion (:mod:`~lerobot_suture.safety.wound_motion`).
 
 It is used two ways, with the same rules and the same filter:
@@ -288,13 +290,16 @@ class TipGuard:
                 x, v_rel, wound.entry_point, wound.surface_normal, self.cbf.alpha, float(dt), margin
             )[0],
         }
-        allowed = [mode for mode in (MODE_ABOVE, MODE_WOUND) if may_enter[mode] or mode == self._mode]
+        allowed = [mode for mode in (MODE_ABOVE, MODE_WOUND) if may_enter[mode]]
         if allowed:
             # The mode whose filtered velocity is nearest the nominal; on a tie, the current one.
             self._mode = min(
                 allowed, key=lambda m: (float(np.linalg.norm(candidates[m] - v_rel)), m != self._mode)
             )
-        else:  # no mode yet, the tip in the tissue outside the tightened ellipsoid: back into it, or lift
+        else:
+            # The tip in a margin band (or an end point in flight outside both tightened sets): recover by
+            # where the tip is, into the ellipsoid only from inside it, else lift. The wound's recovery from
+            # outside the ellipsoid heads for its centre through the tissue beside it.
             self._mode = MODE_WOUND if h >= 0.0 else MODE_ABOVE
         v_rel_safe = candidates[self._mode]
         if self.max_tip_speed is not None:
@@ -381,7 +386,9 @@ class TipGuard:
         self._measure_tracking(tip, held, firm and still and grasp == self._last_grasp)
         self._last_grasp, self._last_closure = grasp, float(pose[9])
         if held and self.cbf.enabled:
-            target_rot = _limit_turn(jaw_rot, target_rot, self.max_turn(grasp))
+            # No turn while the tip is in a margin band: the lever arm's sweep would work against the recovery.
+            turn = 0.0 if self._in_margin_band(tip, wound, dt) else self.max_turn(grasp)
+            target_rot = _limit_turn(jaw_rot, target_rot, turn)
         tip_target = target[:3] + target_rot @ tip_in_jaw
         result = self.filter_velocity(tip, (tip_target - tip) / dt, wound, held, held, dt)
         out = target.copy()
@@ -393,6 +400,16 @@ class TipGuard:
         if held:
             self._ends.append(out[:3] + matrix_from_rot6(out[3:9]) @ tip_in_jaw)
         return out, result
+
+    def _in_margin_band(self, tip: np.ndarray, wound: Wound, dt: float) -> bool:
+        """Whether the tip (3,) m lies in neither tightened set: above the tissue by less than the margin and
+        not in the tightened ellipsoid."""
+        margin = self.margin(dt)
+        center, rotation = wound.ellipsoid_frame()
+        in_wound = ellipsoid_h(tip, center, self.cbf.semi_axes, rotation) >= margin_level(
+            margin, self.cbf.semi_axes
+        )
+        return not in_wound and surface_height(tip, wound.entry_point, wound.surface_normal) < margin
 
     def _measure_tracking(self, tip: np.ndarray, held: bool, steady: bool) -> None:
         """The measured tip's distance from the segment it was commanded along: from the tip measured a step

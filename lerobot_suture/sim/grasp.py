@@ -7,7 +7,9 @@ jaw that closes on a free needle catches it by the rule of ``needle_capture``.
 
 A needle lodged in the tissue is caught only as it lies: a jaw whose seat would move any point of it more than
 ``LODGED_CAPTURE_TOLERANCE`` closes beside it (the tissue holds it), where a free needle would be snapped into
-the seat; the snap of a lodged needle would twist it through the tissue in an instant.
+the seat; the snap of a lodged needle would twist it through the tissue in an instant. Nor does a seat push a
+needle into the tissue: a jaw whose seat would put any point of the needle more than that tolerance deeper in
+the tissue pad than the needle lies closes beside it too (the tissue's surface holds a needle lying on it).
 
 A free needle lying still on the phantom, or lodged in its tissue, rests (:meth:`NeedleGrasp.rest`): static
 friction or the tissue holds it and nothing else touches it (the jaw has no contacts), so it is held in
@@ -142,12 +144,13 @@ class NeedleGrasp:
         )
         if data.qpos[self.jaw_qpos] <= wire_angle:
             return False  # the jaw is already too closed for the wire to pass between its faces
-        if in_tissue:
-            arc = needle_arc_points(_LODGED_CHECK_POINTS)  # (n, 3) in the needle frame
-            seated_arc = jaw_pos + (seated.position + arc @ seated.rotation.T) @ jaw_rot.T
-            lying_arc = centre + arc @ rotation.T
-            if np.max(np.linalg.norm(seated_arc - lying_arc, axis=1)) > LODGED_CAPTURE_TOLERANCE:
-                return False  # the tissue holds the needle where it lies: the jaw closes beside it
+        arc = needle_arc_points(_LODGED_CHECK_POINTS)  # (n, 3) in the needle frame
+        seated_arc = jaw_pos + (seated.position + arc @ seated.rotation.T) @ jaw_rot.T
+        lying_arc = centre + arc @ rotation.T
+        if in_tissue and np.max(np.linalg.norm(seated_arc - lying_arc, axis=1)) > LODGED_CAPTURE_TOLERANCE:
+            return False  # the tissue holds the needle where it lies: the jaw closes beside it
+        if self._pad_depth(data, seated_arc) > self._pad_depth(data, lying_arc) + LODGED_CAPTURE_TOLERANCE:
+            return False  # the seat would push the needle into the tissue: its surface holds it
         self.parameters = seated.parameters
         self.position, self.rotation = seated.position, seated.rotation
         self.reversed = seated.reversed
@@ -229,6 +232,13 @@ class NeedleGrasp:
     def needle_speed(self, data: mujoco.MjData) -> float:
         """Speed of the free needle's centre (m/s)."""
         return float(np.linalg.norm(data.qvel[self._needle_dof : self._needle_dof + 3]))
+
+    def _pad_depth(self, data: mujoco.MjData, points: np.ndarray) -> float:
+        """How deep (m, >= 0) the deepest of ``points`` (n, 3) world lies in the tissue pad (0 if none is in it)."""
+        half = self._model.geom_size[self._pad_geom]
+        local = (points - data.geom_xpos[self._pad_geom]) @ data.geom_xmat[self._pad_geom].reshape(3, 3)
+        inside = np.all(np.abs(local) <= half, axis=1)
+        return float(np.max(half[2] - local[inside, 2], initial=0.0))
 
     def _set_needle_free_pose(self, data: mujoco.MjData, centre: np.ndarray, rotation: np.ndarray) -> None:
         q = self._needle_qpos
