@@ -49,6 +49,7 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 import gymnasium as gym  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from lerobot_policy_ensemble_diffusion.needle_keypoints import predict_needle_keypoints  # noqa: E402
 
 import lerobot_suture  # noqa: E402
 from lerobot_suture.expert import ScriptedExpert  # noqa: E402
@@ -72,7 +73,7 @@ def _keypoint_estimate(runner: PolicyRunner, observation: dict) -> np.ndarray | 
     """The members' mean estimate of the needle keypoints, (3, 2) normalized; None without keypoint heads."""
     if runner.policy.needle_heads is None:
         return None
-    estimate = runner.policy.predict_needle_keypoints(runner.preprocess([observation]))
+    estimate = predict_needle_keypoints(runner.policy, runner.preprocess([observation]))
     return estimate[0].float().mean(0).reshape(-1, 2).numpy()
 
 

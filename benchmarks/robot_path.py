@@ -1,6 +1,7 @@
-"""The simulated arm on LeRobot's robot path against ``lerobot-eval``, and the real-time loop's period.
+"""The simulated arm on LeRobot's robot path against ``lerobot-eval``, and the real-time loop's period under
+either of LeRobot's inference engines.
 
-Two figures, each from LeRobot's own console scripts on the same trained policy:
+Three figures, each from LeRobot's own console scripts on the same policy:
 
 1. **Rollout matches eval.** ``lerobot-eval --env.type=suture`` on ``--episodes`` seeds from ``--seed``,
    and ``lerobot-rollout --strategy.type=episodic --robot.type=suture_sim`` on the same seeds (dataset
@@ -9,13 +10,24 @@ Two figures, each from LeRobot's own console scripts on the same trained policy:
    The rollout's outcome per seed is read from the robot's trace (the step where the throw ended, or the
    env's 10 s limit came). The episodic strategy, not ``base``, because it resets the policy between
    episodes, as ``lerobot-eval`` does; ``base`` runs one continuous scene.
-2. **Real time holds.** ``lerobot-rollout --strategy.type=base`` with the real-time clock at 10 Hz for
-   ``--realtime-s`` seconds: the period between executed control steps (p50, p99, max) and the share of
-   periods over 110 ms.
+2. **Real time holds, with the gate and the CBF on.** For each engine of ``--engines`` (``sync``: LeRobot's
+   inline inference; ``rtc``: its real-time chunking engine, ``--inference.type=rtc``, which predicts the next
+   chunk in a background thread), ``lerobot-rollout --strategy.type=gated_dagger`` (the gate, the ``suture_cbf``
+   step, the scripted surgeon after a handover) with the real-time clock at 10 Hz for ``--realtime-s``
+   seconds, one scene after another: the period between executed control steps (p50, p99, max), and the
+   shares over 110 ms and 150 ms. The periods that span the end of a scene (the episode's save and the next
+   scene's reset) are left out and counted.
+3. **The engines end the same way.** With ``--episodes`` > 0, both engines on the same seeds under the same
+   real-time loop: per seed, success and the frame at which the gate handed over.
+
+``--untrained-preset FILE`` times a policy of that preset's architecture with untrained weights (its
+needle target off, a training-only head) instead of ``--policy-path``: periods only, since an untrained
+policy's outcomes mean nothing; part 1 and 3 are skipped.
 
 Prints one JSON object (and writes it to ``--out`` when given)::
 
     .venv/bin/python benchmarks/robot_path.py --policy-path DIR [--episodes 50] [--seed 2000000]
+    .venv/bin/python benchmarks/robot_path.py --untrained-preset policies/presets/reference.json --realtime-s 600
 """
 
 from __future__ import annotations
@@ -32,10 +44,13 @@ from pathlib import Path
 
 import numpy as np
 
-NEEDS = "a trained policy (--policy-path)"
+NEEDS = "a trained policy (--policy-path), or a preset to time untrained (--untrained-preset)"
 BIN = Path(sys.executable).parent
 CONTROL_PERIOD_S = 0.1
 LATE_FACTOR = 1.1
+VERY_LATE_FACTOR = 1.5
+ENGINES = ("sync", "rtc")
+TASK = "Insert the curved suture needle at the entry point and drive it out through the exit point."
 
 
 def _environ() -> dict:
@@ -133,74 +148,130 @@ def rollout_outcomes(
     return trace_outcomes(lines), seconds
 
 
-def realtime_periods(policy_path: Path, seconds: float, seed: int, work: Path) -> dict:
-    trace = work / "realtime_trace.jsonl"
-    _run(
-        "lerobot-rollout",
-        [
-            "--strategy.type=base",
-            f"--policy.path={policy_path}",
-            "--device=cpu",
-            "--fps=10",
-            f"--duration={seconds}",
-            "--return_to_initial_position=false",
-            "--robot.type=suture_sim",
-            f"--robot.seed={seed}",
-            f"--robot.image_size={_image_size(policy_path)}",
-            "--robot.clock=realtime",
-            f"--robot.trace_path={trace}",
-            "--play_sounds=false",
-            "--display_data=false",
-        ],
-        work / "realtime.log",
-    )
-    times = np.array([json.loads(line)["wall_time"] for line in trace.read_text().splitlines()])
-    periods = np.diff(times)
+def gated_rollout(
+    policy_path: Path, engine: str, work: Path, *, seed: int, episodes: int, episode_s: float, duration: float
+) -> tuple[list[dict], Path]:
+    """``lerobot-rollout --strategy.type=gated_dagger`` on the real-time clock at 10 Hz under ``engine``; returns
+    the robot's trace and the recorded dataset's root."""
+    work.mkdir(parents=True, exist_ok=True)
+    trace, root = work / f"{engine}_trace.jsonl", work / f"{engine}_dataset"
+    args = [
+        "--strategy.type=gated_dagger",
+        f"--inference.type={engine}",
+        f"--policy.path={policy_path}",
+        "--teleop.type=suture_scripted",
+        "--device=cpu",
+        "--fps=10",
+        "--return_to_initial_position=false",
+        "--robot.type=suture_sim",
+        f"--robot.seed={seed}",
+        f"--robot.image_size={_image_size(policy_path)}",
+        "--robot.clock=realtime",
+        "--robot.episode_end=hold",
+        "--robot.tip_tracking=true",
+        "--robot.registration=true",
+        f"--robot.trace_path={trace}",
+        f"--dataset.repo_id=local/rollout_robot_path_{engine}",
+        f"--dataset.root={root}",
+        "--dataset.fps=10",
+        f"--dataset.num_episodes={episodes}",
+        f"--dataset.episode_time_s={episode_s}",
+        "--dataset.reset_time_s=0",
+        f"--dataset.single_task={TASK}",
+        "--dataset.push_to_hub=false",
+        "--play_sounds=false",
+        "--display_data=false",
+    ]
+    if duration > 0:
+        args.append(f"--duration={duration}")
+    _run("lerobot-rollout", args, work / f"{engine}.log")
+    return [json.loads(line) for line in trace.read_text().splitlines()], root
+
+
+def period_report(trace: list[dict]) -> dict:
+    """The periods between executed control steps of the same scene, from the robot's trace."""
+    times = np.array([line["wall_time"] for line in trace])
+    seeds = np.array([line["seed"] for line in trace])
+    same_scene = seeds[1:] == seeds[:-1]
+    periods = np.diff(times)[same_scene]
     return {
         "steps": int(times.size),
+        "scenes": int(np.unique(seeds).size),
+        "scene_boundaries_left_out": int((~same_scene).sum()),
         "period_s": {
             "p50": round(float(np.percentile(periods, 50)), 4),
             "p99": round(float(np.percentile(periods, 99)), 4),
             "max": round(float(periods.max()), 4),
             "mean": round(float(periods.mean()), 4),
         },
-        "late_share": round(float(np.mean(periods > LATE_FACTOR * CONTROL_PERIOD_S)), 4),
+        "late_share": round(float(np.mean(periods > LATE_FACTOR * CONTROL_PERIOD_S)), 5),
+        "over_150ms_share": round(float(np.mean(periods > VERY_LATE_FACTOR * CONTROL_PERIOD_S)), 5),
         "rate_hz": round(float(1.0 / periods.mean()), 3),
         "holds_10_hz": bool(np.percentile(periods, 99) <= LATE_FACTOR * CONTROL_PERIOD_S),
     }
 
 
-def main() -> None:
+def gated_outcomes(trace: list[dict], root: Path, repo_id: str) -> dict[int, dict]:
+    """Per scene seed: success at the scene's end, and the frame at which the gate handed over (None: never)."""
+    from lerobot.datasets import LeRobotDataset
+
+    dataset = LeRobotDataset(repo_id, root=root)
+    episode_seeds = list(dict.fromkeys(line["seed"] for line in trace))
+    outcomes = {}
+    for episode, seed in enumerate(episode_seeds[: dataset.meta.total_episodes]):
+        start = int(dataset.meta.episodes["dataset_from_index"][episode])
+        stop = int(dataset.meta.episodes["dataset_to_index"][episode])
+        intervention = [bool(dataset.hf_dataset[i]["intervention"]) for i in range(start, stop)]
+        last = [line for line in trace if line["seed"] == seed][-1]
+        outcomes[int(seed)] = {
+            "success": bool(last["is_success"]),
+            "handover": intervention.index(True) if any(intervention) else None,
+        }
+    return outcomes
+
+
+def compare_engines(sync: dict[int, dict], rtc: dict[int, dict]) -> dict:
+    """How often the engines end the same way, and how far apart their handovers fall (frames; > 0: RTC later)."""
+    seeds = sorted(set(sync) & set(rtc))
+    same = [s for s in seeds if sync[s]["success"] == rtc[s]["success"]]
+    both = [s for s in seeds if sync[s]["handover"] is not None and rtc[s]["handover"] is not None]
+    return {
+        "seeds": len(seeds),
+        "same_ending": len(same),
+        "handover_only_one_engine": sum(
+            (sync[s]["handover"] is None) != (rtc[s]["handover"] is None) for s in seeds
+        ),
+        "handover_shift_frames": [rtc[s]["handover"] - sync[s]["handover"] for s in both],
+    }
+
+
+def untrained_policy(preset: Path, directory: Path) -> Path:
+    """A policy of ``preset``'s architecture with untrained weights, normalized with the expert's statistics."""
+    from lerobot_policy_ensemble_diffusion.testing import save_untrained_expert_policy
+
+    fields = json.loads(preset.read_text())["policy"]
+    fields = {
+        k: tuple(v) if isinstance(v, list) else v
+        for k, v in fields.items()
+        if k not in ("type", "device", "push_to_hub")
+    }
+    fields["needle_keypoints_weight"] = 0.0  # a training-only head; inference is the same without it
+    return save_untrained_expert_policy(directory, **fields)
+
+
+def consistency(policy_path: Path, args, work: Path) -> dict:
+    """Part 1: the episodic rollout's outcomes against ``lerobot-eval``'s on the same seeds."""
     from lerobot_suture.experiments.metrics import wilson_interval
 
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--policy-path", type=Path, required=True)
-    parser.add_argument("--episodes", type=int, default=50)
-    parser.add_argument("--seed", type=int, default=2_000_000, help="first test seed (the experiments')")
-    parser.add_argument("--episode-s", type=float, default=20.0, help="wall time of a rollout episode")
-    parser.add_argument("--realtime-s", type=float, default=60.0)
-    parser.add_argument("--out", type=Path)
-    parser.add_argument(
-        "--work-dir", type=Path, help="the commands' outputs and logs (default: a new temp dir)"
-    )
-    args = parser.parse_args()
-    work = args.work_dir or Path(tempfile.mkdtemp(prefix="robot_path_"))
-    if work.exists() and any(work.iterdir()):
-        raise SystemExit(f"--work-dir {work} is not empty: the commands' outputs would mix; pass a new one.")
-    work.mkdir(parents=True, exist_ok=True)
-    evaluated, eval_s = eval_outcomes(args.policy_path, args.episodes, args.seed, work)
-    rolled, rollout_s = rollout_outcomes(args.policy_path, args.episodes, args.seed, args.episode_s, work)
-    realtime = realtime_periods(args.policy_path, args.realtime_s, args.seed, work)
+    evaluated, eval_s = eval_outcomes(policy_path, args.episodes, args.seed, work)
+    rolled, rollout_s = rollout_outcomes(policy_path, args.episodes, args.seed, args.episode_s, work)
     seeds = [args.seed + k for k in range(args.episodes)]
     eval_successes = sum(evaluated[s] for s in seeds)
     finished = [s for s in seeds if rolled.get(s) is not None]
     rollout_successes = sum(bool(rolled[s]) for s in finished)
     low, high = (round(b, 6) for b in wilson_interval(eval_successes, len(seeds)))
     rollout_rate = rollout_successes / len(seeds)
-    result = {
-        "policy_path": str(args.policy_path),
-        "episodes": args.episodes,
-        "first_seed": args.seed,
+    return {
         "eval": {
             "successes": eval_successes,
             "success_rate": eval_successes / len(seeds),
@@ -216,9 +287,77 @@ def main() -> None:
         },
         "same_outcome_share": sum(evaluated[s] == rolled.get(s) for s in seeds) / len(seeds),
         "rollout_within_eval_interval": bool(low <= rollout_rate <= high),
-        "realtime": realtime,
-        "work_dir": str(work),
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "load_at_end": os.getloadavg()},
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--policy-path", type=Path)
+    source.add_argument("--untrained-preset", type=Path, help="time this preset's architecture, untrained")
+    parser.add_argument("--engines", default=",".join(ENGINES), help="comma-separated, of sync and rtc")
+    parser.add_argument("--episodes", type=int, default=50, help="0: periods only")
+    parser.add_argument("--seed", type=int, default=2_000_000, help="first test seed (the experiments')")
+    parser.add_argument("--episode-s", type=float, default=20.0, help="wall time of a rollout episode")
+    parser.add_argument("--realtime-s", type=float, default=600.0, help="each engine's real-time run")
+    parser.add_argument("--out", type=Path)
+    parser.add_argument(
+        "--work-dir", type=Path, help="the commands' outputs and logs (default: a new temp dir)"
+    )
+    args = parser.parse_args()
+    engines = args.engines.split(",")
+    if not set(engines) <= set(ENGINES):
+        raise SystemExit(f"--engines must name some of {ENGINES}; got {args.engines!r}.")
+    work = args.work_dir or Path(tempfile.mkdtemp(prefix="robot_path_"))
+    if work.exists() and any(work.iterdir()):
+        raise SystemExit(f"--work-dir {work} is not empty: the commands' outputs would mix; pass a new one.")
+    work.mkdir(parents=True, exist_ok=True)
+    policy_path = args.policy_path or untrained_policy(args.untrained_preset, work / "untrained_policy")
+    trained = args.policy_path is not None
+    result: dict = {
+        "policy_path": str(args.policy_path)
+        if trained
+        else f"untrained, architecture of {args.untrained_preset}",
+        "episodes": args.episodes if trained else 0,
+        "first_seed": args.seed,
+    }
+    if trained and args.episodes > 0:
+        result.update(consistency(policy_path, args, work))
+    result["realtime"] = {}
+    for engine in engines:
+        start = time.perf_counter()
+        trace, _ = gated_rollout(
+            policy_path,
+            engine,
+            work / "realtime",
+            seed=args.seed,
+            episodes=100_000,
+            episode_s=60.0,
+            duration=args.realtime_s,
+        )
+        result["realtime"][engine] = {
+            **period_report(trace),
+            "seconds": round(time.perf_counter() - start, 1),
+        }
+    if trained and args.episodes > 0 and len(engines) == 2:
+        outcomes = {}
+        for engine in engines:
+            trace, root = gated_rollout(
+                policy_path,
+                engine,
+                work / "outcomes",
+                seed=args.seed,
+                episodes=args.episodes,
+                episode_s=args.episode_s,
+                duration=0,
+            )
+            outcomes[engine] = gated_outcomes(trace, root, f"local/rollout_robot_path_{engine}")
+        result["engines_compared"] = compare_engines(outcomes["sync"], outcomes["rtc"])
+    result["work_dir"] = str(work)
+    result["machine"] = {
+        "cpus": os.cpu_count(),
+        "platform": platform.platform(),
+        "load_at_end": os.getloadavg(),
     }
     text = json.dumps(result, indent=2)
     print(text)

@@ -8,6 +8,7 @@ import torch
 from lerobot.utils.constants import ACTION, OBS_IMAGES, OBS_STATE
 from lerobot_policy_ensemble_diffusion import EnsembleDiffusionPolicy
 from lerobot_policy_ensemble_diffusion.batched_members import FusedDiffusionEnsemble
+from lerobot_policy_ensemble_diffusion.needle_keypoints import predict_needle_keypoints
 from lerobot_policy_ensemble_diffusion.normalization import action_affine_from_stats
 from lerobot_policy_ensemble_diffusion.testing import (
     SUTURE_DATASET_FEATURES,
@@ -488,13 +489,13 @@ def test_needle_loss_adds_the_weighted_keypoint_error_and_trains_the_encoders():
 def test_needle_heads_are_saved_and_loaded(tmp_path):
     policy = _needle_policy(weight=1.0).eval()
     obs = random_observation(policy.config, batch_size=3)
-    estimates = policy.predict_needle_keypoints(obs)
+    estimates = predict_needle_keypoints(policy, obs)
     assert estimates.shape == (3, 2, 6)
     member = policy.members[1]
     features = member.diffusion.rgb_encoder[0](obs["observation.images.endoscope"][:, -1])
     torch.testing.assert_close(estimates[:, 1], policy.needle_heads[1](features))
     with pytest.raises(ValueError, match="trained without the auxiliary needle target"):
-        _needle_policy(weight=0.0).predict_needle_keypoints(obs)
+        predict_needle_keypoints(_needle_policy(weight=0.0), obs)
     policy.save_pretrained(tmp_path)
     loaded = EnsembleDiffusionPolicy.from_pretrained(tmp_path)
     assert loaded.config.needle_keypoints_dim == 6 and NEEDLE_KEY not in loaded.config.input_features

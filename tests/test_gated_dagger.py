@@ -209,3 +209,41 @@ def test_tissue_moving_beyond_the_cbf_s_bounds_hands_over(tiny_policy_dir, tmp_p
     dataset = load_dataset(root, "local/rollout_tissue_motion")
     intervention = np.array([bool(f["intervention"]) for f in episode_frames(dataset, 0)])
     assert intervention.any() and not intervention[0]
+
+
+def test_gated_dagger_on_lerobot_s_real_time_chunking_engine(tiny_policy_dir, tmp_path):
+    """``--inference.type=rtc``: the policy's chunks come from LeRobot's background engine; the camera watchdog
+    still hands over after the frozen frame, and no frame the policy drove carries an O.O.D. decision."""
+    root = tmp_path / "dataset"
+    log = run_command(
+        "lerobot-rollout",
+        [
+            "--strategy.type=gated_dagger",
+            "--strategy.gate=none",
+            "--inference.type=rtc",
+            "--inference.rtc.execution_horizon=8",
+            f"--policy.path={tiny_policy_dir}",
+            "--teleop.type=suture_scripted",
+            "--device=cpu",
+            "--fps=20",
+            "--return_to_initial_position=false",
+            *robot_args(
+                tmp_path / "trace.jsonl",
+                "--robot.seed=7",
+                "--robot.clock=fast",
+                "--robot.episode_end=hold",
+                "--robot.tip_tracking=true",
+                "--robot.registration=true",
+                f"--robot.faults.frozen_camera_step={FROZEN_AT}",
+            ),
+            *dataset_args(root, "local/rollout_gated_rtc", episodes=1, episode_s=60, reset_s=0),
+        ],
+        timeout=600,
+    )
+    assert "Creating inference engine: rtc" in log and "Gated DAgger: gate none, CBF on" in log
+    frames = episode_frames(load_dataset(root, "local/rollout_gated_rtc"), 0)
+    intervention = np.array([bool(f["intervention"]) for f in frames])
+    decision = np.array([bool(f["ood_decision"]) for f in frames])
+    handover = int(np.argmax(intervention))
+    assert intervention.any() and handover > 0 and intervention[handover:].all()
+    assert not decision[:handover].any() and decision[handover:].all()

@@ -123,7 +123,10 @@ def _needs_an_input(tree: ast.AST) -> bool:
         keywords = {k.arg: k.value for k in node.keywords}
         if name == "run_nominal_seeds":
             return True
-        if name != "add_argument":
+        if name not in (
+            "add_argument",
+            "add_mutually_exclusive_group",
+        ):  # a required group: one must be given
             continue
         required = keywords.get("required")
         if isinstance(required, ast.Constant) and required.value is True:

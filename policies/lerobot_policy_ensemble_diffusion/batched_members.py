@@ -45,6 +45,7 @@ from torch import Tensor, nn
 
 from .fused_unet import FusedRandomPrior, FusedUnet1d, unwrap_compiled
 from .prior import UnetWithPrior
+from .rtc_inpainting import inpaint_model_output
 
 
 class SmallMapConv2d(nn.Module):
@@ -198,6 +199,8 @@ class FusedDiffusionEnsemble(nn.Module):
         samples_per_member: int = 1,
         noise: Tensor | None = None,
         generator: torch.Generator | None = None,
+        prefix: Tensor | None = None,
+        first_step: int = 0,
     ) -> Tensor:
         """Run the reverse diffusion for every member at once.
 
@@ -206,6 +209,8 @@ class FusedDiffusionEnsemble(nn.Module):
             samples_per_member: K chunks per member, each from its own initial noise.
             noise: optional (B, N, K, T, A) initial noise.
             generator: optional RNG for the initial and the per-step scheduler noise.
+            prefix: optional (L, A) committed actions every chunk starts with at step `first_step`
+                (real-time chunking, `rtc_inpainting`).
         Returns:
             (B, N, K, T, A) samples, T = horizon.
         """
@@ -227,6 +232,10 @@ class FusedDiffusionEnsemble(nn.Module):
             model_output = self.unet.denoise(sample, films)  # (B*K, N, T, A)
             if prior is not None:
                 model_output = model_output + prior
+            if prefix is not None:
+                model_output = inpaint_model_output(
+                    model_output, sample, int(t), self.noise_scheduler, prefix, first_step
+                )
             sample = self.noise_scheduler.step(model_output, t, sample, generator=generator).prev_sample
         return sample.view(b, k, n, t_len, a).transpose(1, 2)  # (B, N, K, T, A)
 

@@ -35,3 +35,27 @@ class FeatureCapture:
             )  # (B*K', T, A)
             features["single_member_samples"] = chunk.view(b, k, horizon, action_dim)
         self.last = features
+
+
+class FeatureCaptureMixin:
+    """The capture's side of :class:`~.modeling_ensemble_diffusion.EnsembleDiffusionPolicy`: switching it on and
+    off, and the last prediction's features. Reads the policy's `config`, `members` and `_capture`."""
+
+    def enable_feature_capture(self, single_member_samples: int = 0, seed: int = 0) -> None:
+        """Keep, at each prediction, what failure detectors read besides the action samples, in
+        `self.last_features` (see `feature_capture`); the actions stay as they are."""
+        self._capture = FeatureCapture(single_member_samples, seed, next(self.parameters()).device)
+
+    def disable_feature_capture(self) -> None:
+        self._capture = None
+
+    @property
+    def last_features(self) -> dict[str, Tensor] | None:
+        """The last prediction's captured features (None while capture is off or before a prediction)."""
+        return None if self._capture is None else self._capture.last
+
+    def _capture_features(self, global_cond: Tensor) -> None:
+        if self._capture is not None:
+            self._capture.capture(
+                global_cond, self.members[0], self.config.horizon, self.config.action_feature.shape[0]
+            )

@@ -43,18 +43,19 @@ from .batched_members import FusedDiffusionEnsemble
 from .compatibility import check_checkpoint_matches, check_features_match, check_observation
 from .configuration_ensemble_diffusion import NEEDLE_KEYPOINTS_KEY, SCORE_CHOICES, EnsembleDiffusionConfig
 from .ensemble_stats import compute_ensemble_stats
-from .feature_capture import FeatureCapture
+from .feature_capture import FeatureCapture, FeatureCaptureMixin
 from .members import bootstrap_batch, captured_outputs, image_encoders, make_member
-from .needle_keypoints import estimate_needle_keypoints, make_needle_heads, needle_keypoint_error
+from .needle_keypoints import make_needle_heads, needle_keypoint_error
 from .normalization import action_affine_from_stats, saved_normalizer_stats
 from .ood_gate import GatedPolicyMixin
 from .prediction import EnsemblePrediction, score_ensemble_stats
+from .rtc_inpainting import committed_prefix, conditional_sample
 
 if TYPE_CHECKING:
     from lerobot.datasets import LeRobotDatasetMetadata
 
 
-class EnsembleDiffusionPolicy(GatedPolicyMixin, PreTrainedPolicy):
+class EnsembleDiffusionPolicy(GatedPolicyMixin, FeatureCaptureMixin, PreTrainedPolicy):
     """N LeRobot `DiffusionPolicy` members trained and run as one policy; mean action plus covariance."""
 
     config_class = EnsembleDiffusionConfig
@@ -237,23 +238,6 @@ class EnsembleDiffusionPolicy(GatedPolicyMixin, PreTrainedPolicy):
             total = total + self.config.needle_keypoints_weight * needle_error
         return total, output
 
-    @torch.no_grad()
-    def predict_needle_keypoints(self, batch: dict[str, Tensor]) -> Tensor:
-        """(B, N, D): each member's estimate of the needle keypoints from the current image(s).
-
-        The auxiliary heads of `needle_keypoints_weight` read from the members' image features; this says
-        what the encoders see of the needle (`benchmarks/needle_attention.py`). `batch` is a normalized
-        observation, (B, C, H, W) or (B, S, C, H, W) per camera (the last step is read).
-        """
-        if self.needle_heads is None:
-            raise ValueError(
-                "This policy was trained without the auxiliary needle target (`needle_keypoints_weight`=0); it "
-                "has no keypoint heads."
-            )
-        images = [batch[key] for key in self.config.image_features]
-        images = [im[:, -1] if im.ndim == 5 else im for im in images]
-        return estimate_needle_keypoints(self.members, self.needle_heads, images)
-
     # ---- inference ----------------------------------------------------------------------------------
 
     def _stack_observation(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
@@ -274,8 +258,10 @@ class EnsembleDiffusionPolicy(GatedPolicyMixin, PreTrainedPolicy):
         samples_per_member: int,
         noise: Tensor | None,
         generator: torch.Generator | None,
+        prefix: Tensor | None = None,
     ) -> Tensor:
-        """Every member's K sampled chunks over the full horizon: (B, N, K, T, A)."""
+        """Every member's K sampled chunks over the full horizon: (B, N, K, T, A); with a committed `prefix`
+        (L, A), every chunk starts with it at step n_obs_steps - 1 (`rtc_inpainting`)."""
         batch_size = batch[OBS_STATE].shape[0]
         k = samples_per_member
         n = self.config.n_members
@@ -287,7 +273,14 @@ class EnsembleDiffusionPolicy(GatedPolicyMixin, PreTrainedPolicy):
         if self.config.batched_inference and not self.training:
             fused = self._fused_members()
             global_cond = fused.encode(batch)  # (B, N, G)
-            out = fused.sample(global_cond, samples_per_member=k, noise=noise, generator=generator)
+            out = fused.sample(
+                global_cond,
+                samples_per_member=k,
+                noise=noise,
+                generator=generator,
+                prefix=prefix,
+                first_step=self.config.n_obs_steps - 1,
+            )
             self._capture_features(global_cond)
             return out
         samples, conds = [], []
@@ -297,33 +290,18 @@ class EnsembleDiffusionPolicy(GatedPolicyMixin, PreTrainedPolicy):
             conds.append(global_cond)
             global_cond = global_cond.repeat_interleave(k, dim=0)  # (B*K, G)
             member_noise = None if noise is None else noise[:, i].reshape(batch_size * k, t_len, a)
-            chunk = model.conditional_sample(
-                batch_size * k, global_cond=global_cond, generator=generator, noise=member_noise
+            chunk = conditional_sample(
+                model,
+                batch_size * k,
+                global_cond,
+                generator,
+                member_noise,
+                prefix,
+                self.config.n_obs_steps - 1,
             )  # (B*K, T, A)
             samples.append(chunk.view(batch_size, k, t_len, a))
         self._capture_features(torch.stack(conds, dim=1))  # (B, N, G)
         return torch.stack(samples, dim=1)  # (B, N, K, T, A)
-
-    # ---- feature capture for failure detectors ------------------------------------------------------
-
-    def enable_feature_capture(self, single_member_samples: int = 0, seed: int = 0) -> None:
-        """Keep, at each prediction, what failure detectors read besides the action samples, in
-        `self.last_features` (see `feature_capture`); the actions stay as they are."""
-        self._capture = FeatureCapture(single_member_samples, seed, next(self.parameters()).device)
-
-    def disable_feature_capture(self) -> None:
-        self._capture = None
-
-    @property
-    def last_features(self) -> dict[str, Tensor] | None:
-        """The last prediction's captured features (None while capture is off or before a prediction)."""
-        return None if self._capture is None else self._capture.last
-
-    def _capture_features(self, global_cond: Tensor) -> None:
-        if self._capture is not None:
-            self._capture.capture(
-                global_cond, self.members[0], self.config.horizon, self.config.action_feature.shape[0]
-            )
 
     @torch.no_grad()
     def predict_action_distribution(
@@ -332,6 +310,7 @@ class EnsembleDiffusionPolicy(GatedPolicyMixin, PreTrainedPolicy):
         samples_per_member: int | None = None,
         noise: Tensor | None = None,
         generator: torch.Generator | None = None,
+        prefix: Tensor | None = None,
     ) -> EnsemblePrediction:
         """Sample every member on the same observation and return the ensemble statistics.
 
@@ -345,6 +324,8 @@ class EnsembleDiffusionPolicy(GatedPolicyMixin, PreTrainedPolicy):
                 gives the aleatoric / epistemic split.
             noise: optional initial noise (B, N, K, horizon, A).
             generator: optional RNG for the diffusion noise.
+            prefix: optional (L, A) normalized actions committed already (real-time chunking): every sampled
+                chunk starts with them, and the score is read over the executed steps after them.
         Returns:
             EnsemblePrediction over the full horizon: samples (B, N, K, T, A), member_mean (B, N, T, A),
             mean (B, T, A), covariance / epistemic / aleatoric (B, T, A, A), normalized and unnormalized, and
@@ -361,22 +342,29 @@ class EnsembleDiffusionPolicy(GatedPolicyMixin, PreTrainedPolicy):
         # score by up to 10% on the reference checkpoint (no faster on the CPU), and the gate's
         # calibration is only valid for the numerics it was fitted with.
         with torch.autocast(model_batch[OBS_STATE].device.type, enabled=False):
-            return self._predict(model_batch, k, noise, generator)
+            return self._predict(model_batch, k, noise, generator, prefix)
 
     def _predict(
-        self, model_batch: dict[str, Tensor], k: int, noise: Tensor | None, generator: torch.Generator | None
+        self,
+        model_batch: dict[str, Tensor],
+        k: int,
+        noise: Tensor | None,
+        generator: torch.Generator | None,
+        prefix: Tensor | None = None,
     ) -> EnsemblePrediction:
-        samples = self._sample(model_batch, k, noise, generator)  # (B, N, K, T, A)
+        samples = self._sample(model_batch, k, noise, generator, prefix)  # (B, N, K, T, A)
         normalized = compute_ensemble_stats(samples, correction=self.config.covariance_correction)
         unnormalized = None
         if self.has_action_stats:
             unnormalized = normalized.affine(self.action_unnormalize_scale, self.action_unnormalize_offset)
+        # The executed steps; with a committed prefix, the ones after it (where the members are free to differ).
+        committed = 0 if prefix is None else prefix.shape[0]
         start = self.config.n_obs_steps - 1
+        start += min(committed, self.config.horizon - start - self.config.n_action_steps)
         action_steps = slice(start, start + self.config.n_action_steps)
         score = score_ensemble_stats(
             normalized, unnormalized, action_steps, self._score_choice(), logdet_eps=self.config.logdet_eps
         )  # (B,)
-
         prediction = EnsemblePrediction(
             normalized=normalized,
             unnormalized=unnormalized,
@@ -417,15 +405,37 @@ class EnsembleDiffusionPolicy(GatedPolicyMixin, PreTrainedPolicy):
             logdet_eps=self.config.logdet_eps,
         )
 
-    @torch.no_grad()
-    def predict_action_chunk(self, batch: dict[str, Tensor], noise: Tensor | None = None) -> Tensor:
-        """The ensemble mean of the executed steps, (B, n_action_steps, A), in normalized action space.
+    def supports_rtc(self) -> bool:
+        """LeRobot's real-time chunking engine may run this policy (`lerobot-rollout --inference.type=rtc`)."""
+        return True
 
-        Online (queues filled by `select_action`) or offline (dataloader batch), as `DiffusionPolicy`.
-        `noise`: optional initial noise (B, N, K, horizon, A).
+    @torch.no_grad()
+    def predict_action_chunk(
+        self,
+        batch: dict[str, Tensor],
+        noise: Tensor | None = None,
+        inference_delay: int | None = None,
+        prev_chunk_left_over: Tensor | None = None,
+    ) -> Tensor:
+        """The ensemble mean in normalized action space, `noise` optional initial noise (B, N, K, horizon, A).
+
+        Without `inference_delay`: the executed steps, (B, n_action_steps, A), online (queues filled by
+        `select_action`) or offline (dataloader batch), as `DiffusionPolicy`. With it, LeRobot's real-time
+        chunking engine calls (`rtc_inpainting`): `batch` is the latest observation, `prev_chunk_left_over` what
+        is left of the current chunk. The chunk runs from the observation's step to the horizon's end, its first
+        `inference_delay` steps the committed actions. The gate reads the prediction first; once it released
+        control with `ood.enforce`, the chunk holds the measured pose, so no flagged chunk is executed.
         """
-        prediction = self.predict_action_distribution(batch, noise=noise)
-        return prediction.normalized.mean[:, prediction.action_steps]  # (B, n_action_steps, A)
+        if inference_delay is None:
+            prediction = self.predict_action_distribution(batch, noise=noise)
+            return prediction.normalized.mean[:, prediction.action_steps]  # (B, n_action_steps, A)
+        batch = self._observe(batch)
+        prefix = committed_prefix(prev_chunk_left_over, int(inference_delay))
+        prediction = self.predict_action_distribution(batch, noise=noise, prefix=prefix)
+        self._new_prediction = True
+        self._update_ood_gates(prediction.score)
+        chunk = prediction.normalized.mean[:, self.config.n_obs_steps - 1 :]  # (B, T', A)
+        return self._hold_where_released(chunk, batch)
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], noise: Tensor | None = None) -> Tensor:
@@ -434,14 +444,7 @@ class EnsembleDiffusionPolicy(GatedPolicyMixin, PreTrainedPolicy):
         A new chunk is predicted when the action queue is empty: every member samples, the mean of the
         `n_action_steps` executed steps fills the queue, and `self.last_prediction` holds the statistics.
         """
-        if ACTION in batch:
-            batch = dict(batch)
-            batch.pop(ACTION)
-        if self.config.image_features:
-            batch = dict(batch)  # shallow copy so that adding a key doesn't modify the original
-            batch[OBS_IMAGES] = torch.stack([batch[key] for key in self.config.image_features], dim=-4)
-        self._queues = populate_queues(self._queues, batch)
-
+        batch = self._observe(batch)
         self._new_prediction = len(self._queues[ACTION]) == 0
         if self._new_prediction:
             actions = self.predict_action_chunk(batch, noise=noise)  # (B, n_action_steps, A)
@@ -449,11 +452,16 @@ class EnsembleDiffusionPolicy(GatedPolicyMixin, PreTrainedPolicy):
             self._update_ood_gates(self.last_prediction.score)
 
         action = self._queues[ACTION].popleft()  # (B, A)
-        if self.config.ood.enforce:
-            released = torch.tensor([gate.released for gate in self._ood_gates], device=action.device)
-            if released.any():
-                action = torch.where(released[:, None], self._hold_action(batch), action)
-        return action
+        return self._hold_where_released(action[:, None], batch)[:, 0]
+
+    def _observe(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+        """`batch` without its action and with its stacked images, added to the observation queues."""
+        batch = dict(batch)  # shallow copy so that adding a key doesn't modify the original
+        batch.pop(ACTION, None)
+        if self.config.image_features:
+            batch[OBS_IMAGES] = torch.stack([batch[key] for key in self.config.image_features], dim=-4)
+        self._queues = populate_queues(self._queues, batch)
+        return batch
 
     @classmethod
     def from_pretrained(cls, pretrained_name_or_path, **kwargs):

@@ -73,3 +73,21 @@ def estimate_needle_keypoints(members: nn.ModuleList, heads: nn.ModuleList, imag
             features = [encoder(im) for encoder, im in zip(encoders, images, strict=True)]
         estimates.append(heads[n](torch.cat(features, dim=-1)))
     return torch.stack(estimates, dim=1)
+
+
+@torch.no_grad()
+def predict_needle_keypoints(policy, batch: dict[str, Tensor]) -> Tensor:
+    """(B, N, D): each member's estimate of the needle keypoints from the current image(s).
+
+    The auxiliary heads of `needle_keypoints_weight` read from the members' image features; this says what the
+    encoders see of the needle (`benchmarks/needle_attention.py`). `policy` is an `EnsembleDiffusionPolicy`;
+    `batch` a normalized observation, (B, C, H, W) or (B, S, C, H, W) per camera (the last step is read).
+    """
+    if policy.needle_heads is None:
+        raise ValueError(
+            "This policy was trained without the auxiliary needle target (`needle_keypoints_weight`=0); it "
+            "has no keypoint heads."
+        )
+    images = [batch[key] for key in policy.config.image_features]
+    images = [im[:, -1] if im.ndim == 5 else im for im in images]
+    return estimate_needle_keypoints(policy.members, policy.needle_heads, images)

@@ -159,6 +159,16 @@ class GatedPolicyMixin:
         pose = state * self.state_unnormalize_scale + self.state_unnormalize_offset
         return (pose - self.action_unnormalize_offset) / self.action_unnormalize_scale
 
+    def _hold_where_released(self, actions: Tensor, batch: dict[str, Tensor]) -> Tensor:
+        """`actions` (B, S, A), with the hold action for each batch element whose enforced gate released."""
+        if not self.config.ood.enforce or not self._ood_gates:
+            return actions
+        released = torch.tensor([gate.released for gate in self._ood_gates], device=actions.device)
+        if not released.any():
+            return actions
+        hold = self._hold_action(batch)[:, None].expand_as(actions)
+        return torch.where(released[:, None, None], hold, actions)
+
     def ood_status(self, index: int = 0) -> dict:
         """The gate's state for batch element `index` after the last `select_action`, for logging.
 
