@@ -18,7 +18,9 @@ Three figures, each from LeRobot's own console scripts on the same policy:
    shares over 110 ms and 150 ms. The periods that span the end of a scene (the episode's save and the next
    scene's reset) are left out and counted.
 3. **The engines end the same way.** With ``--episodes`` > 0, both engines on the same seeds under the same
-   real-time loop: per seed, success and the frame at which the gate handed over.
+   real-time loop, nominal (``--episodes``) and in each of the paper's scenarios (``--scenario-episodes``):
+   per seed, success and the frame at which the gate handed over; and the time from the policy's gate
+   flagging to the handover.
 
 ``--untrained-preset FILE`` times a policy of that preset's architecture with untrained weights (its
 needle target off, a training-only head) instead of ``--policy-path``: periods only, since an untrained
@@ -36,6 +38,7 @@ import argparse
 import json
 import os
 import platform
+import re
 import subprocess
 import sys
 import tempfile
@@ -50,6 +53,8 @@ CONTROL_PERIOD_S = 0.1
 LATE_FACTOR = 1.1
 VERY_LATE_FACTOR = 1.5
 ENGINES = ("sync", "rtc")
+SCENARIOS = ("nominal", "needle_drop", "camera_moved", "phantom_servo", "phantom_moved_after_insertion")
+"""The paper's scenarios (``lerobot_suture.sim.scenarios.SCENARIOS``)."""
 TASK = "Insert the curved suture needle at the entry point and drive it out through the exit point."
 
 
@@ -149,7 +154,15 @@ def rollout_outcomes(
 
 
 def gated_rollout(
-    policy_path: Path, engine: str, work: Path, *, seed: int, episodes: int, episode_s: float, duration: float
+    policy_path: Path,
+    engine: str,
+    work: Path,
+    *,
+    seed: int,
+    episodes: int,
+    episode_s: float,
+    duration: float,
+    scenario: str = "nominal",
 ) -> tuple[list[dict], Path]:
     """``lerobot-rollout --strategy.type=gated_dagger`` on the real-time clock at 10 Hz under ``engine``; returns
     the robot's trace and the recorded dataset's root."""
@@ -166,6 +179,7 @@ def gated_rollout(
         "--robot.type=suture_sim",
         f"--robot.seed={seed}",
         f"--robot.image_size={_image_size(policy_path)}",
+        f"--robot.scenario={scenario}",
         "--robot.clock=realtime",
         "--robot.episode_end=hold",
         "--robot.tip_tracking=true",
@@ -186,6 +200,12 @@ def gated_rollout(
         args.append(f"--duration={duration}")
     _run("lerobot-rollout", args, work / f"{engine}.log")
     return [json.loads(line) for line in trace.read_text().splitlines()], root
+
+
+def flag_to_handover_ms(log: Path) -> list[float]:
+    """Per handover by the policy's gate in ``log``: milliseconds from the gate's flag to the handover."""
+    pattern = re.compile(r"handing over, ([0-9.]+) ms after the policy's gate flagged")
+    return [float(m.group(1)) for m in pattern.finditer(log.read_text())]
 
 
 def period_report(trace: list[dict]) -> dict:
@@ -297,6 +317,7 @@ def main() -> None:
     source.add_argument("--untrained-preset", type=Path, help="time this preset's architecture, untrained")
     parser.add_argument("--engines", default=",".join(ENGINES), help="comma-separated, of sync and rtc")
     parser.add_argument("--episodes", type=int, default=50, help="0: periods only")
+    parser.add_argument("--scenario-episodes", type=int, default=10, help="per scenario, for the engines")
     parser.add_argument("--seed", type=int, default=2_000_000, help="first test seed (the experiments')")
     parser.add_argument("--episode-s", type=float, default=20.0, help="wall time of a rollout episode")
     parser.add_argument("--realtime-s", type=float, default=600.0, help="each engine's real-time run")
@@ -340,19 +361,30 @@ def main() -> None:
             "seconds": round(time.perf_counter() - start, 1),
         }
     if trained and args.episodes > 0 and len(engines) == 2:
-        outcomes = {}
-        for engine in engines:
-            trace, root = gated_rollout(
-                policy_path,
-                engine,
-                work / "outcomes",
-                seed=args.seed,
-                episodes=args.episodes,
-                episode_s=args.episode_s,
-                duration=0,
-            )
-            outcomes[engine] = gated_outcomes(trace, root, f"local/rollout_robot_path_{engine}")
-        result["engines_compared"] = compare_engines(outcomes["sync"], outcomes["rtc"])
+        # Nominal on --episodes seeds, and each of the paper's scenarios on --scenario-episodes.
+        runs = {"nominal": args.episodes, **{name: args.scenario_episodes for name in SCENARIOS[1:]}}
+        result["engines_compared"], delays = {}, {engine: [] for engine in engines}
+        for scenario, episodes in runs.items():
+            outcomes = {}
+            for engine in engines:
+                run_dir = work / "outcomes" / scenario
+                trace, root = gated_rollout(
+                    policy_path,
+                    engine,
+                    run_dir,
+                    seed=args.seed,
+                    episodes=episodes,
+                    episode_s=args.episode_s,
+                    duration=0,
+                    scenario=scenario,
+                )
+                outcomes[engine] = gated_outcomes(trace, root, f"local/rollout_robot_path_{engine}")
+                delays[engine] += flag_to_handover_ms(run_dir / f"{engine}.log")
+            result["engines_compared"][scenario] = compare_engines(outcomes["sync"], outcomes["rtc"])
+        result["flag_to_handover_ms"] = {
+            engine: {"handovers": len(d), "max": round(max(d), 1) if d else None}
+            for engine, d in delays.items()
+        }
     result["work_dir"] = str(work)
     result["machine"] = {
         "cpus": os.cpu_count(),

@@ -211,6 +211,7 @@ def test_tissue_moving_beyond_the_cbf_s_bounds_hands_over(tiny_policy_dir, tmp_p
     assert intervention.any() and not intervention[0]
 
 
+@pytest.mark.slow
 def test_gated_dagger_on_lerobot_s_real_time_chunking_engine(tiny_policy_dir, tmp_path):
     """``--inference.type=rtc``: the policy's chunks come from LeRobot's background engine; the camera watchdog
     still hands over after the frozen frame, and no frame the policy drove carries an O.O.D. decision."""

@@ -18,6 +18,7 @@ likelihood-ratio test, latch) is `lerobot_suture.safety.ood`."""
 from __future__ import annotations
 
 import logging
+import time
 from pathlib import Path
 
 import torch
@@ -145,7 +146,11 @@ class GatedPolicyMixin:
         return calibration
 
     def _update_ood_gates(self, scores: Tensor) -> None:
+        released = any(gate.released for gate in self._ood_gates)
         self._ood_gates = update_gates(self._ood_gates, scores, self.ood_calibration, self.config)
+        if not released and any(gate.released for gate in self._ood_gates):
+            # When (time.perf_counter, s) the gate first flagged: a rollout measures its handover from it.
+            self.ood_flagged_at = time.perf_counter()
 
     def _hold_action(self, batch: dict[str, Tensor]) -> Tensor:
         """The measured pose as a normalized action, (B, A): the arm stops where it is."""

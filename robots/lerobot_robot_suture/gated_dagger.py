@@ -220,30 +220,37 @@ class GatedDAggerStrategy(DAggerStrategy):
             if events.phase == DAggerPhase.AUTONOMOUS:
                 obs_processed = self._process_observation_and_notify(ctx.processors, obs)
                 action = next_policy_action(obs_processed, ctx, interpolator)
-                # None: the real-time chunking engine's first chunk has not arrived; the arm waits a period.
-                if action is not None:
-                    # The gate reads the prediction before it reaches the arm: a chunk it flags is never
-                    # executed, as with the ensemble's enforced gate on the env path. The real-time chunking
-                    # engine's policy reads its gate before its chunk joins the queue, so an action taken from a
-                    # flagged chunk meets the flag here.
-                    reading = self.gate.read(obs)
-                    if not reading.decision:
-                        last_action = ctx.processors.robot_action_processor((action, obs))
-                        robot.send_action(last_action)
-                        self._record(ctx, obs_processed, action, task, False, reading)
-                        frame_index += 1
-                        if self._tissue_beyond_bounds():
-                            handover = frame_index
-                            logger.info("CBF: the tissue moves beyond its declared bounds: handing over")
-                            self._hand_over(ctx, last_action)
-                    else:
+                # The gate reads the prediction before it reaches the arm: a chunk it flags is never executed,
+                # as with the ensemble's enforced gate on the env path. The real-time chunking engine's policy
+                # reads its gate before its chunk joins the queue, so an action taken from a flagged chunk meets
+                # the flag here; the gate is read at every step, with or without a new action, so that the
+                # handover comes within a control period of the flag.
+                reading = self.gate.read(obs)
+                if reading.decision:
+                    handover = frame_index
+                    flagged_at = getattr(ctx.policy.policy, "ood_flagged_at", None)
+                    after_ms = (
+                        (time.perf_counter() - flagged_at) * 1e3
+                        if flagged_at is not None and flagged_at >= episode_start
+                        else float("nan")
+                    )
+                    logger.info(
+                        "Gate: O.O.D. (score %.4g, threshold %.4g, camera stale %s): handing over, "
+                        "%.1f ms after the policy's gate flagged",
+                        reading.score,
+                        reading.threshold,
+                        reading.camera_stale,
+                        after_ms,
+                    )
+                    self._hand_over(ctx, last_action)
+                elif action is not None:  # None: the real-time engine's first chunk has not arrived
+                    last_action = ctx.processors.robot_action_processor((action, obs))
+                    robot.send_action(last_action)
+                    self._record(ctx, obs_processed, action, task, False, reading)
+                    frame_index += 1
+                    if self._tissue_beyond_bounds():
                         handover = frame_index
-                        logger.info(
-                            "Gate: O.O.D. (score %.4g, threshold %.4g, camera stale %s): handing over",
-                            reading.score,
-                            reading.threshold,
-                            reading.camera_stale,
-                        )
+                        logger.info("CBF: the tissue moves beyond its declared bounds: handing over")
                         self._hand_over(ctx, last_action)
             if events.phase == DAggerPhase.CORRECTING:
                 obs_processed = ctx.processors.robot_observation_processor(obs)
