@@ -270,3 +270,72 @@ def test_toy_leaderboard_trains_the_three_policies_and_ranks_them(tmp_path):
     assert {"record insertion", "train insertion act", "evaluate insertion diffusion"} <= set(
         board["timings"]
     )
+
+
+@pytest.mark.slow
+def test_a_default_lerobot_train_act_checkpoint_evaluates_and_joins_the_board(tmp_path):
+    """A new user's path: LeRobot's ACT trained by `lerobot-train --policy.type=act` with LeRobot's defaults on
+    a recorded dataset lists the privileged needle target among its inputs (LeRobot makes every observation.*
+    key one). It still runs under `lerobot-eval` and joins the board, with a warning that names the fix."""
+    from robot_commands import run_command
+
+    from lerobot_suture.datasets.features import NEEDLE_KEYPOINTS_KEY
+    from lerobot_suture.datasets.record import record
+    from lerobot_suture.datasets.record_config import RecordConfig
+
+    data = tmp_path / "data"
+    record(RecordConfig(repo_id="local/suture_act", root=str(data), num_episodes=2, val_fraction=0.5))
+    train = tmp_path / "train"
+    run_command(
+        "lerobot-train",
+        [
+            "--policy.type=act",
+            "--policy.pretrained_backbone_weights=null",
+            "--policy.dim_model=32",
+            "--policy.dim_feedforward=64",
+            "--policy.n_encoder_layers=1",
+            "--policy.n_vae_encoder_layers=1",
+            "--policy.chunk_size=8",
+            "--policy.n_action_steps=4",
+            "--policy.device=cpu",
+            "--policy.push_to_hub=false",
+            "--dataset.repo_id=local/suture_act",
+            f"--dataset.root={data}",
+            "--steps=2",
+            "--batch_size=2",
+            "--num_workers=0",
+            "--save_freq=2",
+            f"--output_dir={train}",
+        ],
+        timeout=600,
+    )
+    checkpoint = train / "checkpoints" / "last" / "pretrained_model"
+    assert NEEDLE_KEYPOINTS_KEY in json.loads((checkpoint / "config.json").read_text())["input_features"]
+    run_command(
+        "lerobot-eval",
+        [
+            f"--policy.path={checkpoint}",
+            "--env.type=suture",
+            "--eval.n_episodes=1",
+            "--eval.batch_size=1",
+            "--policy.device=cpu",
+            f"--output_dir={tmp_path / 'eval'}",
+        ],
+        timeout=600,
+    )
+    results = tmp_path / "results"
+    cli_main(
+        [
+            "leaderboard",
+            f"--policy.path={checkpoint}",
+            "--policy_name=users_act",
+            "--tasks=[insertion]",
+            "--episodes=1",
+            "--batch_envs=1",
+            "--shifts=[]",
+            f"--output_dir={tmp_path / 'work'}",
+            f"--results_dir={results}",
+        ]
+    )
+    row = json.loads((results / "leaderboard.json").read_text())["tasks"]["insertion"]["users_act"]
+    assert all(cell["episodes"] == 1 for cell in row.values())

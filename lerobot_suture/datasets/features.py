@@ -18,6 +18,9 @@ IMAGE_KEY = "observation.images.endoscope"
 STATE_KEY = "observation.state"
 ENV_STATE_KEY = "observation.environment_state"
 NEEDLE_KEYPOINTS_KEY = "observation.needle_keypoints"
+PRIVILEGED_FEATURES = (NEEDLE_KEYPOINTS_KEY,)
+"""Training targets only a simulator knows. LeRobot makes every ``observation.*`` key of a dataset a policy
+input, so a default ``lerobot-train`` run lists them among its inputs; no env or real system gives them."""
 ACTION_KEY = "action"
 REWARD_KEY = "next.reward"
 SUCCESS_KEY = "next.success"

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import shutil
 from collections.abc import Sequence
 from enum import Enum
@@ -18,9 +19,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from lerobot_suture.datasets.features import PRIVILEGED_FEATURES
 from lerobot_suture.safety.ood.calibration_file import CALIBRATION_FILENAME, CALIBRATION_REPORT_FILENAME
 from lerobot_suture.sim.task import TASK
 
+logger = logging.getLogger(__name__)
 ACTION = "action"  # LeRobot's key of the action (and of a policy's action queue)
 
 
@@ -124,6 +127,17 @@ def env_kwargs_for_policy(config) -> dict:
         ValueError: the policy reads features the suture env does not produce.
     """
     features = dict(config.input_features or {})
+    privileged = sorted(set(features) & set(PRIVILEGED_FEATURES))
+    if privileged:
+        logger.warning(
+            "The policy lists %s among its inputs: LeRobot makes every observation.* key of a dataset one, and "
+            "these are privileged training targets that no env or real system gives. LeRobot's ACT and "
+            "diffusion never read them; a policy whose model does fails at its first step. To keep them out "
+            "of a policy's inputs, name its `input_features` in the training config (policies/presets/act.json).",
+            privileged,
+        )
+        for key in privileged:
+            features.pop(key)
     images = [k for k in features if k.startswith("observation.images.")]
     unknown = sorted(
         set(features) - {"observation.images.endoscope", "observation.state", "observation.environment_state"}
