@@ -8,7 +8,7 @@ lose their meaning. So the merged dataset's ``meta/stats.json`` carries, for eve
 normalizes, the statistics saved in the policy's preprocessor (those of the original demonstrations); the
 other features keep the merged statistics.
 
-The merge is :func:`~lerobot_suture.surgeon.merge.merge_runs` (LeRobot's ``merge_datasets``, with the run
+The merge is :func:`~lerobot_suture.datasets.merge.merge_runs` (LeRobot's ``merge_datasets``, with the run
 labels' NaN scores kept NaN).
 
 Each dataset is built in a ``.partial`` sibling and renamed when complete, so a killed run leaves either
@@ -107,7 +107,7 @@ def aggregate(
     ``merge_datasets``) at ``out``, with ``normalizer_stats`` kept (see the module docstring)."""
     if repeats < 1:
         raise ValueError(f"`repeats` must be >= 1. Got {repeats}.")
-    from lerobot_suture.surgeon.merge import merge_runs
+    from lerobot_suture.datasets.merge import merge_runs
 
     partial = _partial(out)
     sources = [load_dataset(demonstrations, "local/demonstrations")]

@@ -11,7 +11,7 @@ The two hold the same keys, dtypes and shapes for the image, the state and the a
 :func:`demonstrations_in_robot_layout` copies the demonstrations into the recording's layout (LeRobot's
 ``modify_features``: the privileged features dropped; ``intervention`` False, ``ood_score`` and
 ``ood_threshold`` NaN, ``ood_decision`` False, as no policy ran; the recording's names and robot type), and
-:func:`merge_with_demonstrations` merges the two with :func:`~lerobot_suture.surgeon.merge.merge_runs` (which
+:func:`merge_with_demonstrations` merges the two with :func:`~lerobot_suture.datasets.merge.merge_runs` (which
 keeps the NaN labels NaN), ready for ``lerobot-train``.
 """
 
@@ -84,7 +84,7 @@ def demonstrations_in_robot_layout(demonstrations, recording, output_dir: str | 
 
 def merge_with_demonstrations(demonstrations, recording, output_dir: str | Path, repo_id: str):
     """``demonstrations`` in the recording's layout merged with ``recording`` at ``output_dir``; returns it."""
-    from lerobot_suture.surgeon.merge import merge_runs
+    from lerobot_suture.datasets.merge import merge_runs
 
     output_dir = Path(output_dir)
     converted = demonstrations_in_robot_layout(

@@ -27,6 +27,7 @@ from tqdm import tqdm
 
 from lerobot_suture.expert import ScriptedExpert
 from lerobot_suture.registration import MAX_EPISODE_STEPS
+from lerobot_suture.runtime.workers import rollout_in_workers
 from lerobot_suture.safety.ood.gate import silent_status
 from lerobot_suture.sim.shifts import Shift, ShiftWrapper
 from lerobot_suture.sim.tasks import DEFAULT_TASK, task_spec
@@ -232,9 +233,9 @@ def rollout_seeds(
         raise ValueError(f"`batch_envs` and `workers` must be >= 1. Got {batch_envs}, {workers}.")
     seeds = [int(s) for s in seeds]
     if workers > 1 and len(seeds) > batch_envs:
-        from lerobot_suture.runtime.workers import rollout_in_workers
-
-        return rollout_in_workers(make_env, runner, seeds, batch_envs, surgeon, workers, desc)
+        return rollout_in_workers(
+            rollout_episodes, make_env, runner, seeds, batch_envs, surgeon, workers, desc
+        )
     envs = [make_env() for _ in range(min(batch_envs, len(seeds)))]
     logs: list[EpisodeLog] = []
     try:

@@ -43,9 +43,7 @@ def _init_worker(policy_path: str, device: str, overrides: dict, threads: int) -
     _WORKER["runner"] = PolicyRunner.from_pretrained(policy_path, GateMode.REPORT, device, overrides)
 
 
-def _run_batch(factory: bytes, gate, seeds: list[int], surgeon: str) -> list:
-    from lerobot_suture.runtime.rollout import rollout_episodes
-
+def _run_batch(rollout_episodes: Callable, factory: bytes, gate, seeds: list[int], surgeon: str) -> list:
     if _WORKER.get("factory") != factory or len(_WORKER["envs"]) < len(seeds):
         for env in _WORKER.get("envs", []):
             env.close()
@@ -84,6 +82,7 @@ def shutdown_pools() -> None:
 
 
 def rollout_in_workers(
+    rollout_episodes: Callable,
     make_env: Callable,
     runner,
     seeds: Sequence[int],
@@ -93,7 +92,9 @@ def rollout_in_workers(
     desc: str | None,
 ) -> list:
     """:func:`~lerobot_suture.runtime.rollout.rollout_seeds` with the batches spread over ``workers``
-    processes; the logs come back in the order of ``seeds``.
+    processes; the logs come back in the order of ``seeds``. ``rollout_episodes`` is
+    :func:`~lerobot_suture.runtime.rollout.rollout_episodes`, handed over (by reference) so that this module
+    does not import the one that imports it.
 
     Raises:
         ValueError: ``runner`` was not loaded from a directory (``PolicyRunner.from_pretrained``), or
@@ -115,7 +116,8 @@ def rollout_in_workers(
     pool = _pool(str(source[0]), source[1], source[2], workers)
     batches = [list(seeds[i : i + batch_envs]) for i in range(0, len(seeds), batch_envs)]
     futures = {
-        pool.submit(_run_batch, factory, runner.gate, batch, surgeon): k for k, batch in enumerate(batches)
+        pool.submit(_run_batch, rollout_episodes, factory, runner.gate, batch, surgeon): k
+        for k, batch in enumerate(batches)
     }
     results: list = [None] * len(batches)
     with tqdm(total=len(seeds), desc=desc, unit="episode") as progress:
