@@ -14,16 +14,30 @@ MAX_EPISODE_STEPS = TASKS[DEFAULT_TASK].max_episode_steps
 _ENTRY_POINT = "lerobot_suture.registration:make_suture_env"
 
 
-def make_suture_env(cbf=None, **kwargs) -> gym.Env:
+def make_suture_env(cbf=None, id_task: str | None = None, **kwargs) -> gym.Env:
     """A :class:`~lerobot_suture.sim.suture_env.SutureEnv`, behind the CBF safety filter when asked.
 
     Args:
         cbf: None (no filter), or a :class:`~lerobot_suture.safety.cbf_config.CBFConfig` (or its fields
             as a dict); the env is then wrapped in
             :class:`~lerobot_suture.safety.cbf_wrapper.CBFActionWrapper`.
+        id_task: the task of the Gymnasium id that made the env (its registration passes it): the id's
+            ``max_episode_steps`` is that task's.
         **kwargs: the env's own arguments (see its docstring), ``task`` among them.
+
+    Raises:
+        ValueError: ``task`` is not the id's task: Gymnasium would cut its episodes at the id's length.
     """
     from lerobot_suture.sim.suture_env import SutureEnv
+
+    task = kwargs.get("task", id_task)
+    if id_task is not None and task != id_task and task in TASKS:
+        made, wanted = TASKS[id_task], TASKS[task]
+        raise ValueError(
+            f"gym.make('{made.gym_id}', task={task!r}) would cut every {task} episode at {made.gym_id}'s "
+            f"{made.max_episode_steps} steps. Make the task's own id instead: gym.make('{wanted.gym_id}') "
+            f"({wanted.max_episode_steps} steps; max_episode_steps=N changes it)."
+        )
 
     env = SutureEnv(**kwargs)
     if cbf is None:
@@ -48,5 +62,5 @@ def register_envs() -> None:
                 id=spec.gym_id,
                 entry_point=_ENTRY_POINT,
                 max_episode_steps=spec.max_episode_steps,
-                kwargs={"task": spec.name},
+                kwargs={"task": spec.name, "id_task": spec.name},
             )

@@ -11,12 +11,12 @@ import pytest
 import torch
 
 import lerobot_suture
+from lerobot_suture.datasets.merge import merge_runs
 from lerobot_suture.datasets.video import resolve_video_backend
 from lerobot_suture.runtime.policy import GateMode, PolicyRunner, env_kwargs_for_policy
 from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.safety.ood.calibration import fit_calibration
 from lerobot_suture.safety.ood.calibration_file import save_calibration
-from lerobot_suture.datasets.merge import merge_runs
 from lerobot_suture.surgeon.record_run import (
     ACTOR_KEY,
     GATE_DECISION_KEY,

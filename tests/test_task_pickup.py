@@ -33,10 +33,13 @@ def run_expert(env, seed):
 
 def test_registered_per_task_and_named_by_task_too():
     assert gym.spec(PICKUP_ID).max_episode_steps == TASKS["pickup"].max_episode_steps
-    env = gym.make(ENV_ID, task="pickup", obs_type="state", disable_env_checker=True)
+    env = gym.make(PICKUP_ID, task="pickup", obs_type="state", disable_env_checker=True)
     assert (
         env.unwrapped.task_name == "pickup" and env.unwrapped.task_description == TASKS["pickup"].instruction
     )
+    # The insertion id would cut a pickup at its 100 steps (of 120): refused, naming the pickup's id.
+    with pytest.raises(ValueError, match=f"gym.make\\('{PICKUP_ID}'\\)"):
+        gym.make(ENV_ID, task="pickup", obs_type="state", disable_env_checker=True)
     with pytest.raises(ValueError, match="`task` must be one of"):
         SutureEnv(task="knot_tying")
     with pytest.raises(ValueError, match="does not apply to task 'pickup'"):
