@@ -208,16 +208,23 @@ def flag_to_handover_ms(log: Path) -> list[float]:
     return [float(m.group(1)) for m in pattern.finditer(log.read_text())]
 
 
-def period_report(trace: list[dict]) -> dict:
-    """The periods between executed control steps of the same scene, from the robot's trace."""
+def scene_periods(trace: list[dict]) -> tuple[np.ndarray, int]:
+    """The periods (s) between executed control steps of the same scene, and how many scene boundaries (an
+    episode's save and the next scene's reset) were left out, from the robot's trace."""
     times = np.array([line["wall_time"] for line in trace])
     seeds = np.array([line["seed"] for line in trace])
     same_scene = seeds[1:] == seeds[:-1]
-    periods = np.diff(times)[same_scene]
+    return np.diff(times)[same_scene], int((~same_scene).sum())
+
+
+def period_report(trace: list[dict]) -> dict:
+    """The distribution of :func:`scene_periods`."""
+    periods, boundaries = scene_periods(trace)
+    seeds = {line["seed"] for line in trace}
     return {
-        "steps": int(times.size),
-        "scenes": int(np.unique(seeds).size),
-        "scene_boundaries_left_out": int((~same_scene).sum()),
+        "steps": len(trace),
+        "scenes": len(seeds),
+        "scene_boundaries_left_out": boundaries,
         "period_s": {
             "p50": round(float(np.percentile(periods, 50)), 4),
             "p99": round(float(np.percentile(periods, 99)), 4),
@@ -229,6 +236,29 @@ def period_report(trace: list[dict]) -> dict:
         "rate_hz": round(float(1.0 / periods.mean()), 3),
         "holds_10_hz": bool(np.percentile(periods, 99) <= LATE_FACTOR * CONTROL_PERIOD_S),
     }
+
+
+def plot_periods(traces: dict[str, list[dict]], path: Path) -> None:
+    """A histogram of each engine's periods, with the 110 ms and 150 ms marks, to ``path`` (PNG)."""
+    from matplotlib.figure import Figure
+
+    figure = Figure(figsize=(7, 3.2), dpi=120)
+    axes = figure.add_subplot()
+    bins = np.linspace(0.0, 0.35, 71)
+    for engine, trace in traces.items():
+        periods, _ = scene_periods(trace)
+        axes.hist(
+            np.clip(periods, 0.0, 0.35), bins=bins, alpha=0.6, label=f"{engine} ({periods.size} periods)"
+        )
+    for mark in (LATE_FACTOR, VERY_LATE_FACTOR):
+        axes.axvline(mark * CONTROL_PERIOD_S, color="k", linestyle="--", linewidth=0.8)
+    axes.set_yscale("log")
+    axes.set_xlabel("period between executed control steps (s); dashed: 110 ms and 150 ms")
+    axes.set_ylabel("periods")
+    axes.set_title("lerobot-rollout at 10 Hz, gate and CBF on: sync against real-time chunking", fontsize=10)
+    axes.legend()
+    figure.tight_layout()
+    figure.savefig(path)
 
 
 def gated_outcomes(trace: list[dict], root: Path, repo_id: str) -> dict[int, dict]:
@@ -322,6 +352,7 @@ def main() -> None:
     parser.add_argument("--episode-s", type=float, default=20.0, help="wall time of a rollout episode")
     parser.add_argument("--realtime-s", type=float, default=600.0, help="each engine's real-time run")
     parser.add_argument("--out", type=Path)
+    parser.add_argument("--plot", type=Path, help="a PNG of the real-time periods, per engine")
     parser.add_argument(
         "--work-dir", type=Path, help="the commands' outputs and logs (default: a new temp dir)"
     )
@@ -344,7 +375,7 @@ def main() -> None:
     }
     if trained and args.episodes > 0:
         result.update(consistency(policy_path, args, work))
-    result["realtime"] = {}
+    result["realtime"], traces = {}, {}
     for engine in engines:
         start = time.perf_counter()
         trace, _ = gated_rollout(
@@ -356,10 +387,13 @@ def main() -> None:
             episode_s=60.0,
             duration=args.realtime_s,
         )
+        traces[engine] = trace
         result["realtime"][engine] = {
             **period_report(trace),
             "seconds": round(time.perf_counter() - start, 1),
         }
+    if args.plot is not None:
+        plot_periods(traces, args.plot)
     if trained and args.episodes > 0 and len(engines) == 2:
         # Nominal on --episodes seeds, and each of the paper's scenarios on --scenario-episodes.
         runs = {"nominal": args.episodes, **{name: args.scenario_episodes for name in SCENARIOS[1:]}}
