@@ -11,7 +11,13 @@ import pytest
 
 from lerobot_suture.expert import ScriptedExpert, iter_expert_steps
 from lerobot_suture.registration import ENV_ID
-from lerobot_suture.sim.geometry import grasp_transform, jaw_holding, pose_vector
+from lerobot_suture.sim.geometry import (
+    grasp_transform,
+    jaw_holding,
+    matrix_from_rotvec,
+    needle_arc_points,
+    pose_vector,
+)
 from lerobot_suture.sim.pickup import LIFT_HEIGHT, REST_RANGE_XY, grasp_ready_for_throw
 from lerobot_suture.sim.suture_env import SutureEnv
 from lerobot_suture.sim.task import GRASP_ANGLE
@@ -109,6 +115,34 @@ def test_a_jaw_closed_away_from_the_needle_catches_nothing_and_a_closed_jaw_cann
         env.step(pose_vector(pos, rot, 0.0))
     env.step(pose_vector(pos, rot, 1.0))
     assert u.needle_grasped
+
+
+@pytest.mark.parametrize("tilt_deg", [-20, -10, 10, 20])
+def test_a_jaw_s_seat_never_pushes_the_lying_needle_into_the_tissue(tilt_deg):
+    """A jaw tilted about its face normal seats the wire by turning the needle about where it crosses the jaw;
+    one way that turn would put the needle's end into the pad. The seat catches the needle only where it moves
+    no point of it more than LODGED_CAPTURE_TOLERANCE into the tissue: otherwise the jaw closes beside it."""
+    from lerobot_suture.sim.grasp import LODGED_CAPTURE_TOLERANCE
+    from lerobot_suture.sim.needle_capture import seat_needle
+
+    env = make()
+    env.reset(seed=0)
+    u = env.unwrapped
+    grasp = u._grasp
+    pos, rot = jaw_holding(*u.needle_pose(), *grasp_transform(GRASP_ANGLE, 0.0, 0.0))
+    rot = rot @ matrix_from_rotvec(np.radians(tilt_deg) * np.array([0.0, 1.0, 0.0]))
+    for _ in range(30):
+        env.step(pose_vector(pos, rot, 0.0))
+    jaw_pos, jaw_rot = grasp._arm.jaw_pose(u.data)
+    centre, rotation = u.needle_pose()
+    seated = seat_needle(jaw_rot.T @ (centre - jaw_pos), jaw_rot.T @ rotation, 0.5 * grasp.wire_diameter)
+    assert seated is not None  # the seat rule alone would catch it
+    arc = needle_arc_points(7)
+    seated_depth = grasp._pad_depth(u.data, jaw_pos + (seated.position + arc @ seated.rotation.T) @ jaw_rot.T)
+    env.step(pose_vector(pos, rot, 1.0))
+    assert u.needle_grasped == (seated_depth <= LODGED_CAPTURE_TOLERANCE), seated_depth
+    centre, rotation = u.needle_pose()
+    assert grasp._pad_depth(u.data, centre + arc @ rotation.T) <= LODGED_CAPTURE_TOLERANCE
 
 
 def test_a_grasp_off_the_ranges_is_held_but_is_no_success():

@@ -286,6 +286,39 @@ def test_the_jaw_turns_at_most_max_turn_a_step_while_the_needle_is_held():
     assert 1.25 * lever * turned**2 / 8.0 <= guard.turn_sweep + 1e-12
 
 
+def test_no_turn_while_the_tip_is_in_a_margin_band():
+    """A tip above the tissue by less than the margin and outside the tightened ellipsoid: the jaw keeps its
+    measured rotation, so that the lever arm's sweep cannot carry the tip further out while it recovers."""
+    from lerobot_suture.sim.geometry import matrix_from_rot6
+
+    cbf = CBFConfig(enabled=True)
+    guard = TipGuard(cbf)
+    band_tip = ENTRY + np.array([-0.02, 0.0, 0.5 * cbf.margin])  # beside the wound, just above the surface
+    assert tightened_h(band_tip, cbf) < 0.0
+    pose = jaw_pose_with_tip_at(band_tip, np.eye(3))
+    target = pose_vector(pose[:3], matrix_from_rotvec(np.array([0.0, 0.2, 0.0])), 1.0)
+    out, result = guard.filter_target(pose, target, WOUND, GRASP, DT)
+    np.testing.assert_allclose(matrix_from_rot6(out[3:9]), np.eye(3), atol=1e-12)
+    assert result.mode == "above"  # lifted, not pulled towards the ellipsoid through the tissue beside it
+
+
+def test_a_tip_outside_the_ellipsoid_is_lifted_whatever_mode_it_was_in():
+    """The wound part's recovery heads for the ellipsoid's centre: from outside the ellipsoid, below the
+    surface's tightened plane, that path runs through the tissue beside the wound. The guard lifts instead."""
+    cbf = CBFConfig(enabled=True)
+    guard = TipGuard(cbf)
+    tip = ENTRY + np.array([0.0, 0.0, -0.003])  # in the wound
+    guard.filter_velocity(tip, np.zeros(3), WOUND, True, True, DT)
+    assert guard.mode == "wound"
+    center, rotation = WOUND.ellipsoid_frame()
+    # Just outside the ellipsoid along its axis, above the surface by less than the margin.
+    outside = center + rotation @ np.array([cbf.semi_axes[0] + 0.0005, 0.0, 0.0])
+    outside[2] = 0.5 * cbf.margin
+    assert ellipsoid_h(outside, center, cbf.semi_axes, rotation) < 0.0
+    result = guard.filter_velocity(outside, np.array([0.0, 0.0, -0.05]), WOUND, True, True, DT)
+    assert result.mode == "above" and result.v_safe[2] >= 0.0
+
+
 # ---------------------------------------------------------------- the processor step and the robot path
 lerobot_robot_suture = pytest.importorskip("lerobot_robot_suture")
 
