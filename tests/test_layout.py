@@ -102,6 +102,47 @@ def test_the_layers_below_the_runtime_never_import_it(trees):
     assert not offenders, offenders
 
 
+def _local_imports(path: Path, tree: ast.AST, modules: set[str]) -> set[str]:
+    """The modules of ``modules`` that ``tree`` (the source of ``path``) imports, at any depth, relative
+    imports resolved (``from . import x`` imports the submodule ``x``, not its package)."""
+    name = _module(path)
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            candidates = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parts = package.split(".")
+                parts = parts[: len(parts) - (node.level - 1)]
+                base = ".".join(parts + ([node.module] if node.module else []))
+            submodules = [f"{base}.{alias.name}" for alias in node.names]
+            candidates = [m for m in submodules if m in modules] or [base]
+        else:
+            continue
+        found |= {c for c in candidates if c in modules and c != name}
+    return found
+
+
+def test_no_import_circles():
+    """No module imports, at any depth and even inside a function, one that imports it back."""
+    modules = {_module(p): p for p in SOURCES}
+    graph = {name: _local_imports(p, ast.parse(p.read_text()), set(modules)) for name, p in modules.items()}
+    circles = []
+    for start in graph:
+        stack, seen = [(start, [start])], set()
+        while stack:
+            node, trail = stack.pop()
+            for nxt in graph[node]:
+                if nxt == start:
+                    circles.append(" -> ".join([*trail, start]))
+                elif nxt not in seen:
+                    seen.add(nxt)
+                    stack.append((nxt, [*trail, nxt]))
+    assert not circles, "import circles:\n" + "\n".join(sorted(circles)[:20])
+
+
 def test_no_module_is_over_500_lines():
     long = {
         str(p.relative_to(ROOT)): n
