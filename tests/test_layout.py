@@ -143,6 +143,34 @@ def test_no_import_circles():
     assert not circles, "import circles:\n" + "\n".join(sorted(circles)[:20])
 
 
+FLOORS = {
+    "lerobot_suture.sim": {"lerobot_suture.sim"},
+    "lerobot_suture.expert_plans": {"lerobot_suture.sim", "lerobot_suture.expert_plans"},
+    "lerobot_suture.safety": {"lerobot_suture.sim", "lerobot_suture.safety"},
+    "lerobot_suture.datasets": {
+        "lerobot_suture.sim",
+        "lerobot_suture.expert",
+        "lerobot_suture.expert_plans",
+        "lerobot_suture.datasets",
+    },
+}
+"""The bottom floors and what each may import of the package: nothing above it."""
+
+
+def test_the_bottom_floors_import_nothing_above_them(trees):
+    offenders = []
+    for name, (_, tree) in trees.items():
+        floor = next((f for f in FLOORS if name == f or name.startswith(f + ".")), None)
+        if floor is None:
+            continue
+        for imported in _imports(tree):
+            if imported.startswith("lerobot_suture.") and not any(
+                imported == a or imported.startswith(a + ".") for a in FLOORS[floor]
+            ):
+                offenders.append(f"{name} imports {imported}")
+    assert not offenders, sorted(offenders)
+
+
 def test_no_module_is_over_500_lines():
     long = {
         str(p.relative_to(ROOT)): n

@@ -4,7 +4,7 @@ An ensemble's gate reads its members' covariance; ACT, diffusion and other singl
 What every chunking policy has is its chunks. :class:`ChunkCapture` keeps each chunk a policy predicts (it wraps
 the instance's ``predict_action_chunk``, the one method LeRobot's ``select_action`` and ``lerobot-rollout``'s
 inference engines call for a new chunk), and :class:`ChunkConsistencyMonitor` scores it against the previous
-one with STAC (:mod:`lerobot_suture.detectors.stac`: the squared MMD of the overlapping steps, in the policy's
+one with STAC (:mod:`lerobot_suture.safety.ood.stac_score`: the squared MMD of the overlapping steps, in the policy's
 normalized action space). The test is the per-episode one of the ensemble's gate: a threshold on the
 episode's running maximum, the split-conformal quantile of nominal episodes' maxima
 (:func:`~lerobot_suture.safety.ood.calibration.conformal_episode_threshold`), stored as
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lerobot_suture.detectors.stac import chunk_overlap, mmd_squared
+from lerobot_suture.safety.ood.stac_score import chunk_overlap, mmd_squared
 
 STAC_CALIBRATION_FILE = "stac_calibration.json"
 
