@@ -59,6 +59,16 @@ def test_no_prefix_on_the_first_chunk_and_the_score_over_the_usual_steps():
     assert policy.last_prediction.action_steps == slice(0, policy.config.n_action_steps)
 
 
+def test_a_delay_longer_than_the_chunk_commits_the_whole_chunk():
+    """Inference slower than the chunk is long: every step of the new chunk is already committed."""
+    policy = make_policy()
+    left_over = padded_left_over(rows=10, pad_to=10)
+    chunk = policy.predict_action_chunk(
+        random_observation(policy.config, n_steps=0), inference_delay=12, prev_chunk_left_over=left_over
+    )
+    torch.testing.assert_close(chunk[0], left_over[: policy.config.horizon], atol=1e-5, rtol=0)
+
+
 def test_the_prefix_stops_at_the_engine_s_padding_and_at_the_delay():
     left_over = padded_left_over(rows=2)
     assert committed_prefix(left_over, 4).shape == (2, 10)

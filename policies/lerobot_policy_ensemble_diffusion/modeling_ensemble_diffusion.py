@@ -430,12 +430,12 @@ class EnsembleDiffusionPolicy(GatedPolicyMixin, FeatureCaptureMixin, PreTrainedP
             prediction = self.predict_action_distribution(batch, noise=noise)
             return prediction.normalized.mean[:, prediction.action_steps]  # (B, n_action_steps, A)
         batch = self._observe(batch)
-        prefix = committed_prefix(prev_chunk_left_over, int(inference_delay))
+        steps = self.config.horizon - self.config.n_obs_steps + 1  # a longer delay commits the whole chunk
+        prefix = committed_prefix(prev_chunk_left_over, min(int(inference_delay), steps))
         prediction = self.predict_action_distribution(batch, noise=noise, prefix=prefix)
         self._new_prediction = True
         self._update_ood_gates(prediction.score)
-        chunk = prediction.normalized.mean[:, self.config.n_obs_steps - 1 :]  # (B, T', A)
-        return self._hold_where_released(chunk, batch)
+        return self._hold_where_released(prediction.normalized.mean[:, -steps:], batch)  # (B, steps, A)
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], noise: Tensor | None = None) -> Tensor:
