@@ -8,7 +8,6 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-import lerobot_suture
 from lerobot_suture.cli import main as cli_main
 from lerobot_suture.runtime.policy import GateMode, PolicyRunner, env_kwargs_for_policy
 from lerobot_suture.runtime.rollout import (
@@ -21,6 +20,7 @@ from lerobot_suture.runtime.rollout import (
 )
 from lerobot_suture.safety.ood.calibration import fit_calibration
 from lerobot_suture.safety.ood.calibration_file import load_calibration, save_calibration
+from lerobot_suture.sim.tasks import task_spec
 
 
 def _runner(policy_dir, tmp_path, threshold: float | None, enforce: bool) -> PolicyRunner:
@@ -34,7 +34,7 @@ def _runner(policy_dir, tmp_path, threshold: float | None, enforce: bool) -> Pol
 
 def _env(runner, **kwargs):
     return gym.make(
-        lerobot_suture.ENV_ID,
+        task_spec(kwargs.get("task", "insertion")).gym_id,
         disable_env_checker=True,
         **env_kwargs_for_policy(runner.policy.config),
         **kwargs,
@@ -191,8 +191,6 @@ def test_config_overrides_reach_the_policy_and_the_workers(tiny_policy_dir):
 
 def test_each_env_sends_its_own_task_instruction(tiny_policy_dir):
     """A language-conditioned policy reads the instruction of the task its env simulates."""
-    from lerobot_suture.sim.tasks import task_spec
-
     runner = PolicyRunner.from_pretrained(tiny_policy_dir, GateMode.REPORT)
     sent, preprocess = [], runner.preprocess
     runner.preprocess = lambda observations, tasks=None: sent.append(tasks) or preprocess(observations, tasks)
