@@ -24,6 +24,7 @@ def test_benchmark_config_names_the_field_and_range(tiny_policy_dir):
         BenchmarkOODConfig(policy=PolicyPathConfig(path=tiny_policy_dir), single_member_samples=1)
 
 
+@pytest.mark.slow
 def test_benchmark_ood_writes_table_numbers_figures_and_resumes(tiny_policy_dir, tmp_path, caplog, capsys):
     policy = tmp_path / "policy"
     shutil.copytree(tiny_policy_dir, policy)

@@ -368,6 +368,7 @@ def test_lerobot_train_evaluates_the_ensemble_in_async_envs_during_training(reco
     assert len(videos) == 2 and all(v.stat().st_size > 1000 for v in videos), videos
 
 
+@pytest.mark.slow
 def test_lerobot_eval_runs_lerobot_s_own_diffusion_trained_on_the_recording(recorded, tmp_path):
     train = tmp_path / "train"
     _lerobot_train(

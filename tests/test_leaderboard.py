@@ -147,6 +147,7 @@ def test_checkpoint_entries_need_a_trained_policy(tmp_path):
     assert parse_checkpoints([f"insertion:act={tmp_path}"]) == {("insertion", "act"): tmp_path}
 
 
+@pytest.mark.slow
 def test_a_users_checkpoint_joins_the_board_and_finished_cells_are_kept(tiny_policy_dir, tmp_path, capsys):
     results, work = tmp_path / "results", tmp_path / "work"
     args = [

@@ -9,6 +9,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from lerobot_suture.experiments.compare import compare_metrics, comparison_markdown
 from lerobot_suture.pipelines.reproduce import REFERENCE_RESULTS, STAGES
 
@@ -72,6 +74,7 @@ def _reproduce(out: Path) -> str:
     return log
 
 
+@pytest.mark.slow
 def test_the_pipeline_at_toy_scale_runs_and_a_rerun_redoes_nothing(tmp_path):
     out = tmp_path / "reproduce"
     log = _reproduce(out)
