@@ -12,6 +12,19 @@ from lerobot_suture.safety.cbf_config import CBFConfig
 FROZEN_AT = 4
 
 
+def frozen_camera_robot(trace) -> list[str]:
+    """The simulated arm of scene 7 whose endoscope freezes at control step ``FROZEN_AT``, traced to ``trace``."""
+    return robot_args(
+        trace,
+        "--robot.seed=7",
+        "--robot.clock=fast",
+        "--robot.episode_end=hold",
+        "--robot.tip_tracking=true",
+        "--robot.registration=true",
+        f"--robot.faults.frozen_camera_step={FROZEN_AT}",
+    )
+
+
 @pytest.fixture(scope="module")
 def frozen_camera_run(tiny_policy_dir, tmp_path_factory):
     """Two episodes; the endoscope freezes at control step 4 of each scene, and the camera watchdog (the only
@@ -28,15 +41,7 @@ def frozen_camera_run(tiny_policy_dir, tmp_path_factory):
             "--device=cpu",
             "--fps=200",
             "--return_to_initial_position=false",
-            *robot_args(
-                trace,
-                "--robot.seed=7",
-                "--robot.clock=fast",
-                "--robot.episode_end=hold",
-                "--robot.tip_tracking=true",
-                "--robot.registration=true",
-                f"--robot.faults.frozen_camera_step={FROZEN_AT}",
-            ),
+            *frozen_camera_robot(trace),
             *dataset_args(root, "local/rollout_gated", episodes=2, episode_s=60, reset_s=0),
         ],
         timeout=600,
@@ -228,15 +233,7 @@ def test_gated_dagger_on_lerobot_s_real_time_chunking_engine(tiny_policy_dir, tm
             "--device=cpu",
             "--fps=20",
             "--return_to_initial_position=false",
-            *robot_args(
-                tmp_path / "trace.jsonl",
-                "--robot.seed=7",
-                "--robot.clock=fast",
-                "--robot.episode_end=hold",
-                "--robot.tip_tracking=true",
-                "--robot.registration=true",
-                f"--robot.faults.frozen_camera_step={FROZEN_AT}",
-            ),
+            *frozen_camera_robot(tmp_path / "trace.jsonl"),
             *dataset_args(root, "local/rollout_gated_rtc", episodes=1, episode_s=60, reset_s=0),
         ],
         timeout=600,

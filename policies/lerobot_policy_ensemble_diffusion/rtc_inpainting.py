@@ -98,8 +98,8 @@ def conditional_sample(
     prefix: Tensor | None = None,
     first_step: int = 0,
 ) -> Tensor:
-    """LeRobot's ``DiffusionModel.conditional_sample`` (the same draws), with a committed prefix inpainted at
-    every step when one is given.
+    """LeRobot's ``DiffusionModel.conditional_sample``, or, given a committed prefix, its loop with the prefix
+    inpainted at every step (the same draws).
 
     Args:
         model: a LeRobot ``DiffusionModel`` (one member).
@@ -110,6 +110,8 @@ def conditional_sample(
     Returns:
         (batch_size, T, A) sampled chunks.
     """
+    if prefix is None:
+        return model.conditional_sample(batch_size, global_cond=global_cond, generator=generator, noise=noise)
     parameter = next(model.parameters())
     if noise is None:
         shape = (batch_size, model.config.horizon, model.config.action_feature.shape[0])
@@ -120,7 +122,6 @@ def conditional_sample(
     for t in scheduler.timesteps:
         steps = torch.full(sample.shape[:1], t, dtype=torch.long, device=sample.device)
         model_output = model.unet(sample, steps, global_cond=global_cond)
-        if prefix is not None:
-            model_output = inpaint_model_output(model_output, sample, int(t), scheduler, prefix, first_step)
+        model_output = inpaint_model_output(model_output, sample, int(t), scheduler, prefix, first_step)
         sample = scheduler.step(model_output, t, sample, generator=generator).prev_sample
     return sample
