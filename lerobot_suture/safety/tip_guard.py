@@ -307,14 +307,7 @@ class TipGuard:
             v_rel_safe = v_rel_safe * _speed_share(v_rel_safe, w, self.max_tip_speed)
         intervened = not np.array_equal(v_rel_safe, v_rel)
         v_safe = v_rel_safe + w if intervened else v
-        if self.latency_steps:
-            end = x + v_rel_safe * dt
-            self._in_flight.append(
-                (
-                    bool(ellipsoid_h(end, center, axes, rotation) >= level),
-                    float(surface_height(end, wound.entry_point, wound.surface_normal)) >= margin,
-                )
-            )
+        self._record_in_flight(x + v_rel_safe * dt, wound, dt)
         elapsed = time.perf_counter() - start
         return GuardResult(active, True, v, v_safe, intervened, h, elapsed, self._mode, exceeded)
 
@@ -347,14 +340,16 @@ class TipGuard:
             grasp: the needle in the jaw. dt: control period (s).
             workspace: (low (3,), high (3,)) m, the box the arm clips target positions to, or None. A filtered
                 target outside it would be clipped to a tip end point the filter never checked, so the arm is
-                told to hold its measured pose instead.
+                told to keep its measured pose relative to the tissue instead (unturned, carried with the
+                tissue's measured velocity).
 
         Returns:
             (the target pose to send (10,) float64, the guard's result). While guarding, the position moves so
             that the tip's commanded end point is ``tip + v_safe * dt``, and the rotation columns are those of
             the orthonormalized target rotation (an arm that clips columns to [-1, 1] leaves them as they are).
             A target whose rotation columns are zero or parallel (inside the action space, but no rotation)
-            becomes "hold the measured pose", with the target's jaw, and a warning says why.
+            becomes "hold the measured pose", with the target's jaw, filtered like any other target (on tissue
+            that moves, holding still is not safe), and a warning says why.
 
         Raises:
             ValueError: a pose that is not 10 finite numbers, or a measured pose without two independent
@@ -363,21 +358,23 @@ class TipGuard:
         pose = finite_vector("measured_pose", measured_pose, 10)
         target = finite_vector("target_pose", target_pose, 10)
         jaw_rot = matrix_from_rot6(pose[3:9])
+        no_rotation = False
         try:
             target_rot = matrix_from_rot6(target[3:9])
         except ValueError as error:
+            # Held through the filter below: on tissue that moves, holding still is not safe.
             logger.warning(
                 "suture_cbf holds the measured pose: the commanded pose has no rotation (%s).", error
             )
-            held_target = target.copy()
-            held_target[:9] = pose[:9]
-            nan3 = np.full(3, np.nan)
-            return held_target, GuardResult(
-                False, False, nan3, nan3, True, float("nan"), float("nan"), "", False
-            )
+            no_rotation = True
+            target = target.copy()
+            target[:9] = pose[:9]
+            target_rot = jaw_rot
         if wound is None:
             nan3 = np.full(3, np.nan)
-            return target, GuardResult(False, False, nan3, nan3, False, float("nan"), float("nan"), "", False)
+            return target, GuardResult(
+                False, False, nan3, nan3, no_rotation, float("nan"), float("nan"), "", False
+            )
         tip_in_jaw = grasp.tip_in_jaw()
         tip = pose[:3] + jaw_rot @ tip_in_jaw
         held = self.jaw_may_hold(float(pose[9]), float(target[9]))
@@ -396,10 +393,33 @@ class TipGuard:
             out[:3] = target[:3] + (result.v_safe - result.v_nominal) * dt
             out[3:9] = np.concatenate([target_rot[:, 0], target_rot[:, 1]])
             if workspace is not None and not np.all((workspace[0] <= out[:3]) & (out[:3] <= workspace[1])):
+                # The arm would clip the target to a tip end point the filter never checked. The tip goes
+                # with the tissue instead, unturned: where it is relative to the tissue, it stays.
                 out[:9] = pose[:9]
+                out[:3] += self._motion.point_velocity(tip) * dt
+                self._replace_in_flight(tip, wound, dt)
+        if no_rotation:
+            result = result._replace(intervened=True)
         if held:
             self._ends.append(out[:3] + matrix_from_rot6(out[3:9]) @ tip_in_jaw)
         return out, result
+
+    def _record_in_flight(self, end: np.ndarray, wound: Wound, dt: float) -> None:
+        """Remember whether a commanded tip end point (3,) m, relative to the tissue, lies in each mode's
+        tightened set, for as long as it may stay in flight."""
+        if not self.latency_steps:
+            return
+        center, rotation = wound.ellipsoid_frame()
+        margin, axes = self.margin(dt), self.cbf.semi_axes
+        in_wound = bool(ellipsoid_h(end, center, axes, rotation) >= margin_level(margin, axes))
+        above = float(surface_height(end, wound.entry_point, wound.surface_normal)) >= margin
+        self._in_flight.append((in_wound, above))
+
+    def _replace_in_flight(self, end: np.ndarray, wound: Wound, dt: float) -> None:
+        """The last commanded end point was replaced by ``end`` (3,) m."""
+        if self._in_flight:
+            self._in_flight.pop()
+        self._record_in_flight(end, wound, dt)
 
     def _in_margin_band(self, tip: np.ndarray, wound: Wound, dt: float) -> bool:
         """Whether the tip (3,) m lies in neither tightened set: above the tissue by less than the margin and
