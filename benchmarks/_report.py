@@ -17,9 +17,10 @@ def machine() -> dict:
 
 
 def write(report: dict, output: Path) -> None:
-    """Write ``report`` to ``output`` as indented JSON (its folder made): a long run's partial result."""
+    """Write ``report`` to ``output`` as compact JSON (its folder made): a long run's partial result, or its
+    result for ``docs/results``, which keeps to a size budget."""
     output.parent.mkdir(parents=True, exist_ok=True)
-    output.write_text(json.dumps(report, indent=2) + "\n")
+    output.write_text(json.dumps(report, separators=(",", ":")) + "\n")
 
 
 def emit(report: dict, output: Path | None) -> None:

@@ -17,6 +17,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from lerobot_suture.plotting import save_figure
+
 RECIPE = Path(__file__).resolve().parents[1] / "recipes" / "suture_expert_randomized.yaml"
 DEFAULT_OUT = Path(__file__).resolve().parents[1] / "docs" / "appearance_strip.png"
 
@@ -83,7 +85,7 @@ def appearance_strip(
     fig.subplots_adjust(left=0.01, right=0.99, bottom=0.01, top=0.84, wspace=0.05, hspace=0.35)
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out_path)
+    save_figure(fig, out_path)
     return out_path
 
 

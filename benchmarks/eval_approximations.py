@@ -33,6 +33,7 @@ from lerobot_suture.experiments import leaderboard, metrics
 from lerobot_suture.experiments.episode_metrics import ood_metrics
 from lerobot_suture.pipelines.leaderboard import LeaderboardConfig
 from lerobot_suture.pipelines.stages import code_commit
+from lerobot_suture.plotting import save_figure
 from lerobot_suture.runtime.policy import GateMode, PolicyRunner, copy_with_overrides, env_kwargs_for_policy
 from lerobot_suture.sim.tasks import task_spec
 
@@ -123,7 +124,7 @@ def plot(rows: list[dict], path: Path) -> None:
         ax.legend(fontsize=7, loc="center", bbox_to_anchor=(0.5, 0.3))
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, dpi=120)
 
 
 def main() -> None:

@@ -47,6 +47,8 @@ from pathlib import Path
 
 import numpy as np
 
+from lerobot_suture.plotting import save_figure
+
 NEEDS = "a trained policy (--policy-path), or a preset to time untrained (--untrained-preset)"
 BIN = Path(sys.executable).parent
 CONTROL_PERIOD_S = 0.1
@@ -258,7 +260,7 @@ def plot_periods(traces: dict[str, list[dict]], path: Path) -> None:
     axes.set_title("lerobot-rollout at 10 Hz, gate and CBF on: sync against real-time chunking", fontsize=10)
     axes.legend()
     figure.tight_layout()
-    figure.savefig(path)
+    save_figure(figure, path)
 
 
 def gated_outcomes(trace: list[dict], root: Path, repo_id: str) -> dict[int, dict]:
@@ -425,10 +427,9 @@ def main() -> None:
         "platform": platform.platform(),
         "load_at_end": os.getloadavg(),
     }
-    text = json.dumps(result, indent=2)
-    print(text)
+    print(json.dumps(result, indent=2))
     if args.out is not None:
-        args.out.write_text(text + "\n")
+        args.out.write_text(json.dumps(result, separators=(",", ":")) + "\n")
 
 
 if __name__ == "__main__":

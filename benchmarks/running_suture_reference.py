@@ -95,11 +95,10 @@ def main() -> None:
         f"torch {torch.__version__.split('+')[0]}, {torch.get_num_threads()} threads",
         "result": result,
     }
-    text = json.dumps(output, indent=2, default=float)
-    print(text)
+    print(json.dumps(output, indent=2, default=float))
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
+        args.out.write_text(json.dumps(output, separators=(",", ":"), default=float) + "\n")
     if args.markdown:
         args.markdown.write_text(per_throw_markdown(table))
     if args.figure:

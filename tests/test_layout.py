@@ -146,7 +146,8 @@ def test_no_import_circles():
 FLOORS = {
     "lerobot_suture.sim": {"lerobot_suture.sim"},
     "lerobot_suture.expert_plans": {"lerobot_suture.sim", "lerobot_suture.expert_plans"},
-    "lerobot_suture.safety": {"lerobot_suture.sim", "lerobot_suture.safety"},
+    "lerobot_suture.safety": {"lerobot_suture.sim", "lerobot_suture.safety", "lerobot_suture.plotting"},
+    "lerobot_suture.plotting": set(),
     "lerobot_suture.datasets": {
         "lerobot_suture.sim",
         "lerobot_suture.expert",

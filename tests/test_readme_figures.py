@@ -174,3 +174,17 @@ def test_every_readme_figure_is_mapped():
         if (offset, offset + len(number)) not in covered
     ]
     assert not unmapped, f"README figures with no source in {MAPPING.name} (line, figure): {unmapped}"
+
+
+RESULTS_BUDGET_BYTES = 3 * 1024 * 1024
+
+
+def test_docs_results_stay_within_3_mb():
+    """Only the runs the docs cite are kept, as compact JSON and palette PNGs (``lerobot_suture.plotting``)."""
+    files = [p for p in MAPPING.parent.rglob("*") if p.is_file()]
+    total = sum(p.stat().st_size for p in files)
+    largest = sorted(files, key=lambda p: -p.stat().st_size)[:5]
+    assert total <= RESULTS_BUDGET_BYTES, (
+        f"docs/results holds {total / 2**20:.2f} MiB, over its 3 MiB budget; the largest files: "
+        + ", ".join(f"{p.relative_to(REPO_ROOT)} ({p.stat().st_size // 1024} KiB)" for p in largest)
+    )

@@ -17,6 +17,7 @@ from matplotlib.figure import Figure
 from lerobot_suture.dagger.config import ARMS, GATED, SCENARIOS
 from lerobot_suture.datasets.metadata import read_json, write_json_atomic
 from lerobot_suture.experiments import metrics
+from lerobot_suture.plotting import save_figure
 from lerobot_suture.surgeon.takeover import GATE_RELEASED, TAKEN_OVER
 
 SHORT = {
@@ -252,7 +253,7 @@ def plot(rows: list[dict], out_path: Path) -> Path:
     fig.suptitle("Autonomy and success per round against surgeon effort (numbers: round)")
     fig.tight_layout()
     out_path = Path(out_path)
-    fig.savefig(out_path)
+    save_figure(fig, out_path)
     return out_path
 
 

@@ -356,6 +356,8 @@ def run_benchmark(cfg: BenchmarkOODConfig) -> dict:
             name: {k: v for k, v in r.items() if k != "traces"} for name, r in per_detector.items()
         },
     }
-    (cfg.output_dir / "detectors.json").write_text(json.dumps(result, indent=2, default=json_default))
+    (cfg.output_dir / "detectors.json").write_text(
+        json.dumps(result, separators=(",", ":"), default=json_default)
+    )
     (cfg.output_dir / "detectors.md").write_text(render_tables(result))
     return result

@@ -6,6 +6,7 @@ import math
 from pathlib import Path
 
 from lerobot_suture.experiments.paper import EXPERIMENTS
+from lerobot_suture.plotting import save_figure
 
 SCENARIOS = tuple(scenario for _, scenario, _ in EXPERIMENTS)
 
@@ -162,7 +163,7 @@ def plot_detector(name: str, result: dict, path: Path) -> Path:
         fontsize=10,
     )
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, dpi=100)
     plt.close(fig)
     return path
 
@@ -197,6 +198,6 @@ def plot_shifts(per_detector: dict, shifts: list[str], path: Path) -> Path:
     )
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, dpi=100)
     plt.close(fig)
     return path

@@ -28,6 +28,7 @@ from matplotlib.figure import Figure
 
 from lerobot_suture.experiments.metrics import wilson_interval
 from lerobot_suture.experiments.per_throw import per_throw_table
+from lerobot_suture.plotting import save_figure
 from lerobot_suture.runtime.rollout import EpisodeLog, make_scenario_env, rollout_seeds
 from lerobot_suture.runtime.seeds import episode_seeds
 from lerobot_suture.safety.cbf_config import CBFConfig
@@ -300,5 +301,5 @@ def plot(board: dict, path: Path) -> Path:
             ax.set_ylabel("throws on the marks")
             ax.set_title(f"{task}: throws on the marks per episode, mean (of {n_throws})")
     path = Path(path)
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     return path

@@ -264,6 +264,8 @@ def run_experiments(cfg: ExperimentsConfig) -> dict:
     result["figures"]["4"] = "cbf_replay.png"
     result["gate_enforced"] = enforced(cfg, runner, env_kwargs)
     result["seconds"] = round(time.perf_counter() - started, 1)
-    (cfg.output_dir / "metrics.json").write_text(json.dumps(result, indent=2, default=json_default))
+    (cfg.output_dir / "metrics.json").write_text(
+        json.dumps(result, separators=(",", ":"), default=json_default)
+    )
     (cfg.output_dir / "report.md").write_text(render_report(result))
     return result

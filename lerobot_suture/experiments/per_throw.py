@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from lerobot_suture.experiments.metrics import summarize, wilson_interval
+from lerobot_suture.plotting import save_figure
 from lerobot_suture.runtime.rollout import EpisodeLog, StepLog
 
 
@@ -169,7 +170,7 @@ def plot_per_throw(table: dict, out_path: str | Path, title: str) -> Path:
     fig.tight_layout()
     out = Path(out_path)
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=120)
+    save_figure(fig, out, dpi=120)
     return out
 
 

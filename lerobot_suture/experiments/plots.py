@@ -10,6 +10,8 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from lerobot_suture.plotting import save_figure
+
 ID_COLOUR = "#c8ecc8"
 OOD_COLOUR = "#f6c4c4"
 SCORE_LABELS = {
@@ -76,5 +78,5 @@ def plot_uncertainty(
     fig.tight_layout()
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out_path)
+    save_figure(fig, out_path)
     return out_path

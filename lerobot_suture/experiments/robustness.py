@@ -32,6 +32,7 @@ from pathlib import Path
 from lerobot_suture.experiments.benchmark_ood_report import fmt
 from lerobot_suture.experiments.leaderboard import condition_shift
 from lerobot_suture.experiments.metrics import auroc, most_failures_flagged
+from lerobot_suture.plotting import save_figure
 from lerobot_suture.runtime.calibration import dataset_appearance
 from lerobot_suture.sim.shifts import Shift, within_training_range
 
@@ -338,7 +339,7 @@ def plot(result: dict, path: Path) -> Path:
     )
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, dpi=100)
     plt.close(fig)
     return path
 
@@ -390,7 +391,7 @@ def build_report(cfg: RobustnessReportConfig) -> dict:
             shifts += [r["shift"] for r in rows if r["shift"] not in shifts]
     result = {"detector": cfg.detector, "shifts": shifts, "policies": policies}
     cfg.output_dir.mkdir(parents=True, exist_ok=True)
-    (cfg.output_dir / "robustness.json").write_text(json.dumps(result, indent=2))
+    (cfg.output_dir / "robustness.json").write_text(json.dumps(result, separators=(",", ":")))
     (cfg.output_dir / "robustness.md").write_text(render(result))
     plot(result, cfg.output_dir / "robustness.png")
     return result

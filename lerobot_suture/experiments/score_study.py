@@ -32,6 +32,7 @@ from lerobot_suture.experiments.benchmark_ood_report import fmt
 from lerobot_suture.experiments.episode_metrics import EXPERIMENTS, ood_metrics
 from lerobot_suture.experiments.metrics import END_OF_TASK_STEPS, share_of_maxima_at_end
 from lerobot_suture.experiments.report import json_default
+from lerobot_suture.plotting import save_figure
 from lerobot_suture.runtime.config import RolloutCommandConfig
 from lerobot_suture.runtime.policy import GateMode, env_kwargs_for_policy, reporting_runner
 from lerobot_suture.runtime.rollout import EpisodeLog, make_scenario_env, rollout_seeds
@@ -252,7 +253,9 @@ def run_score_study(cfg: ScoreStudyConfig) -> dict:
         "ranked_by": "mean of the mean episode AUROC and the mean AUROC over common steps",
         "choices": sorted(per_choice, key=lambda r: -_nan_low(r["rank_score"])),
     }
-    (cfg.output_dir / "score_study.json").write_text(json.dumps(result, indent=2, default=json_default))
+    (cfg.output_dir / "score_study.json").write_text(
+        json.dumps(result, separators=(",", ":"), default=json_default)
+    )
     (cfg.output_dir / "score_study.md").write_text(render_table(result))
     plot_score_study(result, cfg.output_dir / "score_study.png")
     return result
@@ -338,6 +341,6 @@ def plot_score_study(result: dict, path: Path) -> Path:
     )
     fig.colorbar(image, ax=axes, label="AUROC against nominal episodes", shrink=0.8)
     fig.suptitle("Score choices on validation seeds (* the policy's own), best rank score first", fontsize=9)
-    fig.savefig(path, dpi=110, bbox_inches="tight")
+    save_figure(fig, path, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return path

@@ -207,7 +207,7 @@ def evaluate_row(
             cell["policy_overrides"] = overrides
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(cell, indent=1))
+        tmp.write_text(json.dumps(cell, separators=(",", ":")))
         tmp.replace(path)  # a cell is on disk whole or not at all
         row[condition] = cell
     return row
@@ -274,7 +274,7 @@ def run_leaderboard(cfg: LeaderboardConfig) -> dict:
     }
     # The rows already on the board keep their times; this run's stages add or update theirs.
     board["timings"] = {**board.get("timings", {}), **{k: round(v, 1) for k, v in timings.seconds.items()}}
-    board_file.write_text(json.dumps(board, indent=1))
+    board_file.write_text(json.dumps(board, separators=(",", ":")))
     (results / "leaderboard.md").write_text(cells.render(board))
     cells.plot(board, results / "leaderboard.png")
     return board

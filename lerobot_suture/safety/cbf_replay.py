@@ -23,6 +23,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from lerobot_suture.plotting import save_figure
 from lerobot_suture.safety.cbf import ellipsoid_h, filter_velocity, filter_velocity_discrete, margin_level
 
 _H_PLOT_FLOOR = -2.0
@@ -295,7 +296,7 @@ def plot_replay(replay: CBFReplay, center, axes, rotation, out_path, title: str 
 
     if title:
         fig.suptitle(title)
-    fig.savefig(out_path, dpi=110)
+    save_figure(fig, out_path, dpi=110)
     return out_path
 
 
