@@ -9,14 +9,20 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = [ROOT / "lerobot_suture", ROOT / "policies", ROOT / "envs", ROOT / "robots"]
+PACKAGES = [
+    ROOT / "lerobot_suture",
+    ROOT / "policies",
+    ROOT / "envs",
+    ROOT / "robots",
+    ROOT / "teleoperators",
+]
 SOURCES = sorted(p for package in PACKAGES for p in package.rglob("*.py") if ".venv" not in p.parts)
 MAX_MODULE_LINES = 500
 
 
 def _module(path: Path) -> str:
     parts = path.relative_to(ROOT).with_suffix("").parts
-    if parts[0] in ("policies", "envs", "robots"):
+    if parts[0] in ("policies", "envs", "robots", "teleoperators"):
         parts = parts[1:]
     return ".".join(p for p in parts if p != "__init__")
 

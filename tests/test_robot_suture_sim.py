@@ -24,13 +24,8 @@ from lerobot_suture.registration import MAX_EPISODE_STEPS
 
 register_third_party_plugins()  # as every LeRobot command does at start-up
 
-from lerobot_robot_suture import (  # noqa: E402
-    POSE_FEATURES,
-    SutureGamepad,
-    SutureKeyboard,
-    SutureSim,
-    SutureSimConfig,
-)
+from lerobot_robot_suture import POSE_FEATURES, SutureSim, SutureSimConfig  # noqa: E402
+from lerobot_teleoperator_suture import SutureGamepad, SutureKeyboard  # noqa: E402
 
 SIZE = 32
 

@@ -2,7 +2,7 @@
 
 A surgeon's command moves a target pose that starts at the arm's measured pose when the surgeon takes
 control (``lerobot_suture.surgeon.teleop_mapping``). LeRobot hands a teleoperator no observation, so
-``SutureKeyboard`` and ``SutureGamepad`` read the measured pose from the ``suture_sim`` robot connected in
+the teleoperators of ``lerobot_teleoperator_suture`` read the measured pose from the ``suture_sim`` robot connected in
 the same process (LeRobot's commands run both in one process).
 """
 

@@ -23,9 +23,9 @@ from typing import Any
 
 from lerobot.lerobot_types import RobotAction
 from lerobot.teleoperators.teleoperator import Teleoperator
+from lerobot_robot_suture import link
+from lerobot_robot_suture.config_suture_sim import POSE_FEATURES
 
-from . import link
-from .config_suture_sim import POSE_FEATURES
 from .config_suture_teleop import SutureGamepadConfig, SutureKeyboardConfig, SutureScriptedConfig
 
 
