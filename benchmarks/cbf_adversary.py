@@ -58,7 +58,7 @@ BAR_EPISODES = 1000
 def tiny_off_distribution_policy(directory: Path) -> Path:
     """An untrained tiny ensemble whose normalization comes from the expert's poses: its actions are in the
     right units and range, and it knows nothing of the task (off distribution everywhere)."""
-    from lerobot_policy_ensemble_diffusion.testing import save_untrained_expert_policy
+    from _policy_builders import save_untrained_expert_policy
 
     return save_untrained_expert_policy(
         directory / "pretrained_model", n_members=2, num_inference_steps=3, noise_scheduler_type="DDIM"

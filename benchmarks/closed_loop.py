@@ -29,7 +29,7 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 import gymnasium as gym  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from lerobot_policy_ensemble_diffusion.testing import fake_dataset_stats, save_untrained_policy  # noqa: E402
+from _policy_builders import fake_dataset_stats, save_untrained_policy  # noqa: E402
 
 import lerobot_suture  # noqa: E402
 from lerobot_suture.runtime.policy import GateMode, PolicyRunner, env_kwargs_for_policy  # noqa: E402

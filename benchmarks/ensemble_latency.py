@@ -26,16 +26,16 @@ import time
 from pathlib import Path
 
 import torch
-from _report import emit, machine
-from lerobot.utils.constants import OBS_IMAGES
-from lerobot_policy_ensemble_diffusion.modeling_ensemble_diffusion import EnsembleDiffusionPolicy
-from lerobot_policy_ensemble_diffusion.testing import (
+from _policy_builders import (
     NEEDLE_KEYPOINTS_DIM,
     SUTURE_INPUT_FEATURES,
     SUTURE_OUTPUT_FEATURES,
     fake_dataset_stats,
     random_observation,
 )
+from _report import emit, machine
+from lerobot.utils.constants import OBS_IMAGES
+from lerobot_policy_ensemble_diffusion.modeling_ensemble_diffusion import EnsembleDiffusionPolicy
 
 PRESETS_DIR = Path(__file__).resolve().parents[1] / "policies" / "presets"
 

@@ -28,7 +28,7 @@ from pathlib import Path
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 import torch  # noqa: E402
-from lerobot_policy_ensemble_diffusion.testing import save_untrained_expert_policy  # noqa: E402
+from _policy_builders import save_untrained_expert_policy  # noqa: E402
 
 # The demo's toy ensemble (lerobot_suture/pipelines/demo.py): 2 members, 32 px, a two-level U-Net, DDIM with 5 steps.
 DEMO_POLICY = {

@@ -299,7 +299,7 @@ def compare_engines(sync: dict[int, dict], rtc: dict[int, dict]) -> dict:
 
 def untrained_policy(preset: Path, directory: Path) -> Path:
     """A policy of ``preset``'s architecture with untrained weights, normalized with the expert's statistics."""
-    from lerobot_policy_ensemble_diffusion.testing import save_untrained_expert_policy
+    from _policy_builders import save_untrained_expert_policy
 
     fields = json.loads(preset.read_text())["policy"]
     fields = {

@@ -21,12 +21,12 @@ import json
 import platform
 
 import torch
+from _policy_builders import random_observation
 from ensemble_latency import load_preset_config, preset_file, timed
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.optim import AdamWConfig
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE
 from lerobot_policy_ensemble_diffusion.modeling_ensemble_diffusion import EnsembleDiffusionPolicy
-from lerobot_policy_ensemble_diffusion.testing import random_observation
 
 
 def training_batch(config, batch_size: int, seed: int) -> dict[str, torch.Tensor]:

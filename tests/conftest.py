@@ -23,7 +23,7 @@ def tiny_policy_dir(tmp_path_factory) -> Path:
 
     Its statistics come from the scripted expert, so its actions and hold poses are in the right units.
     """
-    from lerobot_policy_ensemble_diffusion.testing import save_untrained_expert_policy
+    from policy_builders import save_untrained_expert_policy
 
     return save_untrained_expert_policy(
         tmp_path_factory.mktemp("tiny_policy") / "pretrained_model",

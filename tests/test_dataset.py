@@ -191,7 +191,7 @@ def test_lerobot_eval_split_holds_out_exactly_the_validation_episodes(tiny, back
     from lerobot.configs.default import DatasetConfig
     from lerobot.configs.train import TrainPipelineConfig
     from lerobot.datasets.factory import make_train_eval_datasets
-    from lerobot_policy_ensemble_diffusion.testing import tiny_config
+    from policy_builders import tiny_config
 
     dataset_cfg = DatasetConfig(repo_id=REPO_ID, root=str(tiny.root), eval_split=0.25, video_backend=backend)
     cfg = TrainPipelineConfig(dataset=dataset_cfg, policy=tiny_config())
@@ -209,7 +209,7 @@ def test_lerobot_train_trains_the_ensemble_on_the_recording_with_its_eval_split(
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
     from lerobot.policies.factory import make_pre_post_processors
     from lerobot_policy_ensemble_diffusion import EnsembleDiffusionPolicy
-    from lerobot_policy_ensemble_diffusion.testing import tiny_policy_cli_args
+    from policy_builders import tiny_policy_cli_args
 
     out = tmp_path / "train"
     cmd = [
@@ -276,7 +276,7 @@ def test_split_rejects_bad_fraction():
 def test_the_policy_packages_suture_features_are_the_recorded_datasets():
     """The policy distribution does not import the env's, so its test and benchmark features are copies:
     a recording that changes a shape must fail here, not on a user's checkpoint."""
-    from lerobot_policy_ensemble_diffusion import testing
+    import policy_builders as testing
 
     recorded = dataset_features("pixels_agent_pos", testing.IMAGE_SIZE, video=False)
     for key, spec in testing.SUTURE_DATASET_FEATURES.items():
@@ -527,7 +527,7 @@ def _load_benchmark(name: str) -> types.ModuleType:
 def _tiny_visual_config(image_size: int):
     """A tiny 2-member ensemble reading the endoscope image (no resize or crop) and the state."""
     from lerobot.configs.types import FeatureType, PolicyFeature
-    from lerobot_policy_ensemble_diffusion.testing import tiny_config
+    from policy_builders import tiny_config
 
     return tiny_config(
         n_members=2,
@@ -545,7 +545,7 @@ def _tiny_visual_config(image_size: int):
 def test_open_loop_error_benchmark_scores_a_checkpoint_on_the_validation_frames(tiny, tmp_path):
     """`benchmarks/open_loop_error.py` on a tiny untrained ensemble saved as lerobot-train saves one."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
-    from lerobot_policy_ensemble_diffusion.testing import save_untrained_policy
+    from policy_builders import save_untrained_policy
 
     bench = _load_benchmark("open_loop_error")
 
@@ -589,7 +589,7 @@ def test_open_loop_error_benchmark_scores_a_checkpoint_on_the_validation_frames(
 def test_needle_attention_benchmark_probes_a_checkpoint(tiny, tmp_path):
     """`benchmarks/needle_attention.py` on a tiny untrained ensemble: needle hidden, noise, phantom moved."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
-    from lerobot_policy_ensemble_diffusion.testing import save_untrained_policy
+    from policy_builders import save_untrained_policy
 
     bench = _load_benchmark("needle_attention")
 

@@ -265,7 +265,7 @@ def test_hold_scores_keeps_the_latest_prediction():
 def test_feature_capture_leaves_the_actions_bit_identical(batched):
     import torch
     from lerobot_policy_ensemble_diffusion.modeling_ensemble_diffusion import EnsembleDiffusionPolicy
-    from lerobot_policy_ensemble_diffusion.testing import tiny_config
+    from policy_builders import tiny_config
 
     torch.manual_seed(0)
     policy = EnsembleDiffusionPolicy(tiny_config(batched_inference=batched)).eval()

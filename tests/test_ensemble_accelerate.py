@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 import torch
 from lerobot_policy_ensemble_diffusion import EnsembleDiffusionPolicy
-from lerobot_policy_ensemble_diffusion.testing import make_synthetic_dataset, tiny_policy_cli_args
+from policy_builders import make_synthetic_dataset, tiny_policy_cli_args
 from safetensors.torch import load_file
 
 BIN = Path(sys.executable).parent

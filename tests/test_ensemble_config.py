@@ -12,7 +12,7 @@ from lerobot.optim import OptimizerConfig
 from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
 from lerobot.policies.factory import get_policy_class, make_policy_config
 from lerobot_policy_ensemble_diffusion import EnsembleDiffusionConfig, EnsembleOODConfig
-from lerobot_policy_ensemble_diffusion.testing import tiny_config
+from policy_builders import tiny_config
 
 PRESETS = Path(__file__).resolve().parents[1] / "policies" / "presets"
 

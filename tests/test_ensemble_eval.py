@@ -32,7 +32,7 @@ from lerobot.scripts.lerobot_eval import eval_policy
 from lerobot.utils.constants import ACTION, OBS_STATE
 from lerobot.utils.import_utils import register_third_party_plugins
 from lerobot_policy_ensemble_diffusion import EnsembleDiffusionPolicy
-from lerobot_policy_ensemble_diffusion.testing import tiny_policy_cli_args
+from policy_builders import tiny_policy_cli_args
 
 from lerobot_suture.datasets.record import record
 from lerobot_suture.datasets.record_config import RecordConfig

@@ -10,7 +10,7 @@ from lerobot_policy_ensemble_diffusion import EnsembleDiffusionPolicy
 from lerobot_policy_ensemble_diffusion.batched_members import FusedDiffusionEnsemble
 from lerobot_policy_ensemble_diffusion.needle_keypoints import predict_needle_keypoints
 from lerobot_policy_ensemble_diffusion.normalization import action_affine_from_stats
-from lerobot_policy_ensemble_diffusion.testing import (
+from policy_builders import (
     SUTURE_DATASET_FEATURES,
     fake_dataset_stats,
     random_observation,
@@ -434,7 +434,7 @@ NEEDLE_KEY = "observation.needle_keypoints"
 
 def _needle_inputs():
     from lerobot.configs import FeatureType, PolicyFeature
-    from lerobot_policy_ensemble_diffusion.testing import SUTURE_INPUT_FEATURES
+    from policy_builders import SUTURE_INPUT_FEATURES
 
     return {**SUTURE_INPUT_FEATURES, NEEDLE_KEY: PolicyFeature(type=FeatureType.STATE, shape=(6,))}
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 import torch
 from lerobot_policy_ensemble_diffusion import EnsembleDiffusionPolicy, assemble_members, export_member
-from lerobot_policy_ensemble_diffusion.testing import TINY_POLICY_KWARGS, make_synthetic_dataset
+from policy_builders import TINY_POLICY_KWARGS, make_synthetic_dataset
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 

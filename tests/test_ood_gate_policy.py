@@ -7,7 +7,7 @@ import pytest
 import torch
 from lerobot.utils.constants import OBS_STATE
 from lerobot_policy_ensemble_diffusion import EnsembleDiffusionPolicy
-from lerobot_policy_ensemble_diffusion.testing import fake_dataset_stats, random_observation, tiny_config
+from policy_builders import fake_dataset_stats, random_observation, tiny_config
 
 from lerobot_suture.safety.ood.calibration import fit_calibration
 from lerobot_suture.safety.ood.calibration_file import CalibrationNotFoundError, save_calibration

@@ -7,7 +7,7 @@ import torch
 from lerobot.rollout.inference.rtc import supports_rtc_inference
 from lerobot_policy_ensemble_diffusion.modeling_ensemble_diffusion import EnsembleDiffusionPolicy
 from lerobot_policy_ensemble_diffusion.rtc_inpainting import committed_prefix
-from lerobot_policy_ensemble_diffusion.testing import fake_dataset_stats, random_observation, tiny_config
+from policy_builders import fake_dataset_stats, random_observation, tiny_config
 
 from lerobot_suture.safety.ood.calibration import fit_calibration
 

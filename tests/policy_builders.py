@@ -11,7 +11,7 @@
 # WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
 # See the License for the specific language governing permissions and
 # limitations under the License.
-"""Small builders shared by the tests and the benchmark: suture-shaped features, a tiny synthetic
+"""Small builders shared by the tests and the benchmarks (``benchmarks/_policy_builders.py``): suture-shaped features, a tiny synthetic
 LeRobotDataset on disk, tiny ensemble configs and random normalized observations.
 
 The suture env/dataset features: `observation.images.endoscope` (3, 96, 96), `observation.state` (10,),
@@ -26,8 +26,10 @@ import numpy as np
 import torch
 from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_STATE
-
-from .configuration_ensemble_diffusion import NEEDLE_KEYPOINTS_KEY, EnsembleDiffusionConfig
+from lerobot_policy_ensemble_diffusion.configuration_ensemble_diffusion import (
+    NEEDLE_KEYPOINTS_KEY,
+    EnsembleDiffusionConfig,
+)
 
 IMAGE_KEY = "observation.images.endoscope"
 STATE_DIM = 10
@@ -103,8 +105,7 @@ def save_untrained_policy(
     Seed torch first for reproducible weights. Returns `directory`.
     """
     from lerobot.policies.factory import make_pre_post_processors
-
-    from .modeling_ensemble_diffusion import EnsembleDiffusionPolicy
+    from lerobot_policy_ensemble_diffusion.modeling_ensemble_diffusion import EnsembleDiffusionPolicy
 
     directory = Path(directory)
     EnsembleDiffusionPolicy(config, dataset_stats=stats).save_pretrained(directory)
