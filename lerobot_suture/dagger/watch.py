@@ -8,11 +8,7 @@ ungated arm's :class:`~lerobot_suture.dagger.labelling.StateLabeller`) and compa
 after ``patience`` consecutive steps whose targets lie more than ``position`` apart, or turned more than
 ``angle`` from each other, it takes over and finishes the throw.
 
-The default limits come from the robust policy on seeds of their own (``docs/surgeon.md``): in twelve
-nominal throws its commands strayed from the expert's by more than 2.5 mm for two steps in a row at most
-(its approach turns a step earlier or later than the expert's) and by no more than 0.11 rad; once the
-phantom moves under the needle they stray 4 to 5 mm for five steps or more in 11 of 12 throws, and with
-the camera moved 6 to 12 mm and 0.15 to 0.5 rad.
+The default limits, and the measurement they were chosen from, are in ``docs/surgeon.md``.
 """
 
 from __future__ import annotations

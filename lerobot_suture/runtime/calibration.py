@@ -49,8 +49,8 @@ class CalibrateConfig(RolloutCommandConfig):
     dataset_root: a ``lerobot-suture record`` dataset whose validation seeds are used first.
     calibration_episodes: nominal episodes the in-distribution model is fitted on. In ``per_episode`` mode
         the threshold is an order statistic of their maxima: with 24 it is the largest, whose false-alarm
-        rate on new episodes scatters widely around alpha (11% on the bf16 reference's test seeds); 100
-        pin it to about +-2%. Validation seeds come first, then fresh ones.
+        rate on new episodes scatters widely around alpha; 100 pin it to about +-2% (binomial spread of
+        the order statistic). Validation seeds come first, then fresh ones.
     holdout_episodes: further nominal episodes on which the false-alarm rate is measured.
     model: ``normal`` (the paper's) or ``lognormal`` (the score is positive and skewed). Unset:
         ``lognormal``, or ``normal`` for the ``logdet`` score, which can be negative.
