@@ -1,5 +1,5 @@
 # lerobot-suture: `make demo` runs the main job on a small default; `make test` runs the tests.
-# Both set up first (`make install`): a .venv with Python >= 3.12, the four distributions in
+# Both set up first (`make install`): a .venv with Python >= 3.12, the five distributions in
 # editable mode with the test, viz (rerun) and teleop (keyboard, gamepad) extras, and the system libraries headless rendering needs.
 
 SHELL := /bin/bash

@@ -5,7 +5,7 @@ out of the installed plugin; this puts their folder on ``sys.path``. Not a bench
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+sys.path.append(str(Path(__file__).resolve().parents[1] / "tests"))
 
 from policy_builders import (  # noqa: E402
     NEEDLE_KEYPOINTS_DIM,

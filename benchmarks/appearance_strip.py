@@ -85,7 +85,7 @@ def appearance_strip(
     fig.subplots_adjust(left=0.01, right=0.99, bottom=0.01, top=0.84, wspace=0.05, hspace=0.35)
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
-    save_figure(fig, out_path)
+    save_figure(fig, out_path, palette=False)
     return out_path
 
 

@@ -1,8 +1,8 @@
 """Saving figures small: every plot the package writes goes through :func:`save_figure`.
 
-A matplotlib figure saved as 8-bit palette PNG is about a third of its true-colour size and looks the same (a
+A matplotlib plot saved as 8-bit palette PNG is about a third of its true-colour size and looks the same (a
 plot has few colours), which keeps ``docs/results`` within its size budget. Imports nothing of the package, so
-every floor may use it.
+every floor may use it (``tests/test_layout.py`` lets each).
 """
 
 from __future__ import annotations
@@ -11,10 +11,13 @@ import io
 from pathlib import Path
 
 
-def save_figure(fig, path: str | Path, dpi: float | None = None, **savefig_kwargs) -> Path:
+def save_figure(
+    fig, path: str | Path, dpi: float | None = None, palette: bool = True, **savefig_kwargs
+) -> Path:
     """Write matplotlib ``fig`` to ``path`` as a 256-colour PNG (parents created); returns the path.
 
-    ``dpi`` and ``savefig_kwargs`` go to ``Figure.savefig`` (``dpi`` None: the figure's own).
+    ``dpi`` and ``savefig_kwargs`` go to ``Figure.savefig`` (``dpi`` None: the figure's own). ``palette``
+    False keeps true colour, for figures of camera images, which 256 colours would band.
     """
     from PIL import Image
 
@@ -22,6 +25,9 @@ def save_figure(fig, path: str | Path, dpi: float | None = None, **savefig_kwarg
     path.parent.mkdir(parents=True, exist_ok=True)
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png", dpi=dpi or "figure", **savefig_kwargs)
+    if not palette:
+        path.write_bytes(buffer.getvalue())
+        return path
     buffer.seek(0)
     with Image.open(buffer) as image:
         palette = image.convert("RGB").quantize(colors=256, method=Image.Quantize.MEDIANCUT)

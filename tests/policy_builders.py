@@ -11,8 +11,8 @@
 # WITHOUT WARRANTIES OR CONDITIONS OF ANY KIND, either express or implied.
 # See the License for the specific language governing permissions and
 # limitations under the License.
-"""Small builders shared by the tests and the benchmarks (``benchmarks/_policy_builders.py``): suture-shaped features, a tiny synthetic
-LeRobotDataset on disk, tiny ensemble configs and random normalized observations.
+"""Small builders shared by the tests and the benchmarks (``benchmarks/_policy_builders.py``): suture-shaped
+features, a tiny synthetic LeRobotDataset on disk, tiny ensemble configs and random normalized observations.
 
 The suture env/dataset features: `observation.images.endoscope` (3, 96, 96), `observation.state` (10,),
 `action` (10,), `observation.needle_keypoints` (6,), 10 fps.

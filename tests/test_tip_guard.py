@@ -258,21 +258,22 @@ def test_the_guard_moves_the_tip_with_tissue_that_moves_and_flags_motion_beyond_
 def test_a_target_the_arm_would_clip_or_without_rotation_goes_with_rising_tissue_instead_of_holding():
     """On tissue that rises, "hold the measured pose" lets the tissue come up into the tip. The two fallbacks of
     ``filter_target`` (a filtered target outside the workspace, a commanded rotation that is none) carry the
-    tip with the tissue instead."""
+    tip with the tissue instead, and say they replaced the command."""
     cbf = CBFConfig(enabled=True)
     rise = np.array([0.0, 0.0, 0.012])  # m/s, within the 15 mm/s bound
     tip = ENTRY + np.array([0.0, 0.02, 0.0015])  # 1.5 mm above the tissue, 2 cm beside the wound
     rotation = np.eye(3)
     start = jaw_pose_with_tip_at(tip, rotation)
     workspace = (start[:3] - 0.01, start[:3] + 0.01)
-    for fallback in ("rotation", "workspace"):
-        guard = TipGuard(cbf)
+    for fallback in ("rotation", "workspace", "workspace, a target the filter leaves alone"):
+        guard = TipGuard(cbf, latency_steps=2)
         for k in range(3):
             shift = rise * DT * k  # the tissue's rise so far, and the tip's with it
             pose = jaw_pose_with_tip_at(tip + shift, rotation)
-            target = jaw_pose_with_tip_at(tip + shift + np.array([0.0, 0.0, -0.004]), rotation, jaw=1.0)
-            if fallback == "workspace":
-                target[1] += 0.05  # the filtered target leaves the box
+            down = 0.0 if fallback.startswith("workspace,") else -0.004
+            target = jaw_pose_with_tip_at(tip + shift + np.array([0.0, 0.0, down]), rotation, jaw=1.0)
+            if fallback.startswith("workspace"):
+                target[1] += 0.05  # the target leaves the box
             else:
                 target[3:9] = 0.0
             out, result = guard.filter_target(
@@ -283,8 +284,12 @@ def test_a_target_the_arm_would_clip_or_without_rotation_goes_with_rising_tissue
         end = tip_of(out) - (shift + rise * DT)
         assert end @ NORMAL >= guard.margin(DT) - 1e-9, fallback
         np.testing.assert_allclose(out[3:9], pose[3:9], atol=1e-12)
-    # A target outside the box: the tip goes with the tissue, exactly.
-    np.testing.assert_allclose(tip_of(out), tip + shift + rise * DT, atol=1e-9)
+        # The end point in flight, relative to the tissue, is above it and outside the wound's ellipsoid.
+        assert guard._in_flight[-1] == (False, True), fallback
+        if fallback.startswith("workspace"):
+            # A target outside the box: the tip goes with the tissue, exactly, and the result says so.
+            np.testing.assert_allclose(tip_of(out), tip + shift + rise * DT, atol=1e-9)
+            np.testing.assert_allclose(result.v_safe, rise, atol=1e-9)
 
 
 def test_the_margin_grows_with_the_tracking_error_measured_on_the_robot_path():

@@ -209,7 +209,7 @@ class DaggerRun:
         result = evaluate(
             policy, self.env_kwargs, self.test_seeds, cfg.batch_envs, cfg.workers, cfg.device, key
         )
-        write_json_atomic(out / "eval.json", result)
+        write_json_atomic(out / "eval.json", result, compact=True)
 
     # ---- one round of one arm
 
@@ -269,7 +269,7 @@ class DaggerRun:
             "seeds": spec.seeds,
             "runs": runs,
         }
-        write_json_atomic(out / "collect.json", record)
+        write_json_atomic(out / "collect.json", record, compact=True)
 
     def aggregate(self, arm: str, round_: int, stats: dict) -> None:
         roots = [self.round_dir(arm, k) / "new_data" for k in range(1, round_ + 1)]

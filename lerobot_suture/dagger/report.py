@@ -263,6 +263,8 @@ def write_report(output_dir: Path, arms: list[str], rounds: int, toy: bool = Fal
     rows = table_rows(output_dir, arms, rounds)
     text = markdown(rows, toy)
     (output_dir / "dagger.md").write_text(text)
-    write_json_atomic(output_dir / "dagger.json", {"toy": toy, "scenarios": list(SCENARIOS), "rows": rows})
+    write_json_atomic(
+        output_dir / "dagger.json", {"toy": toy, "scenarios": list(SCENARIOS), "rows": rows}, compact=True
+    )
     plot(rows, output_dir / "dagger.png")
     return text

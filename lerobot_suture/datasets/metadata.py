@@ -35,13 +35,14 @@ FORMAT_VERSION = 1
 _RESTORED = {INFO_PATH, STATS_PATH, EPISODE_LOG_PATH, CHECKPOINT_PATH, "README.md"}
 
 
-def write_json_atomic(path: Path, obj) -> None:
-    """Write ``obj`` as JSON to ``path`` so a reader (or a kill) never sees half a file."""
+def write_json_atomic(path: Path, obj, compact: bool = False) -> None:
+    """Write ``obj`` as JSON to ``path`` so a reader (or a kill) never sees half a file; ``compact``: no
+    indentation (results, which ``docs/results`` keeps to a size budget), else indented (configs people read)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp")
     with open(tmp, "w") as f:
-        json.dump(obj, f, indent=2)
+        json.dump(obj, f, **({"separators": (",", ":")} if compact else {"indent": 2}))
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)

@@ -80,5 +80,5 @@ def run_cbf_replay(cfg: CBFReplayConfig) -> dict:
     )
     env.close()
     metrics = {k: (str(v) if isinstance(v, Path) else v) for k, v in metrics.items()}
-    (cfg.output_dir / "cbf_replay.json").write_text(json.dumps(metrics, indent=2, default=float))
+    (cfg.output_dir / "cbf_replay.json").write_text(json.dumps(metrics, separators=(",", ":"), default=float))
     return metrics

@@ -181,7 +181,10 @@ def write_comparison(cfg: ReproduceConfig, metrics: dict, timings: StageTimings)
     )
     (cfg.output_dir / "comparison.md").write_text(text)
     (cfg.output_dir / "comparison.json").write_text(
-        json.dumps({"toy": cfg.toy, "rows": comparison_json(rows), "timings_s": timings.seconds}, indent=2)
+        json.dumps(
+            {"toy": cfg.toy, "rows": comparison_json(rows), "timings_s": timings.seconds},
+            separators=(",", ":"),
+        )
     )
     return text
 

@@ -42,7 +42,7 @@ class StageTimings:
     def add(self, stage: str, seconds: float) -> None:
         self.seconds[stage] = round(self.seconds.get(stage, 0.0) + seconds, 1)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.path.write_text(json.dumps(self.seconds, indent=2))
+        self.path.write_text(json.dumps(self.seconds, separators=(",", ":")))
 
     def timed(self, stage: str, fn, *args):
         """``fn(*args)``, its wall time added to ``stage``."""

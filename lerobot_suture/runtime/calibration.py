@@ -236,5 +236,7 @@ def run_calibration(cfg: CalibrateConfig) -> dict:
         report["holdout_seeds"] = holdout_seeds
         report["holdout_false_alarm_rate"] = asdict(rates)
         report["holdout_success_rate"] = float(np.mean([log.success for log in held_logs]))
-    (Path(cfg.policy.path) / CALIBRATION_REPORT_FILENAME).write_text(json.dumps(report, indent=2))
+    (Path(cfg.policy.path) / CALIBRATION_REPORT_FILENAME).write_text(
+        json.dumps(report, separators=(",", ":"))
+    )
     return report

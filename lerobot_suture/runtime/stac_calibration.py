@@ -143,5 +143,5 @@ def run_stac_calibration(cfg: CalibrateStacConfig) -> dict:
         else math.nan,
         "calibration_file": str(path),
     }
-    (Path(cfg.policy.path) / REPORT_FILE).write_text(json.dumps(report, indent=2) + "\n")
+    (Path(cfg.policy.path) / REPORT_FILE).write_text(json.dumps(report, separators=(",", ":")) + "\n")
     return report

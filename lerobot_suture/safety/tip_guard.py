@@ -98,7 +98,8 @@ class GuardResult(NamedTuple):
             have been).
         v_nominal: (3,) m/s commanded tip velocity.
         v_safe: (3,) m/s tip velocity let through.
-        intervened: ``v_safe`` differs from ``v_nominal``.
+        intervened: ``v_safe`` differs from ``v_nominal``, or the command was replaced (a target without
+            rotation, or one the arm would clip to its workspace).
         h: the ellipsoid's barrier at the tip (>= 0 inside it), NaN without a wound.
         filter_time: wall time of the filter call (s), NaN when it did not run.
         mode: ``above`` or ``wound``, the convex set the step was kept in ("" when not guarding).
@@ -341,7 +342,7 @@ class TipGuard:
             workspace: (low (3,), high (3,)) m, the box the arm clips target positions to, or None. A filtered
                 target outside it would be clipped to a tip end point the filter never checked, so the arm is
                 told to keep its measured pose relative to the tissue instead (unturned, carried with the
-                tissue's measured velocity).
+                tissue's measured velocity, within the box).
 
         Returns:
             (the target pose to send (10,) float64, the guard's result). While guarding, the position moves so
@@ -394,10 +395,14 @@ class TipGuard:
             out[3:9] = np.concatenate([target_rot[:, 0], target_rot[:, 1]])
             if workspace is not None and not np.all((workspace[0] <= out[:3]) & (out[:3] <= workspace[1])):
                 # The arm would clip the target to a tip end point the filter never checked. The tip goes
-                # with the tissue instead, unturned: where it is relative to the tissue, it stays.
+                # with the tissue instead, unturned: where it is relative to the tissue, it stays (unless the
+                # box stops the arm following it; the clip below is what the arm would do anyway).
+                w = self._motion.point_velocity(tip)
                 out[:9] = pose[:9]
-                out[:3] += self._motion.point_velocity(tip) * dt
-                self._replace_in_flight(tip, wound, dt)
+                out[:3] = np.clip(out[:3] + w * dt, workspace[0], workspace[1])
+                end = out[:3] + jaw_rot @ tip_in_jaw
+                self._replace_in_flight(end - w * dt, wound, dt)
+                result = result._replace(v_safe=(end - tip) / dt, intervened=True)
         if no_rotation:
             result = result._replace(intervened=True)
         if held:

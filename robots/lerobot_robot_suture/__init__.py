@@ -4,9 +4,8 @@ behind LeRobot's ``Robot`` interface. The teleoperators that drive it are a plug
 
 LeRobot's commands import this package at start-up (``register_third_party_plugins``: the distribution's
 name starts with ``lerobot_robot_``), which registers the robot type and the ``suture_cbf`` robot-action
-processor step. Inside
-``lerobot-rollout`` (``lerobot.rollout`` is imported before plugins are) it also registers the
-``gated_dagger`` strategy (:mod:`.rollout_seam`); elsewhere, ``import lerobot_robot_suture.rollout_seam``.
+processor step. Inside ``lerobot-rollout`` (``lerobot.rollout`` is imported before plugins are) it also
+registers the ``gated_dagger`` strategy (:mod:`.rollout_seam`); elsewhere, ``import lerobot_robot_suture.rollout_seam``.
 """
 
 import sys
