@@ -30,6 +30,6 @@ def save_figure(
         return path
     buffer.seek(0)
     with Image.open(buffer) as image:
-        palette = image.convert("RGB").quantize(colors=256, method=Image.Quantize.MEDIANCUT)
-    palette.save(path, format="PNG", optimize=True)
+        quantized = image.convert("RGB").quantize(colors=256, method=Image.Quantize.MEDIANCUT)
+    quantized.save(path, format="PNG", optimize=True)
     return path
