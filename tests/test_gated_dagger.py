@@ -245,3 +245,29 @@ def test_gated_dagger_on_lerobot_s_real_time_chunking_engine(tiny_policy_dir, tm
     handover = int(np.argmax(intervention))
     assert intervention.any() and handover > 0 and intervention[handover:].all()
     assert not decision[:handover].any() and decision[handover:].all()
+
+
+@pytest.mark.slow
+def test_an_episode_too_short_for_its_video_is_discarded_and_the_run_goes_on(tiny_policy_dir, tmp_path):
+    """An episode of one frame (here: 50 ms at 10 Hz) gets no video statistics from LeRobot's streaming encoder,
+    and the dataset's metadata cannot hold it beside longer ones (an ``ArrowInvalid`` at a later save). It is
+    discarded with a warning that says why, and the run goes on."""
+    root = tmp_path / "dataset"
+    log = run_command(
+        "lerobot-rollout",
+        [
+            "--strategy.type=gated_dagger",
+            "--strategy.gate=none",
+            f"--policy.path={tiny_policy_dir}",
+            "--teleop.type=suture_scripted",
+            "--device=cpu",
+            "--fps=10",
+            "--return_to_initial_position=false",
+            *robot_args(tmp_path / "trace.jsonl", "--robot.seed=7", "--robot.clock=fast"),
+            *dataset_args(root, "local/rollout_short", episodes=2, episode_s=0.05, reset_s=0),
+        ],
+        timeout=600,
+    )
+    assert log.count("fewer than the 2 a video episode needs: discarded") == 2
+    assert "ArrowInvalid" not in log
+    assert not (root / "meta" / "episodes").exists()

@@ -194,3 +194,87 @@ def test_lerobot_s_rtc_engine_on_the_arm_respects_prefixes_and_never_executes_a_
     new_actions = postprocessor(flagged_chunk)[0, committed:]
     for action in sent:
         assert not torch.isclose(new_actions, action[None], atol=1e-6, rtol=0).all(dim=-1).any()
+
+
+def test_a_new_scene_s_first_chunk_is_predicted_from_that_scene(tiny_policy_dir):
+    """``gated_dagger`` restarts LeRobot's real-time engine between scenes: the first chunk of the next scene is
+    predicted from its own first observation, however long that observation takes to arrive, and not from the
+    last frame of the scene before, the latest observation the engine was handed."""
+    import threading
+    import time
+
+    from lerobot.policies.factory import make_pre_post_processors
+    from lerobot.policies.rtc.configuration_rtc import RTCConfig
+    from lerobot.rollout.inference.rtc import RTCInferenceEngine
+    from lerobot.rollout.robot_wrapper import ThreadSafeRobot
+    from lerobot.utils.feature_utils import build_dataset_frame, hw_to_dataset_features
+    from lerobot_robot_suture.config_suture_sim import SutureSimConfig
+    from lerobot_robot_suture.gated_dagger import restart_engine
+    from lerobot_robot_suture.suture_sim import SutureSim
+
+    policy = EnsembleDiffusionPolicy.from_pretrained(tiny_policy_dir).eval()
+    preprocessor, postprocessor = make_pre_post_processors(
+        policy.config, pretrained_path=str(tiny_policy_dir)
+    )
+    states, lock = [], threading.Lock()
+    predict = policy.predict_action_chunk
+
+    def recorded_predict(batch, inference_delay=None, prev_chunk_left_over=None):
+        with lock:
+            states.append(batch["observation.state"][0].clone())
+        return predict(batch, inference_delay=inference_delay, prev_chunk_left_over=prev_chunk_left_over)
+
+    policy.predict_action_chunk = recorded_predict
+    image_size = policy.config.image_features["observation.images.endoscope"].shape[-1]
+    robot = SutureSim(SutureSimConfig(seed=7, clock="fast", image_size=image_size))
+    robot.connect()
+    features = hw_to_dataset_features(robot.observation_features, "observation")
+    engine = RTCInferenceEngine(
+        policy,
+        preprocessor,
+        postprocessor,
+        ThreadSafeRobot(robot),
+        RTCConfig(execution_horizon=policy.config.horizon),
+        features,
+        "Insert the needle.",
+        20.0,
+        "cpu",
+        rtc_queue_threshold=policy.config.horizon - 2,
+    )
+
+    def run(ticks: int) -> None:
+        for _ in range(ticks):
+            obs = robot.get_observation()
+            engine.notify_observation(obs)
+            action = engine.get_action(None)
+            if action is not None:
+                robot.send_action({key: float(action[i]) for i, key in enumerate(robot.action_features)})
+            time.sleep(0.05)
+
+    def normalized_state(obs) -> torch.Tensor:
+        state = torch.as_tensor(build_dataset_frame(features, obs, prefix="observation")["observation.state"])
+        return (state.float() - policy.state_unnormalize_offset) / policy.state_unnormalize_scale
+
+    engine.start()
+    engine.resume()
+    try:
+        run(ticks=12)  # scene 7: the arm moves
+        engine.pause()
+        robot.reset_scene(8)
+        restart_engine(engine)
+        with lock:
+            before = len(states)
+        engine.resume()
+        time.sleep(
+            0.3
+        )  # a slow first camera read: the engine has had time to predict, had it anything to predict from
+        first_obs = robot.get_observation()
+        run(ticks=1)
+        deadline = time.perf_counter() + 30.0
+        while len(states) == before and time.perf_counter() < deadline:
+            time.sleep(0.01)
+    finally:
+        engine.stop()
+        robot.disconnect()
+    assert len(states) > before, "the engine predicted nothing in the new scene"
+    torch.testing.assert_close(states[before], normalized_state(first_obs), atol=1e-4, rtol=0)

@@ -49,6 +49,22 @@ GATE_FEATURES = {
 """Per frame: the gate's last score, its threshold (NaN without one) and its (latched) O.O.D. decision."""
 
 
+MIN_EPISODE_FRAMES = 2
+"""The fewest frames an episode is saved with (LeRobot's streaming video encoder needs two for its statistics)."""
+
+
+def restart_engine(engine) -> None:
+    """LeRobot's inference engine started afresh for a new scene: policy, processors and queue reset.
+
+    The real-time engine's thread is joined, so a chunk still being predicted for the last scene never joins
+    the new scene's queue; and it holds no observation until the new scene's first. Reset and resumed only, it
+    would predict the new scene's first chunk from the last scene's final frame (its latest observation).
+    """
+    engine.stop()
+    engine.start()
+    engine.reset()
+
+
 @RolloutStrategyConfig.register_subclass("gated_dagger")
 @dataclass
 class GatedDAggerStrategyConfig(DAggerStrategyConfig):
@@ -171,7 +187,20 @@ class GatedDAggerStrategy(DAggerStrategy):
                 break
             log_say(f"Recording episode {dataset.num_episodes}", cfg.play_sounds)
             handover = self._run_episode(ctx)
-            if dataset.has_pending_frames():
+            frames = dataset.writer.episode_buffer["size"] if dataset.has_pending_frames() else 0
+            if dataset.meta.video_keys and 0 < frames < MIN_EPISODE_FRAMES:
+                # LeRobot's streaming video encoder gives no statistics for such an episode, and the dataset's
+                # metadata cannot then hold it beside the others.
+                logger.warning(
+                    "Episode %d has %d frame(s), fewer than the %d a video episode needs: discarded, and the "
+                    "next episode takes its place (suture_sim plays the scene again). A longer "
+                    "--dataset.episode_time_s avoids this.",
+                    dataset.num_episodes,
+                    frames,
+                    MIN_EPISODE_FRAMES,
+                )
+                dataset.clear_episode_buffer()
+            elif frames > 0:
                 with self._episode_lock:
                     dataset.save_episode()
                 self._needs_push.set()
@@ -193,15 +222,15 @@ class GatedDAggerStrategy(DAggerStrategy):
         robot = ctx.hardware.robot_wrapper
         control_interval = interpolator.get_control_interval(cfg.fps)
         task = cfg.dataset.single_task if cfg.dataset else cfg.task
-        engine.reset()
+        restart_engine(engine)
         interpolator.reset()
         events.reset()
-        engine.resume()
         self.gate.reset()
         scene_seed = getattr(robot.inner, "scene_seed", None)
         if scene_seed is not None:
             # The simulated arm's scene: the policy's noise seeded as the env path's runs of that seed are.
             torch.manual_seed(int(scene_seed))
+        engine.resume()
         if self.cbf_step is not None:
             self.cbf_step.reset()
         reading = GateReading(float("nan"), float("nan"), False, False, False)
@@ -213,10 +242,14 @@ class GatedDAggerStrategy(DAggerStrategy):
                 robot.inner, "scene_over", False
             ):
                 break
+            obs = robot.get_observation()
             transition = events.consume_transition()
             if transition is not None:
+                if transition[1] is DAggerPhase.AUTONOMOUS:
+                    # Handed back: the engine resumes from the arm as it is now, not as it was when the
+                    # surgeon took over (the last observation it was handed).
+                    engine.notify_observation(ctx.processors.robot_observation_processor(obs))
                 self._apply_transition(*transition, engine, interpolator, ctx, last_action)
-            obs = robot.get_observation()
             if events.phase == DAggerPhase.AUTONOMOUS:
                 obs_processed = self._process_observation_and_notify(ctx.processors, obs)
                 action = next_policy_action(obs_processed, ctx, interpolator)
