@@ -20,13 +20,18 @@ Three figures, each from LeRobot's own console scripts on the same policy:
 3. **The engines end the same way.** With ``--episodes`` > 0, both engines on the same seeds under the same
    real-time loop, nominal (``--episodes``) and in each of the paper's scenarios (``--scenario-episodes``):
    per seed, success and the frame at which the gate handed over; and the time from the policy's gate
-   flagging to the handover.
+   flagging to the handover. A scenario whose command fails is reported with its error; the others still run.
+
+The real-time engine starts a prediction when its queue holds ``--queue-threshold`` actions or fewer (LeRobot's
+``--inference.queue_threshold``; default: the policy's ``n_action_steps``), so that it predicts, and its gate
+tests, once per ``n_action_steps`` executed steps, as the sync engine does and as the gate was calibrated.
+LeRobot's default (30) predicts back to back, and the gate then tests several times as often.
 
 ``--untrained-preset FILE`` times a policy of that preset's architecture with untrained weights (its
 needle target off, a training-only head) instead of ``--policy-path``: periods only, since an untrained
 policy's outcomes mean nothing; part 1 and 3 are skipped.
 
-Prints one JSON object (and writes it to ``--out`` when given)::
+Prints one JSON object (and writes it to ``--out`` when given, after every stage)::
 
     .venv/bin/python benchmarks/robot_path.py --policy-path DIR [--episodes 50] [--seed 2000000]
     .venv/bin/python benchmarks/robot_path.py --untrained-preset policies/presets/reference.json --realtime-s 600
@@ -43,6 +48,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -81,9 +87,12 @@ def _run(name: str, args: list[str], log: Path) -> float:
     return time.perf_counter() - start
 
 
+def _config(policy_path: Path) -> dict:
+    return json.loads((policy_path / "config.json").read_text())
+
+
 def _image_size(policy_path: Path) -> int:
-    config = json.loads((policy_path / "config.json").read_text())
-    shape = config["input_features"]["observation.images.endoscope"]["shape"]
+    shape = _config(policy_path)["input_features"]["observation.images.endoscope"]["shape"]
     return int(shape[-1])
 
 
@@ -165,6 +174,7 @@ def gated_rollout(
     episode_s: float,
     duration: float,
     scenario: str = "nominal",
+    queue_threshold: int | None = None,
 ) -> tuple[list[dict], Path]:
     """``lerobot-rollout --strategy.type=gated_dagger`` on the real-time clock at 10 Hz under ``engine``; returns
     the robot's trace and the recorded dataset's root."""
@@ -200,6 +210,8 @@ def gated_rollout(
     ]
     if duration > 0:
         args.append(f"--duration={duration}")
+    if engine == "rtc" and queue_threshold is not None:
+        args.append(f"--inference.queue_threshold={queue_threshold}")
     _run("lerobot-rollout", args, work / f"{engine}.log")
     return [json.loads(line) for line in trace.read_text().splitlines()], root
 
@@ -285,6 +297,7 @@ def gated_outcomes(trace: list[dict], root: Path, repo_id: str) -> dict[int, dic
 def compare_engines(sync: dict[int, dict], rtc: dict[int, dict]) -> dict:
     """How often the engines end the same way, and how far apart their handovers fall (frames; > 0: RTC later)."""
     seeds = sorted(set(sync) & set(rtc))
+    engines = {"sync": sync, "rtc": rtc}
     same = [s for s in seeds if sync[s]["success"] == rtc[s]["success"]]
     both = [s for s in seeds if sync[s]["handover"] is not None and rtc[s]["handover"] is not None]
     return {
@@ -294,6 +307,8 @@ def compare_engines(sync: dict[int, dict], rtc: dict[int, dict]) -> dict:
             (sync[s]["handover"] is None) != (rtc[s]["handover"] is None) for s in seeds
         ),
         "handover_shift_frames": [rtc[s]["handover"] - sync[s]["handover"] for s in both],
+        "handovers": {name: sum(o[s]["handover"] is not None for s in seeds) for name, o in engines.items()},
+        "successes": {name: sum(o[s]["success"] for s in seeds) for name, o in engines.items()},
     }
 
 
@@ -354,6 +369,9 @@ def main() -> None:
     parser.add_argument("--episode-s", type=float, default=20.0, help="wall time of a rollout episode")
     parser.add_argument("--realtime-s", type=float, default=600.0, help="each engine's real-time run")
     parser.add_argument("--out", type=Path)
+    parser.add_argument(
+        "--queue-threshold", type=int, help="the real-time engine's (default: the policy's n_action_steps)"
+    )
     parser.add_argument("--plot", type=Path, help="a PNG of the real-time periods, per engine")
     parser.add_argument(
         "--work-dir", type=Path, help="the commands' outputs and logs (default: a new temp dir)"
@@ -368,32 +386,37 @@ def main() -> None:
     work.mkdir(parents=True, exist_ok=True)
     policy_path = args.policy_path or untrained_policy(args.untrained_preset, work / "untrained_policy")
     trained = args.policy_path is not None
+    threshold = args.queue_threshold or _config(policy_path)["n_action_steps"]
+    rollout = partial(gated_rollout, policy_path, queue_threshold=threshold, seed=args.seed)
     result: dict = {
+        "command": " ".join(["python", *sys.argv]),
         "policy_path": str(args.policy_path)
         if trained
         else f"untrained, architecture of {args.untrained_preset}",
         "episodes": args.episodes if trained else 0,
         "first_seed": args.seed,
+        "queue_threshold": threshold,
     }
+
+    def save() -> None:
+        if args.out is not None:
+            args.out.write_text(json.dumps(result, separators=(",", ":")) + "\n")
+
     if trained and args.episodes > 0:
         result.update(consistency(policy_path, args, work))
+        save()
     result["realtime"], traces = {}, {}
     for engine in engines:
         start = time.perf_counter()
-        trace, _ = gated_rollout(
-            policy_path,
-            engine,
-            work / "realtime",
-            seed=args.seed,
-            episodes=100_000,
-            episode_s=60.0,
-            duration=args.realtime_s,
+        trace, _ = rollout(
+            engine, work / "realtime", episodes=100_000, episode_s=60.0, duration=args.realtime_s
         )
         traces[engine] = trace
         result["realtime"][engine] = {
             **period_report(trace),
             "seconds": round(time.perf_counter() - start, 1),
         }
+        save()
     if args.plot is not None:
         plot_periods(traces, args.plot)
     if trained and args.episodes > 0 and len(engines) == 2:
@@ -401,26 +424,28 @@ def main() -> None:
         runs = {"nominal": args.episodes, **{name: args.scenario_episodes for name in SCENARIOS[1:]}}
         result["engines_compared"], delays = {}, {engine: [] for engine in engines}
         for scenario, episodes in runs.items():
-            outcomes = {}
-            for engine in engines:
-                run_dir = work / "outcomes" / scenario
-                trace, root = gated_rollout(
-                    policy_path,
-                    engine,
-                    run_dir,
-                    seed=args.seed,
-                    episodes=episodes,
-                    episode_s=args.episode_s,
-                    duration=0,
-                    scenario=scenario,
-                )
-                outcomes[engine] = gated_outcomes(trace, root, f"local/rollout_robot_path_{engine}")
-                delays[engine] += flag_to_handover_ms(run_dir / f"{engine}.log")
+            outcomes, run_dir = {}, work / "outcomes" / scenario
+            try:
+                for engine in engines:
+                    trace, root = rollout(
+                        engine,
+                        run_dir,
+                        episodes=episodes,
+                        episode_s=args.episode_s,
+                        duration=0,
+                        scenario=scenario,
+                    )
+                    outcomes[engine] = gated_outcomes(trace, root, f"local/rollout_robot_path_{engine}")
+                    delays[engine] += flag_to_handover_ms(run_dir / f"{engine}.log")
+            except RuntimeError as error:  # one scenario's failed command leaves the others' figures
+                result.setdefault("engines_compared_failed", {})[scenario] = str(error)
+                continue
             result["engines_compared"][scenario] = compare_engines(outcomes["sync"], outcomes["rtc"])
-        result["flag_to_handover_ms"] = {
-            engine: {"handovers": len(d), "max": round(max(d), 1) if d else None}
-            for engine, d in delays.items()
-        }
+            result["flag_to_handover_ms"] = {
+                engine: {"handovers": len(d), "max": round(max(d), 1) if d else None}
+                for engine, d in delays.items()
+            }
+            save()
     result["work_dir"] = str(work)
     result["machine"] = {
         "cpus": os.cpu_count(),
@@ -428,8 +453,7 @@ def main() -> None:
         "load_at_end": os.getloadavg(),
     }
     print(json.dumps(result, indent=2))
-    if args.out is not None:
-        args.out.write_text(json.dumps(result, separators=(",", ":")) + "\n")
+    save()
 
 
 if __name__ == "__main__":
