@@ -17,7 +17,7 @@ export PYOPENGL_PLATFORM ?= egl
 
 install: $(STAMP)
 
-$(STAMP): pyproject.toml envs/pyproject.toml policies/pyproject.toml robots/pyproject.toml teleoperators/pyproject.toml
+$(STAMP): pyproject.toml envs/pyproject.toml policies/pyproject.toml robots/pyproject.toml teleoperators/pyproject.toml studies/pyproject.toml
 	@missing=""; for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
 	if [ -n "$$missing" ]; then \
 	  echo "installing system packages:$$missing"; \
@@ -33,7 +33,7 @@ $(STAMP): pyproject.toml envs/pyproject.toml policies/pyproject.toml robots/pypr
 	  echo "warning: $${free:-?} GiB free here; the install needs about $(INSTALL_GIB) GiB (torch's CUDA build and its libraries). Free some space if pip fails with 'No space left on device'."; \
 	fi
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e ".[test,viz,teleop]" -e ./envs -e ./policies -e ./robots -e ./teleoperators
+	$(BIN)/python -m pip install -q -e ".[test,viz,teleop]" -e ./envs -e ./policies -e ./robots -e ./teleoperators -e ./studies
 	@touch $(STAMP)
 
 test: install
@@ -59,8 +59,8 @@ bench: install
 	  echo "== $$b"; $(BIN)/python $$b; done
 
 lint: install
-	$(BIN)/ruff check lerobot_suture envs policies robots teleoperators tests benchmarks
-	$(BIN)/ruff format --check lerobot_suture envs policies robots teleoperators tests benchmarks
+	$(BIN)/ruff check lerobot_suture envs policies robots teleoperators studies tests benchmarks
+	$(BIN)/ruff format --check lerobot_suture envs policies robots teleoperators studies tests benchmarks
 
 clean:
 	rm -rf $(VENV) outputs .pytest_cache

@@ -38,16 +38,17 @@ SUBCOMMANDS = {
         "lerobot_suture.commands.experiments",
         "run the paper's experiments: figures, metrics, report",
     ),
+    # The studies live in their own distribution (./studies), imported by name only when run.
     "score-study": (
-        "lerobot_suture.commands.score_study",
+        "lerobot_suture_studies.commands.score_study",
         "compare the gate's uncertainty scores on validation seeds",
     ),
     "benchmark-ood": (
-        "lerobot_suture.commands.benchmark_ood",
+        "lerobot_suture_studies.commands.benchmark_ood",
         "compare failure detectors (the gate's score and the field's) on the same rollouts",
     ),
     "robustness-report": (
-        "lerobot_suture.commands.robustness_report",
+        "lerobot_suture_studies.commands.robustness_report",
         "policies side by side under the shifts, inside and beyond their training ranges, with the gate",
     ),
     "reproduce": (
@@ -75,6 +76,10 @@ SUBCOMMANDS = {
         "drive the env by hand with a keyboard or gamepad; record it, show it live",
     ),
 }
+
+
+# The distributions, apart from this one, that a subcommand may live in: where their source is.
+DISTRIBUTIONS = {"lerobot_policy_ensemble_diffusion": "./policies", "lerobot_suture_studies": "./studies"}
 
 
 def _usage() -> str:
@@ -109,8 +114,19 @@ def main(argv: list[str] | None = None) -> None:
         _fail("lerobot-suture", f"unknown subcommand {name!r}: choose {choices}.")
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     module_name, _, function = SUBCOMMANDS[name][0].partition(":")
-    run = getattr(importlib.import_module(module_name), function or "main")
     prefix = f"lerobot-suture {name}"
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as exc:
+        distribution = (exc.name or "").split(".")[0]
+        if distribution not in DISTRIBUTIONS:
+            raise
+        _fail(
+            prefix,
+            f"this subcommand lives in the {distribution} distribution, which is not installed: run "
+            f"`pip install -e {DISTRIBUTIONS[distribution]}` from the repository (`make install` does).",
+        )
+    run = getattr(module, function or "main")
     try:
         run(rest)
     except (DraccusException, argparse.ArgumentError) as exc:

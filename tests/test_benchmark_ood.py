@@ -7,11 +7,11 @@ import shutil
 
 import numpy as np
 import pytest
+from lerobot_suture_studies.benchmark_ood import SCENARIOS, BenchmarkOODConfig
 from PIL import Image
 
 from lerobot_suture.cli import main as cli_main
 from lerobot_suture.detectors import DETECTOR_NAMES
-from lerobot_suture.experiments.benchmark_ood import SCENARIOS, BenchmarkOODConfig
 from lerobot_suture.runtime.config import PolicyPathConfig
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+
 import pytest
 
 from lerobot_suture.cli import SUBCOMMANDS
@@ -99,3 +101,23 @@ def test_help_lists_the_subcommands_and_a_subcommand_its_flags(capsys):
     with pytest.raises(SystemExit) as exit_:
         cli_main(["demo", "--help"])
     assert exit_.value.code == 0 and "--checkpoint_every" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("name", ["score-study", "benchmark-ood", "robustness-report", "assemble"])
+def test_a_subcommand_of_a_distribution_not_installed_says_what_to_install(name, monkeypatch, capsys):
+    """The studies and the policy plugin are distributions of their own; without them, their subcommands say
+    which one to install and from where, and the others still run."""
+    distribution = SUBCOMMANDS[name][0].split(".")[0]
+    for module in [m for m in sys.modules if m.startswith(distribution + ".")]:
+        monkeypatch.delitem(sys.modules, module)
+    monkeypatch.setitem(sys.modules, distribution, None)  # as if it were not installed
+    line = _bad_input([name, "--help"], capsys)
+    assert f"the {distribution} distribution, which is not installed" in line and "pip install -e ./" in line
+
+
+@pytest.mark.parametrize("name", ["score-study", "benchmark-ood", "robustness-report"])
+def test_the_studies_subcommands_run_from_their_own_distribution(name, capsys):
+    assert SUBCOMMANDS[name][0].startswith("lerobot_suture_studies.commands.")
+    with pytest.raises(SystemExit) as exit_:
+        cli_main([name, "--help"])
+    assert exit_.value.code == 0 and "--output_dir" in capsys.readouterr().out

@@ -5,6 +5,7 @@ import math
 
 import numpy as np
 import pytest
+from lerobot_suture_studies.benchmark_ood_scoring import hold_scores, prediction_features
 
 from lerobot_suture.detectors import (
     DETECTOR_NAMES,
@@ -23,7 +24,6 @@ from lerobot_suture.detectors import (
 from lerobot_suture.detectors.covariance import ensemble_covariances, sample_covariance
 from lerobot_suture.detectors.mahalanobis import fit_gaussian, ledoit_wolf, mahalanobis_distance
 from lerobot_suture.detectors.tracking import commanded_target, fit_tracking, tracking_score
-from lerobot_suture.experiments.benchmark_ood_scoring import hold_scores, prediction_features
 from lerobot_suture.experiments.metrics import failure_prediction_balanced_accuracy
 from lerobot_suture.safety.ood.calibration import conformal_episode_threshold, fit_calibration
 from lerobot_suture.safety.ood.stac_score import chunk_overlap, mmd_squared

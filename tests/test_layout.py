@@ -15,6 +15,7 @@ PACKAGES = [
     ROOT / "envs",
     ROOT / "robots",
     ROOT / "teleoperators",
+    ROOT / "studies",
 ]
 SOURCES = sorted(p for package in PACKAGES for p in package.rglob("*.py") if ".venv" not in p.parts)
 MAX_MODULE_LINES = 500
@@ -22,7 +23,7 @@ MAX_MODULE_LINES = 500
 
 def _module(path: Path) -> str:
     parts = path.relative_to(ROOT).with_suffix("").parts
-    if parts[0] in ("policies", "envs", "robots", "teleoperators"):
+    if parts[0] in ("policies", "envs", "robots", "teleoperators", "studies"):
         parts = parts[1:]
     return ".".join(p for p in parts if p != "__init__")
 
@@ -90,6 +91,20 @@ def test_commands_are_imported_by_the_cli_alone_and_nothing_imports_the_cli(tree
             i.startswith("lerobot_suture.commands") for i in imported
         ):
             offenders.append(f"{name} imports a command")
+    assert not offenders, offenders
+
+
+def test_nothing_in_the_product_or_its_plugins_imports_the_studies(trees):
+    """The studies (``studies/``) import the product; the product and its plugins never import them back,
+    not even inside a function (the CLI runs a study's command by its module's name)."""
+    assert any(name.startswith("lerobot_suture_studies.") for name in trees), "the scan misses the studies"
+    offenders = [
+        f"{name} imports {imported}"
+        for name, (_, tree) in trees.items()
+        if not name.startswith("lerobot_suture_studies")
+        for imported in _imports(tree)
+        if imported == "lerobot_suture_studies" or imported.startswith("lerobot_suture_studies.")
+    ]
     assert not offenders, offenders
 
 

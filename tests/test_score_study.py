@@ -8,17 +8,17 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
-from PIL import Image
-
-import lerobot_suture
-from lerobot_suture.cli import main as cli_main
-from lerobot_suture.experiments.score_study import (
+from lerobot_suture_studies.score_study import (
     RescoringRunner,
     ScoreStudyConfig,
     choice_grid,
     choice_label,
     with_scores,
 )
+from PIL import Image
+
+import lerobot_suture
+from lerobot_suture.cli import main as cli_main
 from lerobot_suture.runtime.calibration import SCORE_CHOICE_FIELDS
 from lerobot_suture.runtime.config import PolicyPathConfig
 from lerobot_suture.runtime.policy import GateMode, PolicyRunner, env_kwargs_for_policy

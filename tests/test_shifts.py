@@ -6,9 +6,9 @@ import math
 import gymnasium as gym
 import numpy as np
 import pytest
+from lerobot_suture_studies.robustness import bars, cell_shift_rows
 
 from lerobot_suture.experiments.metrics import most_failures_flagged
-from lerobot_suture.experiments.robustness import bars, cell_shift_rows
 from lerobot_suture.registration import ENV_ID
 from lerobot_suture.sim.appearance import AppearanceSample
 from lerobot_suture.sim.shifts import (

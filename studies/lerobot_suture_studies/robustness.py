@@ -29,12 +29,12 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from lerobot_suture.experiments.benchmark_ood_report import fmt
 from lerobot_suture.experiments.leaderboard import condition_shift
 from lerobot_suture.experiments.metrics import auroc, most_failures_flagged
 from lerobot_suture.plotting import save_figure
 from lerobot_suture.runtime.calibration import dataset_appearance
 from lerobot_suture.sim.shifts import Shift, within_training_range
+from lerobot_suture_studies.benchmark_ood_report import fmt
 
 RANGE_LABELS = {True: "inside", False: "beyond", None: "untrained"}
 BEYOND_SUCCESSES_FLAGGED_BAR = 0.15

@@ -1,12 +1,12 @@
 """``lerobot-suture score-study --policy.path=DIR``: the gate's uncertainty scores compared on validation seeds
-(:mod:`lerobot_suture.experiments.score_study`)."""
+(:mod:`lerobot_suture_studies.score_study`)."""
 
 from __future__ import annotations
 
 import draccus
 
-from lerobot_suture.experiments.benchmark_ood_report import fmt
-from lerobot_suture.experiments.score_study import ScoreStudyConfig, run_score_study
+from lerobot_suture_studies.benchmark_ood_report import fmt
+from lerobot_suture_studies.score_study import ScoreStudyConfig, run_score_study
 
 
 def main(argv: list[str] | None = None) -> None:

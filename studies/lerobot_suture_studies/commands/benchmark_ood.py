@@ -1,5 +1,5 @@
 """``lerobot-suture benchmark-ood --policy.path=DIR``: failure detectors, the gate's score and the field's,
-compared on the same rollouts (:mod:`lerobot_suture.experiments.benchmark_ood`)."""
+compared on the same rollouts (:mod:`lerobot_suture_studies.benchmark_ood`)."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import math
 
 import draccus
 
-from lerobot_suture.experiments.benchmark_ood import BenchmarkOODConfig, run_benchmark
-from lerobot_suture.experiments.benchmark_ood_report import fmt
+from lerobot_suture_studies.benchmark_ood import BenchmarkOODConfig, run_benchmark
+from lerobot_suture_studies.benchmark_ood_report import fmt
 
 
 def main(argv: list[str] | None = None) -> None:

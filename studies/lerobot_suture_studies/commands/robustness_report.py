@@ -1,11 +1,11 @@
 """``lerobot-suture robustness-report``: policies side by side under the shifts, inside and beyond their
-training ranges, with the gate (:mod:`lerobot_suture.experiments.robustness`)."""
+training ranges, with the gate (:mod:`lerobot_suture_studies.robustness`)."""
 
 from __future__ import annotations
 
 import draccus
 
-from lerobot_suture.experiments.robustness import RobustnessReportConfig, build_report
+from lerobot_suture_studies.robustness import RobustnessReportConfig, build_report
 
 
 def main(argv: list[str] | None = None) -> None:

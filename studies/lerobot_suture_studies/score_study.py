@@ -28,7 +28,6 @@ from pathlib import Path
 
 import numpy as np
 
-from lerobot_suture.experiments.benchmark_ood_report import fmt
 from lerobot_suture.experiments.episode_metrics import EXPERIMENTS, ood_metrics
 from lerobot_suture.experiments.metrics import END_OF_TASK_STEPS, share_of_maxima_at_end
 from lerobot_suture.experiments.report import json_default
@@ -39,6 +38,7 @@ from lerobot_suture.runtime.rollout import EpisodeLog, make_scenario_env, rollou
 from lerobot_suture.runtime.seeds import episode_seeds
 from lerobot_suture.safety.ood.calibration import default_model, fit_calibration, min_calibration_episodes
 from lerobot_suture.safety.ood.gate import OODGate
+from lerobot_suture_studies.benchmark_ood_report import fmt
 
 logger = logging.getLogger(__name__)
 

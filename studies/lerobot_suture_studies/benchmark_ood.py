@@ -37,8 +37,6 @@ import numpy as np
 from tqdm import tqdm
 
 from lerobot_suture.detectors import DETECTOR_NAMES
-from lerobot_suture.experiments.benchmark_ood_report import plot_detector, plot_shifts, render_tables
-from lerobot_suture.experiments.benchmark_ood_scoring import SCENARIOS, evaluate_detector
 from lerobot_suture.experiments.report import json_default
 from lerobot_suture.runtime.calibration import dataset_appearance
 from lerobot_suture.runtime.config import RolloutCommandConfig
@@ -47,6 +45,8 @@ from lerobot_suture.runtime.rollout import EpisodeLog, StepLog, make_scenario_en
 from lerobot_suture.runtime.seeds import episode_seeds
 from lerobot_suture.safety.ood.calibration import min_calibration_episodes
 from lerobot_suture.sim.shifts import SHIFTS, Shift, default_shifts
+from lerobot_suture_studies.benchmark_ood_report import plot_detector, plot_shifts, render_tables
+from lerobot_suture_studies.benchmark_ood_scoring import SCENARIOS, evaluate_detector
 
 logger = logging.getLogger(__name__)
 

@@ -1,0 +1,1 @@
+"""The studies' subcommands of ``lerobot-suture``, each a module with ``main(argv)``."""
