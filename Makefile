@@ -53,7 +53,7 @@ reproduce: install
 # A script that needs a trained policy or a dataset declares it in a top-level NEEDS = "..." line
 # (tests/test_layout.py holds every script to it with the same pattern).
 bench: install
-	@for b in benchmarks/[!_]*.py; do \
+	@for b in benchmarks/[!_]*.py studies/benchmarks/[!_]*.py; do \
 	  needs=$$(sed -n 's/^NEEDS = "\(.*\)"$$/\1/p' $$b); \
 	  if [ -n "$$needs" ]; then echo "== $$b: needs $$needs, skipped ($(BIN)/python $$b --help)"; continue; fi; \
 	  echo "== $$b"; $(BIN)/python $$b; done

@@ -513,11 +513,11 @@ def test_push_uses_lerobot_push_to_hub_with_tags_and_card(tiny, online_without_t
 
 
 def _load_benchmark(name: str) -> types.ModuleType:
-    """A script of `benchmarks/` imported as a module."""
+    """A script of `studies/benchmarks/` imported as a module."""
     import importlib.util
 
     spec = importlib.util.spec_from_file_location(
-        name, Path(__file__).resolve().parents[1] / "benchmarks" / f"{name}.py"
+        name, Path(__file__).resolve().parents[1] / "studies" / "benchmarks" / f"{name}.py"
     )
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
@@ -543,7 +543,7 @@ def _tiny_visual_config(image_size: int):
 
 
 def test_open_loop_error_benchmark_scores_a_checkpoint_on_the_validation_frames(tiny, tmp_path):
-    """`benchmarks/open_loop_error.py` on a tiny untrained ensemble saved as lerobot-train saves one."""
+    """`studies/benchmarks/open_loop_error.py` on a tiny untrained ensemble saved as lerobot-train saves one."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
     from policy_builders import save_untrained_policy
 
@@ -587,7 +587,7 @@ def test_open_loop_error_benchmark_scores_a_checkpoint_on_the_validation_frames(
 
 
 def test_needle_attention_benchmark_probes_a_checkpoint(tiny, tmp_path):
-    """`benchmarks/needle_attention.py` on a tiny untrained ensemble: needle hidden, noise, phantom moved."""
+    """`studies/benchmarks/needle_attention.py` on a tiny untrained ensemble: needle hidden, noise, phantom moved."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
     from policy_builders import save_untrained_policy
 

@@ -235,7 +235,12 @@ def _needs_an_input(tree: ast.AST) -> bool:
     return False
 
 
-@pytest.mark.parametrize("script", sorted((ROOT / "benchmarks").glob("[!_]*.py")), ids=lambda p: p.name)
+BENCHMARKS = sorted(
+    [*(ROOT / "benchmarks").glob("[!_]*.py"), *(ROOT / "studies" / "benchmarks").glob("[!_]*.py")]
+)
+
+
+@pytest.mark.parametrize("script", BENCHMARKS, ids=lambda p: str(p.relative_to(ROOT)))
 def test_a_benchmark_that_needs_a_policy_or_dataset_declares_it_for_make_bench(script):
     """`make bench` runs every script bare except those with a NEEDS line, which it names and skips."""
     source = script.read_text()

@@ -353,7 +353,7 @@ class SutureEnv(TaskScenes, PrivilegedState, gym.Env):
 
         With ``needle_visible=False`` the endoscope image is rendered without the needle, the scene left
         as it is: a probe of whether a policy reads the needle from the image
-        (``benchmarks/needle_attention.py``).
+        (``studies/benchmarks/needle_attention.py``).
         """
         if needle_visible:
             return self._observation()

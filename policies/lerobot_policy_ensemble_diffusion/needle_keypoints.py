@@ -80,7 +80,7 @@ def predict_needle_keypoints(policy, batch: dict[str, Tensor]) -> Tensor:
     """(B, N, D): each member's estimate of the needle keypoints from the current image(s).
 
     The auxiliary heads of `needle_keypoints_weight` read from the members' image features; this says what the
-    encoders see of the needle (`benchmarks/needle_attention.py`). `policy` is an `EnsembleDiffusionPolicy`;
+    encoders see of the needle (`studies/benchmarks/needle_attention.py`). `policy` is an `EnsembleDiffusionPolicy`;
     `batch` a normalized observation, (B, C, H, W) or (B, S, C, H, W) per camera (the last step is read).
     """
     if policy.needle_heads is None:

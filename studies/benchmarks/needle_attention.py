@@ -29,7 +29,7 @@ A ``hidden_shift_mm`` far below ``noise_shift_mm`` and a ``hidden_score_ratio`` 
 members ignore the needle, so its absence (experiment 1) is not out of distribution for them; a
 ``phantom_shift_mm`` well above ``hidden_shift_mm`` shows that the probe itself can see a response.
 
-    python benchmarks/needle_attention.py CHECKPOINT [CHECKPOINT ...]
+    python studies/benchmarks/needle_attention.py CHECKPOINT [CHECKPOINT ...]
 
 CHECKPOINT is a ``pretrained_model`` directory, or a run's ``checkpoints`` directory (every step in it).
 Probe seeds start at 3,000,000: disjoint from recording, calibration and test seeds.

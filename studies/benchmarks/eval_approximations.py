@@ -13,7 +13,7 @@ others: its threshold would not hold), so every configuration runs from a copy o
 its calibration, and no alarm rate is reported: a deployment that keeps an approximation calibrates it
 anew. Prints JSON; `--plot FILE` draws success and AUROC against the denoising work per prediction.
 
-    python benchmarks/eval_approximations.py --policy-path outputs/.../pretrained_model
+    python studies/benchmarks/eval_approximations.py --policy-path outputs/.../pretrained_model
         [--configs 8x10 4x10 1x10 8x5 4x5] [--episodes 50] [--workers 2] [--output FILE] [--plot FILE]
 
 A configuration is KxS: K chunks per member, S DDIM steps. Time it with nothing else running.
@@ -22,20 +22,23 @@ A configuration is KxS: K chunks per member, S DDIM steps. Time it with nothing 
 from __future__ import annotations
 
 import argparse
+import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 import torch
-from _report import emit, machine
 
-from lerobot_suture.experiments import leaderboard, metrics
-from lerobot_suture.experiments.episode_metrics import ood_metrics
-from lerobot_suture.pipelines.leaderboard import LeaderboardConfig
-from lerobot_suture.pipelines.stages import code_commit
-from lerobot_suture.plotting import save_figure
-from lerobot_suture.runtime.policy import GateMode, PolicyRunner, copy_with_overrides, env_kwargs_for_policy
-from lerobot_suture.sim.tasks import task_spec
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))  # the product's _report
+from _report import emit, machine  # noqa: E402
+
+from lerobot_suture.experiments import leaderboard, metrics  # noqa: E402
+from lerobot_suture.experiments.episode_metrics import ood_metrics  # noqa: E402
+from lerobot_suture.pipelines.leaderboard import LeaderboardConfig  # noqa: E402
+from lerobot_suture.pipelines.stages import code_commit  # noqa: E402
+from lerobot_suture.plotting import save_figure  # noqa: E402
+from lerobot_suture.runtime.policy import GateMode, PolicyRunner, copy_with_overrides, env_kwargs_for_policy  # noqa: E402
+from lerobot_suture.sim.tasks import task_spec  # noqa: E402
 
 NEEDS = "a trained, calibrated ensemble (--policy-path)"
 TASK = "insertion"

@@ -11,7 +11,7 @@ each grasp the jaw closed on, its errors against those ranges (medians and the s
 for the episodes whose jaw never caught the needle, the closest its jaw came to the pose that holds the
 needle in the nominal grasp (mm and degrees).
 
-    .venv/bin/python benchmarks/pickup_failures.py --policy-path DIR [--episodes 50] [--output F.json]
+    .venv/bin/python studies/benchmarks/pickup_failures.py --policy-path DIR [--episodes 50] [--output F.json]
 """
 
 from __future__ import annotations

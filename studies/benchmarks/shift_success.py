@@ -6,7 +6,7 @@ episodes, then each shift. Prints one JSON line per policy with the success rate
 95% Wilson interval. Used for ablations such as LeRobot's image transforms on top of appearance
 randomization (two checkpoints at the same training step, trained with and without them):
 
-    python benchmarks/shift_success.py --policy A/pretrained_model --policy B/pretrained_model \\
+    python studies/benchmarks/shift_success.py --policy A/pretrained_model --policy B/pretrained_model \\
         --shifts dim_light@0.2 smoke_haze@0.2 camera_roll@0.08 --episodes 20
 """
 

@@ -9,7 +9,7 @@ executed action and of the last action of the chunk, and ``stay_mm``, the error 
 pose until the chunk's end: a policy that ignores the phantom's pose in the image scores about that.
 The entry tolerance of the task is 2 mm.
 
-    python benchmarks/open_loop_error.py --dataset-root DIR CHECKPOINT [CHECKPOINT ...]
+    python studies/benchmarks/open_loop_error.py --dataset-root DIR CHECKPOINT [CHECKPOINT ...]
 
 CHECKPOINT is a ``pretrained_model`` directory, or a run's ``checkpoints`` directory (every step in it).
 ``--episodes 1,2,3`` (or ``all``) reads those episodes instead of the validation split: e.g. a

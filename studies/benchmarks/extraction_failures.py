@@ -11,7 +11,7 @@ regrasped, pulled the needle out, and out through the exit hole within the strai
 sat (arc angle from the tip, degrees); and, for the episodes that let go and never caught the needle again,
 the closest the jaw came to the expert's regrasp pose (mm and degrees).
 
-    .venv/bin/python benchmarks/extraction_failures.py --policy-path DIR [--episodes 50] [--output F.json]
+    .venv/bin/python studies/benchmarks/extraction_failures.py --policy-path DIR [--episodes 50] [--output F.json]
 """
 
 from __future__ import annotations

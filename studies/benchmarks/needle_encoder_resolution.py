@@ -15,7 +15,7 @@ held-out episodes it reports, per encoder, one JSON line:
 - ``jaw_only_error_px``: the error of the best estimate that does not look at the needle (the nominal grasp's
   keypoints under the true jaw pose), the bar to beat.
 
-    python benchmarks/needle_encoder_resolution.py [--episodes 30] [--steps 400]
+    python studies/benchmarks/needle_encoder_resolution.py [--episodes 30] [--steps 400]
 
 Seeds 4,000,000 on (disjoint from every other use). On 2 cores, 20 episodes and 1,500 steps took 9 minutes.
 """

@@ -17,13 +17,15 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from _report import emit, machine
 
-from lerobot_suture.experiments.leaderboard import condition_seeds
-from lerobot_suture.runtime.policy import env_kwargs_for_policy, reporting_runner
-from lerobot_suture.runtime.rollout import make_scenario_env
-from lerobot_suture.safety.cbf_config import CBFConfig
-from lerobot_suture.sim.geometry import jaw_holding, rotation_angle_of
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))  # the product's _report
+from _report import emit, machine  # noqa: E402
+
+from lerobot_suture.experiments.leaderboard import condition_seeds  # noqa: E402
+from lerobot_suture.runtime.policy import env_kwargs_for_policy, reporting_runner  # noqa: E402
+from lerobot_suture.runtime.rollout import make_scenario_env  # noqa: E402
+from lerobot_suture.safety.cbf_config import CBFConfig  # noqa: E402
+from lerobot_suture.sim.geometry import jaw_holding, rotation_angle_of  # noqa: E402
 
 
 def jaw_pose_error(u, grasp_in_jaw: tuple[np.ndarray, np.ndarray]) -> tuple[float, float]:
