@@ -1,0 +1,95 @@
+"""Where the robot plugin relies on LeRobot beyond its public API, checked against the installed LeRobot.
+
+The seams: ``rollout_seam.py`` rebinds ``create_strategy`` where ``lerobot-rollout`` imported it;
+``gated_dagger.py`` subclasses ``DAggerStrategy`` and uses its protected members (the events, the engine, the
+interpolator, the phase transitions, the observation hand-off, the push flag and the episode lock); and
+``episode_cues.py`` resets the simulated arm's scene on ``log_say``'s announcements. Each is checked here, and
+the version they were written against is pinned: on another LeRobot, this file fails first and says what to
+check.
+"""
+
+from __future__ import annotations
+
+import inspect
+from importlib.metadata import version
+
+import pytest
+
+SEAMS_WRITTEN_FOR = "0.6.1"
+
+
+def test_lerobot_is_the_version_the_seams_were_written_for():
+    installed = version("lerobot")
+    assert installed == SEAMS_WRITTEN_FOR, (
+        f"LeRobot {installed} is installed; the robot plugin's seams into LeRobot were written for "
+        f"{SEAMS_WRITTEN_FOR}. Check each against LeRobot {installed} (the other tests of this file name them: "
+        "rollout_seam.py, gated_dagger.py's use of DAggerStrategy, episode_cues.py's announcements), then set "
+        "SEAMS_WRITTEN_FOR here."
+    )
+
+
+def test_the_strategy_factory_is_where_rollout_seam_rebinds_it():
+    import lerobot.scripts.lerobot_rollout as script
+    from lerobot.rollout.strategies import factory
+    from lerobot_robot_suture import rollout_seam
+
+    for name in rollout_seam._MODULES:
+        module = __import__(name, fromlist=["create_strategy"])
+        assert hasattr(module, "create_strategy"), f"{name} no longer holds create_strategy"
+    assert script.create_strategy is factory.create_strategy, "lerobot-rollout no longer calls the factory's"
+    assert hasattr(factory.create_strategy, "lerobot_create_strategy"), (
+        "the plugin's factory is not installed"
+    )
+
+
+@pytest.mark.parametrize(
+    "member",
+    ["_events", "_engine", "_interpolator", "_needs_push", "_episode_lock"],
+)
+def test_dagger_strategy_still_holds_the_members_gated_dagger_uses(member):
+    from lerobot.rollout.strategies import core, dagger
+
+    source = inspect.getsource(dagger.DAggerStrategy) + inspect.getsource(core.RolloutStrategy)
+    assert f"self.{member} = " in source, (
+        f"DAggerStrategy no longer sets self.{member}, which gated_dagger uses"
+    )
+
+
+@pytest.mark.parametrize(
+    "method, parameters",
+    [
+        (
+            "_apply_transition",
+            ["self", "old_phase", "new_phase", "engine", "interpolator", "ctx", "prev_action"],
+        ),
+        ("_process_observation_and_notify", ["self", "processors", "obs_raw"]),
+    ],
+)
+def test_dagger_strategy_s_methods_take_what_gated_dagger_passes(method, parameters):
+    from lerobot.rollout.strategies.dagger import DAggerStrategy
+
+    assert hasattr(DAggerStrategy, method), f"DAggerStrategy has no {method}, which gated_dagger calls"
+    assert list(inspect.signature(getattr(DAggerStrategy, method)).parameters) == parameters
+
+
+def test_dagger_events_and_the_engines_answer_what_gated_dagger_calls():
+    from lerobot.rollout.inference.base import InferenceEngine
+    from lerobot.rollout.strategies.dagger import DAggerEvents, DAggerPhase
+
+    events = DAggerEvents()
+    assert events.phase is DAggerPhase.AUTONOMOUS and events.consume_transition() is None
+    assert hasattr(events, "stop_recording") and callable(events.reset)
+    for method in ("start", "stop", "reset", "pause", "resume", "notify_observation", "get_action"):
+        assert callable(getattr(InferenceEngine, method, None)), f"InferenceEngine has no {method}"
+
+
+def test_lerobot_still_announces_the_episodes_the_simulated_arm_resets_on():
+    import lerobot.rollout.strategies.episodic as episodic
+    import lerobot.scripts.lerobot_record as record
+    from lerobot_robot_suture.episode_cues import RECORDING_EPISODE, RESET_THE_ENVIRONMENT
+
+    for module in (record, episodic):
+        source = inspect.getsource(module)
+        assert 'log_say(f"Recording episode {dataset.num_episodes}"' in source, module.__name__
+        assert f'log_say("{RESET_THE_ENVIRONMENT}"' in source, module.__name__
+    assert RECORDING_EPISODE.match("Recording episode 3").group(1) == "3"
