@@ -61,6 +61,7 @@ CONTROL_PERIOD_S = 0.1
 LATE_FACTOR = 1.1
 VERY_LATE_FACTOR = 1.5
 ENGINES = ("sync", "rtc")
+PARTS = ("consistency", "realtime", "outcomes")
 SCENARIOS = ("nominal", "needle_drop", "camera_moved", "phantom_servo", "phantom_moved_after_insertion")
 """The paper's scenarios (``lerobot_suture.sim.scenarios.SCENARIOS``)."""
 TASK = "Insert the curved suture needle at the entry point and drive it out through the exit point."
@@ -370,6 +371,11 @@ def main() -> None:
     parser.add_argument("--realtime-s", type=float, default=600.0, help="each engine's real-time run")
     parser.add_argument("--out", type=Path)
     parser.add_argument(
+        "--parts",
+        default=",".join(PARTS),
+        help=f"comma-separated, of {', '.join(PARTS)} (the three figures above)",
+    )
+    parser.add_argument(
         "--queue-threshold", type=int, help="the real-time engine's (default: the policy's n_action_steps)"
     )
     parser.add_argument("--plot", type=Path, help="a PNG of the real-time periods, per engine")
@@ -377,9 +383,11 @@ def main() -> None:
         "--work-dir", type=Path, help="the commands' outputs and logs (default: a new temp dir)"
     )
     args = parser.parse_args()
-    engines = args.engines.split(",")
+    engines, parts = args.engines.split(","), args.parts.split(",")
     if not set(engines) <= set(ENGINES):
         raise SystemExit(f"--engines must name some of {ENGINES}; got {args.engines!r}.")
+    if not set(parts) <= set(PARTS):
+        raise SystemExit(f"--parts must name some of {PARTS}; got {args.parts!r}.")
     work = args.work_dir or Path(tempfile.mkdtemp(prefix="robot_path_"))
     if work.exists() and any(work.iterdir()):
         raise SystemExit(f"--work-dir {work} is not empty: the commands' outputs would mix; pass a new one.")
@@ -402,11 +410,11 @@ def main() -> None:
         if args.out is not None:
             args.out.write_text(json.dumps(result, separators=(",", ":")) + "\n")
 
-    if trained and args.episodes > 0:
+    if trained and args.episodes > 0 and "consistency" in parts:
         result.update(consistency(policy_path, args, work))
         save()
     result["realtime"], traces = {}, {}
-    for engine in engines:
+    for engine in engines if "realtime" in parts else ():
         start = time.perf_counter()
         trace, _ = rollout(
             engine, work / "realtime", episodes=100_000, episode_s=60.0, duration=args.realtime_s
@@ -417,9 +425,9 @@ def main() -> None:
             "seconds": round(time.perf_counter() - start, 1),
         }
         save()
-    if args.plot is not None:
+    if args.plot is not None and traces:
         plot_periods(traces, args.plot)
-    if trained and args.episodes > 0 and len(engines) == 2:
+    if trained and args.episodes > 0 and len(engines) == 2 and "outcomes" in parts:
         # Nominal on --episodes seeds, and each of the paper's scenarios on --scenario-episodes.
         runs = {"nominal": args.episodes, **{name: args.scenario_episodes for name in SCENARIOS[1:]}}
         result["engines_compared"], delays = {}, {engine: [] for engine in engines}

@@ -2,8 +2,9 @@
 
 The seams: ``rollout_seam.py`` rebinds ``create_strategy`` where ``lerobot-rollout`` imported it;
 ``gated_dagger.py`` subclasses ``DAggerStrategy`` and uses its protected members (the events, the engine, the
-interpolator, the phase transitions, the observation hand-off, the push flag and the episode lock); and
-``episode_cues.py`` resets the simulated arm's scene on ``log_say``'s announcements. Each is checked here, and
+interpolator, the phase transitions, the observation hand-off, the push flag and the episode lock);
+``rtc_queue.py`` overrides how the real-time engine's ``ActionQueue`` counts the actions executed during an
+inference; and ``episode_cues.py`` resets the simulated arm's scene on ``log_say``'s announcements. Each is checked here, and
 the version they were written against is pinned: on another LeRobot, this file fails first and says what to
 check.
 """
@@ -23,7 +24,8 @@ def test_lerobot_is_the_version_the_seams_were_written_for():
     assert installed == SEAMS_WRITTEN_FOR, (
         f"LeRobot {installed} is installed; the robot plugin's seams into LeRobot were written for "
         f"{SEAMS_WRITTEN_FOR}. Check each against LeRobot {installed} (the other tests of this file name them: "
-        "rollout_seam.py, gated_dagger.py's use of DAggerStrategy, episode_cues.py's announcements), then set "
+        "rollout_seam.py, gated_dagger.py's use of DAggerStrategy, rtc_queue.py, episode_cues.py's "
+        "announcements), then set "
         "SEAMS_WRITTEN_FOR here."
     )
 
@@ -93,3 +95,15 @@ def test_lerobot_still_announces_the_episodes_the_simulated_arm_resets_on():
         assert 'log_say(f"Recording episode {dataset.num_episodes}"' in source, module.__name__
         assert f'log_say("{RESET_THE_ENVIRONMENT}"' in source, module.__name__
     assert RECORDING_EPISODE.match("Recording episode 3").group(1) == "3"
+
+
+def test_the_action_queue_still_resolves_its_delay_where_rtc_queue_overrides_it():
+    from lerobot.policies.rtc import ActionQueue
+    from lerobot.rollout.inference import rtc
+
+    parameters = list(inspect.signature(ActionQueue._check_and_resolve_delays).parameters)
+    assert parameters == ["self", "real_delay", "action_index_before_inference"]
+    assert "self._check_and_resolve_delays(real_delay, action_index_before_inference)" in inspect.getsource(
+        ActionQueue.merge
+    )
+    assert "self._action_queue = ActionQueue(" in inspect.getsource(rtc.RTCInferenceEngine.start)

@@ -210,6 +210,7 @@ def test_a_new_scene_s_first_chunk_is_predicted_from_that_scene(tiny_policy_dir)
     from lerobot.utils.feature_utils import build_dataset_frame, hw_to_dataset_features
     from lerobot_robot_suture.config_suture_sim import SutureSimConfig
     from lerobot_robot_suture.gated_dagger import restart_engine
+    from lerobot_robot_suture.rtc_queue import ExecutedActionQueue
     from lerobot_robot_suture.suture_sim import SutureSim
 
     policy = EnsembleDiffusionPolicy.from_pretrained(tiny_policy_dir).eval()
@@ -262,6 +263,7 @@ def test_a_new_scene_s_first_chunk_is_predicted_from_that_scene(tiny_policy_dir)
         engine.pause()
         robot.reset_scene(8)
         restart_engine(engine)
+        assert isinstance(engine.action_queue, ExecutedActionQueue)
         with lock:
             before = len(states)
         engine.resume()
@@ -278,3 +280,37 @@ def test_a_new_scene_s_first_chunk_is_predicted_from_that_scene(tiny_policy_dir)
         robot.disconnect()
     assert len(states) > before, "the engine predicted nothing in the new scene"
     torch.testing.assert_close(states[before], normalized_state(first_obs), atol=1e-4, rtol=0)
+
+
+@pytest.mark.parametrize("queue_class", ["lerobot", "executed"])
+def test_a_new_chunk_resumes_at_the_first_action_not_yet_executed(queue_class):
+    """Two actions were taken while a chunk was predicted, and its latency's ceiling says three: the merged
+    queue resumes at the new chunk's third action, the first not executed. LeRobot's own queue skips it."""
+    from lerobot.policies.rtc import ActionQueue
+    from lerobot.policies.rtc.configuration_rtc import RTCConfig
+    from lerobot_robot_suture.rtc_queue import ExecutedActionQueue
+
+    queue = (ActionQueue if queue_class == "lerobot" else ExecutedActionQueue)(RTCConfig(enabled=True))
+    old = torch.arange(8.0)[:, None].expand(8, 2).clone()
+    queue.merge(old, old, real_delay=0, action_index_before_inference=0)
+    queue.get(), queue.get()  # the arm executes two actions of the old chunk
+    before = queue.get_action_index()
+    queue.get(), queue.get()  # two more while the new chunk is predicted
+    new = 100 + torch.arange(8.0)[:, None].expand(8, 2)
+    queue.merge(new, new, real_delay=3, action_index_before_inference=before)
+    expected = 102.0 if queue_class == "executed" else 103.0  # LeRobot 0.6.1 drops one action too many
+    assert float(queue.get()[0]) == expected
+
+
+def test_the_executed_action_queue_is_put_on_a_real_time_engine_only():
+    from lerobot.policies.rtc import ActionQueue
+    from lerobot.policies.rtc.configuration_rtc import RTCConfig
+    from lerobot_robot_suture.rtc_queue import ExecutedActionQueue, merge_after_executed_actions
+
+    class Engine:
+        action_queue = ActionQueue(RTCConfig(enabled=True))
+
+    engine = Engine()
+    merge_after_executed_actions(engine)
+    assert type(engine.action_queue) is ExecutedActionQueue
+    merge_after_executed_actions(object())  # the sync engine has no queue: nothing to do

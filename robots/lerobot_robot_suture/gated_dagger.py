@@ -38,6 +38,7 @@ from lerobot_suture.safety.wound import GraspModel
 
 from .cbf_step import SutureCBFStep
 from .rollout_gate import GATE_KINDS, GateReading, RolloutGate
+from .rtc_queue import merge_after_executed_actions
 
 logger = logging.getLogger(__name__)
 
@@ -58,10 +59,12 @@ def restart_engine(engine) -> None:
 
     The real-time engine's thread is joined, so a chunk still being predicted for the last scene never joins
     the new scene's queue; and it holds no observation until the new scene's first. Reset and resumed only, it
-    would predict the new scene's first chunk from the last scene's final frame (its latest observation).
+    would predict the new scene's first chunk from the last scene's final frame (its latest observation). Its
+    new queue merges each chunk after the actions actually executed meanwhile (:mod:`.rtc_queue`).
     """
     engine.stop()
     engine.start()
+    merge_after_executed_actions(engine)
     engine.reset()
 
 
