@@ -430,6 +430,7 @@ def main() -> None:
     if trained and args.episodes > 0 and len(engines) == 2 and "outcomes" in parts:
         # Nominal on --episodes seeds, and each of the paper's scenarios on --scenario-episodes.
         runs = {"nominal": args.episodes, **{name: args.scenario_episodes for name in SCENARIOS[1:]}}
+        runs = {name: episodes for name, episodes in runs.items() if episodes > 0}
         result["engines_compared"], delays = {}, {engine: [] for engine in engines}
         for scenario, episodes in runs.items():
             outcomes, run_dir = {}, work / "outcomes" / scenario
