@@ -23,9 +23,8 @@ Three figures, each from LeRobot's own console scripts on the same policy:
    flagging to the handover. A scenario whose command fails is reported with its error; the others still run.
 
 The real-time engine starts a prediction when its queue holds ``--queue-threshold`` actions or fewer (LeRobot's
-``--inference.queue_threshold``; default: the policy's ``n_action_steps``), so that it predicts, and its gate
-tests, once per ``n_action_steps`` executed steps, as the sync engine does and as the gate was calibrated.
-LeRobot's default (30) predicts back to back, and the gate then tests several times as often.
+``--inference.queue_threshold``, default 30: longer than the reference's chunk, so it predicts back to back and
+each action comes from the freshest chunk; the policy's ``n_action_steps`` predicts as often as the sync engine).
 
 ``--untrained-preset FILE`` times a policy of that preset's architecture with untrained weights (its
 needle target off, a training-only head) instead of ``--policy-path``: periods only, since an untrained
@@ -375,9 +374,7 @@ def main() -> None:
         default=",".join(PARTS),
         help=f"comma-separated, of {', '.join(PARTS)} (the three figures above)",
     )
-    parser.add_argument(
-        "--queue-threshold", type=int, help="the real-time engine's (default: the policy's n_action_steps)"
-    )
+    parser.add_argument("--queue-threshold", type=int, help="the real-time engine's (default: LeRobot's, 30)")
     parser.add_argument("--plot", type=Path, help="a PNG of the real-time periods, per engine")
     parser.add_argument(
         "--work-dir", type=Path, help="the commands' outputs and logs (default: a new temp dir)"
@@ -394,7 +391,7 @@ def main() -> None:
     work.mkdir(parents=True, exist_ok=True)
     policy_path = args.policy_path or untrained_policy(args.untrained_preset, work / "untrained_policy")
     trained = args.policy_path is not None
-    threshold = args.queue_threshold or _config(policy_path)["n_action_steps"]
+    threshold = args.queue_threshold
     rollout = partial(gated_rollout, policy_path, queue_threshold=threshold, seed=args.seed)
     result: dict = {
         "command": " ".join(["python", *sys.argv]),
