@@ -6,7 +6,7 @@ but the loop took one action per tick, and a tick that falls after the chunk arr
 Whenever the inference does not end exactly on a tick, one action more is dropped than was executed: an action
 of the plan is skipped (LeRobot logs "Indexes diff is not equal to real delay"). When the engine predicts once
 per ``n_action_steps`` (``--inference.queue_threshold``), every prediction starts just after a tick, and every
-chunk skips one, so the arm runs through the plan a third faster than the policy planned it.
+chunk skips one: the arm runs through the plan faster than the policy planned it.
 
 :class:`ExecutedActionQueue` drops exactly the actions taken while the chunk was predicted, which the queue
 counts; the new chunk then resumes at the first action not yet executed. Its first ``d`` steps are the committed
