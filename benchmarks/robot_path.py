@@ -51,6 +51,7 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
+from _report import emit, write
 
 from lerobot_suture.plotting import save_figure
 
@@ -87,12 +88,9 @@ def _run(name: str, args: list[str], log: Path) -> float:
     return time.perf_counter() - start
 
 
-def _config(policy_path: Path) -> dict:
-    return json.loads((policy_path / "config.json").read_text())
-
-
 def _image_size(policy_path: Path) -> int:
-    shape = _config(policy_path)["input_features"]["observation.images.endoscope"]["shape"]
+    config = json.loads((policy_path / "config.json").read_text())
+    shape = config["input_features"]["observation.images.endoscope"]["shape"]
     return int(shape[-1])
 
 
@@ -391,8 +389,7 @@ def main() -> None:
     work.mkdir(parents=True, exist_ok=True)
     policy_path = args.policy_path or untrained_policy(args.untrained_preset, work / "untrained_policy")
     trained = args.policy_path is not None
-    threshold = args.queue_threshold
-    rollout = partial(gated_rollout, policy_path, queue_threshold=threshold, seed=args.seed)
+    rollout = partial(gated_rollout, policy_path, queue_threshold=args.queue_threshold, seed=args.seed)
     result: dict = {
         "command": " ".join(["python", *sys.argv]),
         "policy_path": str(args.policy_path)
@@ -400,12 +397,12 @@ def main() -> None:
         else f"untrained, architecture of {args.untrained_preset}",
         "episodes": args.episodes if trained else 0,
         "first_seed": args.seed,
-        "queue_threshold": threshold,
+        "queue_threshold": args.queue_threshold,
     }
 
     def save() -> None:
         if args.out is not None:
-            args.out.write_text(json.dumps(result, separators=(",", ":")) + "\n")
+            write(result, args.out)
 
     if trained and args.episodes > 0 and "consistency" in parts:
         result.update(consistency(policy_path, args, work))
@@ -458,8 +455,7 @@ def main() -> None:
         "platform": platform.platform(),
         "load_at_end": os.getloadavg(),
     }
-    print(json.dumps(result, indent=2))
-    save()
+    emit(result, args.out)
 
 
 if __name__ == "__main__":

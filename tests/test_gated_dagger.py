@@ -12,6 +12,21 @@ from lerobot_suture.safety.cbf_config import CBFConfig
 FROZEN_AT = 4
 
 
+def gated_dagger(policy_dir, fps: int, *args: str) -> str:
+    """``lerobot-rollout --strategy.type=gated_dagger`` with the scripted surgeon, on the CPU at ``fps``, and
+    ``args`` (strategy, inference, robot and dataset flags); returns its log."""
+    command = [
+        "--strategy.type=gated_dagger",
+        f"--policy.path={policy_dir}",
+        "--teleop.type=suture_scripted",
+        "--device=cpu",
+        f"--fps={fps}",
+        "--return_to_initial_position=false",
+        *args,
+    ]
+    return run_command("lerobot-rollout", command, timeout=600)
+
+
 def frozen_camera_robot(trace) -> list[str]:
     """The simulated arm of scene 7 whose endoscope freezes at control step ``FROZEN_AT``, traced to ``trace``."""
     return robot_args(
@@ -31,20 +46,12 @@ def frozen_camera_run(tiny_policy_dir, tmp_path_factory):
     gate an uncalibrated policy has) hands over."""
     directory = tmp_path_factory.mktemp("gated_dagger")
     root, trace = directory / "dataset", directory / "trace.jsonl"
-    log = run_command(
-        "lerobot-rollout",
-        [
-            "--strategy.type=gated_dagger",
-            "--strategy.gate=none",
-            f"--policy.path={tiny_policy_dir}",
-            "--teleop.type=suture_scripted",
-            "--device=cpu",
-            "--fps=200",
-            "--return_to_initial_position=false",
-            *frozen_camera_robot(trace),
-            *dataset_args(root, "local/rollout_gated", episodes=2, episode_s=60, reset_s=0),
-        ],
-        timeout=600,
+    log = gated_dagger(
+        tiny_policy_dir,
+        200,
+        "--strategy.gate=none",
+        *frozen_camera_robot(trace),
+        *dataset_args(root, "local/rollout_gated", episodes=2, episode_s=60, reset_s=0),
     )
     return root, read_trace(trace), log
 
@@ -146,26 +153,18 @@ def test_handovers_fall_where_the_env_path_s_enforced_gate_hands_over(calibrated
     env.close()
     assert expected[0] > 4  # mid-episode: not the first prediction
     root = tmp_path / "dataset"
-    log = run_command(
-        "lerobot-rollout",
-        [
-            "--strategy.type=gated_dagger",
-            "--strategy.gate=ensemble",
-            "--strategy.cbf.enabled=false",
-            f"--policy.path={calibrated_tiny_policy}",
-            "--teleop.type=suture_scripted",
-            "--device=cpu",
-            "--fps=200",
-            "--return_to_initial_position=false",
-            *robot_args(
-                tmp_path / "trace.jsonl",
-                f"--robot.seed={HANDOVER_SEEDS[0]}",
-                "--robot.clock=fast",
-                "--robot.episode_end=hold",
-            ),
-            *dataset_args(root, "local/rollout_gated_ensemble", episodes=2, episode_s=60, reset_s=0),
-        ],
-        timeout=600,
+    log = gated_dagger(
+        calibrated_tiny_policy,
+        200,
+        "--strategy.gate=ensemble",
+        "--strategy.cbf.enabled=false",
+        *robot_args(
+            tmp_path / "trace.jsonl",
+            f"--robot.seed={HANDOVER_SEEDS[0]}",
+            "--robot.clock=fast",
+            "--robot.episode_end=hold",
+        ),
+        *dataset_args(root, "local/rollout_gated_ensemble", episodes=2, episode_s=60, reset_s=0),
     )
     assert "Gated DAgger: gate ensemble, CBF off" in log
     dataset = load_dataset(root, "local/rollout_gated_ensemble")
@@ -185,30 +184,22 @@ def test_tissue_moving_beyond_the_cbf_s_bounds_hands_over(tiny_policy_dir, tmp_p
 
     beyond = CONDITIONS["beyond_bound_breathing"]
     root = tmp_path / "dataset"
-    log = run_command(
-        "lerobot-rollout",
-        [
-            "--strategy.type=gated_dagger",
-            "--strategy.gate=none",
-            "--strategy.camera_watchdog=false",
-            f"--policy.path={tiny_policy_dir}",
-            "--teleop.type=suture_scripted",
-            "--device=cpu",
-            "--fps=200",
-            "--return_to_initial_position=false",
-            *robot_args(
-                tmp_path / "trace.jsonl",
-                "--robot.seed=3",
-                "--robot.clock=fast",
-                "--robot.episode_end=hold",
-                "--robot.tip_tracking=true",
-                "--robot.registration=true",
-                f"--robot.scenario={beyond.scenario}",
-                f"--robot.scenario_magnitude={beyond.scenario_magnitude}",
-            ),
-            *dataset_args(root, "local/rollout_tissue_motion", episodes=1, episode_s=60, reset_s=0),
-        ],
-        timeout=600,
+    log = gated_dagger(
+        tiny_policy_dir,
+        200,
+        "--strategy.gate=none",
+        "--strategy.camera_watchdog=false",
+        *robot_args(
+            tmp_path / "trace.jsonl",
+            "--robot.seed=3",
+            "--robot.clock=fast",
+            "--robot.episode_end=hold",
+            "--robot.tip_tracking=true",
+            "--robot.registration=true",
+            f"--robot.scenario={beyond.scenario}",
+            f"--robot.scenario_magnitude={beyond.scenario_magnitude}",
+        ),
+        *dataset_args(root, "local/rollout_tissue_motion", episodes=1, episode_s=60, reset_s=0),
     )
     assert "the tissue moves beyond its declared bounds" in log
     dataset = load_dataset(root, "local/rollout_tissue_motion")
@@ -221,22 +212,14 @@ def test_gated_dagger_on_lerobot_s_real_time_chunking_engine(tiny_policy_dir, tm
     """``--inference.type=rtc``: the policy's chunks come from LeRobot's background engine; the camera watchdog
     still hands over after the frozen frame, and no frame the policy drove carries an O.O.D. decision."""
     root = tmp_path / "dataset"
-    log = run_command(
-        "lerobot-rollout",
-        [
-            "--strategy.type=gated_dagger",
-            "--strategy.gate=none",
-            "--inference.type=rtc",
-            "--inference.rtc.execution_horizon=8",
-            f"--policy.path={tiny_policy_dir}",
-            "--teleop.type=suture_scripted",
-            "--device=cpu",
-            "--fps=20",
-            "--return_to_initial_position=false",
-            *frozen_camera_robot(tmp_path / "trace.jsonl"),
-            *dataset_args(root, "local/rollout_gated_rtc", episodes=1, episode_s=60, reset_s=0),
-        ],
-        timeout=600,
+    log = gated_dagger(
+        tiny_policy_dir,
+        20,
+        "--strategy.gate=none",
+        "--inference.type=rtc",
+        "--inference.rtc.execution_horizon=8",
+        *frozen_camera_robot(tmp_path / "trace.jsonl"),
+        *dataset_args(root, "local/rollout_gated_rtc", episodes=1, episode_s=60, reset_s=0),
     )
     assert "Creating inference engine: rtc" in log and "Gated DAgger: gate none, CBF on" in log
     frames = episode_frames(load_dataset(root, "local/rollout_gated_rtc"), 0)
@@ -253,20 +236,12 @@ def test_an_episode_too_short_for_its_video_is_discarded_and_the_run_goes_on(tin
     and the dataset's metadata cannot hold it beside longer ones (an ``ArrowInvalid`` at a later save). It is
     discarded with a warning that says why, and the run goes on."""
     root = tmp_path / "dataset"
-    log = run_command(
-        "lerobot-rollout",
-        [
-            "--strategy.type=gated_dagger",
-            "--strategy.gate=none",
-            f"--policy.path={tiny_policy_dir}",
-            "--teleop.type=suture_scripted",
-            "--device=cpu",
-            "--fps=10",
-            "--return_to_initial_position=false",
-            *robot_args(tmp_path / "trace.jsonl", "--robot.seed=7", "--robot.clock=fast"),
-            *dataset_args(root, "local/rollout_short", episodes=2, episode_s=0.05, reset_s=0),
-        ],
-        timeout=600,
+    log = gated_dagger(
+        tiny_policy_dir,
+        10,
+        "--strategy.gate=none",
+        *robot_args(tmp_path / "trace.jsonl", "--robot.seed=7", "--robot.clock=fast"),
+        *dataset_args(root, "local/rollout_short", episodes=2, episode_s=0.05, reset_s=0),
     )
     assert log.count("fewer than the 2 a video episode needs: discarded") == 2
     assert "ArrowInvalid" not in log

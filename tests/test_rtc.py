@@ -100,6 +100,44 @@ def test_an_enforced_gate_s_flagged_chunk_holds_the_measured_pose(tmp_path):
     torch.testing.assert_close(chunk, hold[:, None].expand_as(chunk))
 
 
+RTC_FPS = 20.0
+
+
+def rtc_engine_on_the_arm(tiny_policy_dir, seed: int):
+    """The tiny ensemble on LeRobot's own ``RTCInferenceEngine`` (background thread, action queue) over the
+    simulated arm of scene ``seed``, fast clock, at ``RTC_FPS``: (policy, postprocessor, robot, engine), the robot
+    connected and the engine not started. The policy is looked up at every call, so a test may wrap its
+    ``predict_action_chunk`` afterwards."""
+    from lerobot.policies.factory import make_pre_post_processors
+    from lerobot.policies.rtc.configuration_rtc import RTCConfig
+    from lerobot.rollout.inference.rtc import RTCInferenceEngine
+    from lerobot.rollout.robot_wrapper import ThreadSafeRobot
+    from lerobot.utils.feature_utils import hw_to_dataset_features
+    from lerobot_robot_suture.config_suture_sim import SutureSimConfig
+    from lerobot_robot_suture.suture_sim import SutureSim
+
+    policy = EnsembleDiffusionPolicy.from_pretrained(tiny_policy_dir).eval()
+    preprocessor, postprocessor = make_pre_post_processors(
+        policy.config, pretrained_path=str(tiny_policy_dir)
+    )
+    image_size = policy.config.image_features["observation.images.endoscope"].shape[-1]
+    robot = SutureSim(SutureSimConfig(seed=seed, clock="fast", image_size=image_size))
+    robot.connect()
+    engine = RTCInferenceEngine(
+        policy,
+        preprocessor,
+        postprocessor,
+        ThreadSafeRobot(robot),
+        RTCConfig(execution_horizon=policy.config.horizon),
+        hw_to_dataset_features(robot.observation_features, "observation"),
+        "Insert the needle.",
+        RTC_FPS,
+        "cpu",
+        rtc_queue_threshold=policy.config.horizon - 2,
+    )
+    return policy, postprocessor, robot, engine
+
+
 def test_lerobot_s_rtc_engine_on_the_arm_respects_prefixes_and_never_executes_a_flagged_chunk(
     tiny_policy_dir,
 ):
@@ -110,20 +148,9 @@ def test_lerobot_s_rtc_engine_on_the_arm_respects_prefixes_and_never_executes_a_
     import threading
     import time
 
-    from lerobot.policies.factory import make_pre_post_processors
-    from lerobot.policies.rtc.configuration_rtc import RTCConfig
-    from lerobot.rollout.inference.rtc import RTCInferenceEngine
-    from lerobot.rollout.robot_wrapper import ThreadSafeRobot
-    from lerobot.utils.feature_utils import hw_to_dataset_features
-    from lerobot_robot_suture.config_suture_sim import SutureSimConfig
     from lerobot_robot_suture.rollout_gate import RolloutGate
-    from lerobot_robot_suture.suture_sim import SutureSim
 
-    policy = EnsembleDiffusionPolicy.from_pretrained(tiny_policy_dir)
-    policy.eval()
-    preprocessor, postprocessor = make_pre_post_processors(
-        policy.config, pretrained_path=str(tiny_policy_dir)
-    )
+    policy, postprocessor, robot, engine = rtc_engine_on_the_arm(tiny_policy_dir, seed=3)
     never = fit_calibration(1e9 * (1 + 1e-3 * np.random.default_rng(0).standard_normal(50)), model="normal")
     always = fit_calibration(1e-9 * (1 + 1e-3 * np.random.default_rng(0).standard_normal(50)), model="normal")
     policy.ood_calibration = never
@@ -141,27 +168,6 @@ def test_lerobot_s_rtc_engine_on_the_arm_respects_prefixes_and_never_executes_a_
         return chunk
 
     policy.predict_action_chunk = recorded_predict
-    robot = SutureSim(
-        SutureSimConfig(
-            seed=3,
-            clock="fast",
-            image_size=policy.config.image_features["observation.images.endoscope"].shape[-1],
-        )
-    )
-    robot.connect()
-    fps = 20.0
-    engine = RTCInferenceEngine(
-        policy,
-        preprocessor,
-        postprocessor,
-        ThreadSafeRobot(robot),
-        RTCConfig(execution_horizon=policy.config.horizon),
-        hw_to_dataset_features(robot.observation_features, "observation"),
-        "Insert the needle.",
-        fps,
-        "cpu",
-        rtc_queue_threshold=policy.config.horizon - 2,
-    )
     gate = RolloutGate(policy, "ensemble")
     sent, handed_over = [], False
     engine.start()
@@ -179,7 +185,7 @@ def test_lerobot_s_rtc_engine_on_the_arm_respects_prefixes_and_never_executes_a_
                     break
                 robot.send_action({key: float(action[i]) for i, key in enumerate(robot.action_features)})
                 sent.append(action.clone())
-            time.sleep(max(0.0, 1.0 / fps - (time.perf_counter() - tick)))
+            time.sleep(max(0.0, 1.0 / RTC_FPS - (time.perf_counter() - tick)))
     finally:
         engine.stop()
         robot.disconnect()
@@ -203,20 +209,11 @@ def test_a_new_scene_s_first_chunk_is_predicted_from_that_scene(tiny_policy_dir)
     import threading
     import time
 
-    from lerobot.policies.factory import make_pre_post_processors
-    from lerobot.policies.rtc.configuration_rtc import RTCConfig
-    from lerobot.rollout.inference.rtc import RTCInferenceEngine
-    from lerobot.rollout.robot_wrapper import ThreadSafeRobot
     from lerobot.utils.feature_utils import build_dataset_frame, hw_to_dataset_features
-    from lerobot_robot_suture.config_suture_sim import SutureSimConfig
     from lerobot_robot_suture.gated_dagger import restart_engine
     from lerobot_robot_suture.rtc_queue import ExecutedActionQueue
-    from lerobot_robot_suture.suture_sim import SutureSim
 
-    policy = EnsembleDiffusionPolicy.from_pretrained(tiny_policy_dir).eval()
-    preprocessor, postprocessor = make_pre_post_processors(
-        policy.config, pretrained_path=str(tiny_policy_dir)
-    )
+    policy, _, robot, engine = rtc_engine_on_the_arm(tiny_policy_dir, seed=7)
     states, lock = [], threading.Lock()
     predict = policy.predict_action_chunk
 
@@ -226,22 +223,7 @@ def test_a_new_scene_s_first_chunk_is_predicted_from_that_scene(tiny_policy_dir)
         return predict(batch, inference_delay=inference_delay, prev_chunk_left_over=prev_chunk_left_over)
 
     policy.predict_action_chunk = recorded_predict
-    image_size = policy.config.image_features["observation.images.endoscope"].shape[-1]
-    robot = SutureSim(SutureSimConfig(seed=7, clock="fast", image_size=image_size))
-    robot.connect()
     features = hw_to_dataset_features(robot.observation_features, "observation")
-    engine = RTCInferenceEngine(
-        policy,
-        preprocessor,
-        postprocessor,
-        ThreadSafeRobot(robot),
-        RTCConfig(execution_horizon=policy.config.horizon),
-        features,
-        "Insert the needle.",
-        20.0,
-        "cpu",
-        rtc_queue_threshold=policy.config.horizon - 2,
-    )
 
     def run(ticks: int) -> None:
         for _ in range(ticks):
@@ -250,7 +232,7 @@ def test_a_new_scene_s_first_chunk_is_predicted_from_that_scene(tiny_policy_dir)
             action = engine.get_action(None)
             if action is not None:
                 robot.send_action({key: float(action[i]) for i, key in enumerate(robot.action_features)})
-            time.sleep(0.05)
+            time.sleep(1.0 / RTC_FPS)
 
     def normalized_state(obs) -> torch.Tensor:
         state = torch.as_tensor(build_dataset_frame(features, obs, prefix="observation")["observation.state"])
