@@ -8,9 +8,11 @@ steps for the three policies: the task's ensemble preset's), and calibrates the 
 evaluates every policy on every condition of its task (:mod:`lerobot_suture.experiments.leaderboard`) and
 writes ``leaderboard.json``, ``leaderboard.md`` and ``leaderboard.png`` into ``results_dir``.
 
-Every finished cell is written at once to ``output_dir/cells/TASK/POLICY/CONDITION.json`` and not run
-again: an interrupted run resumes where it stopped (with the same flags). Each stage's time lands in the
-board's ``timings``.
+Every stage (record, train, calibrate, and each cell's evaluation) is a Ray task
+(:mod:`lerobot_suture.pipelines.ray_stages`): on this machine by default, on a cluster with
+``--ray_address``. Every finished cell is written at once to ``output_dir/cells/TASK/POLICY/CONDITION.json``
+and not run again: an interrupted run, or one whose node died, resumes where it stopped (with the same
+flags). Each stage's time lands in the board's ``timings``.
 
 A user's checkpoint joins with ``--policy.path=DIR --policy_name=NAME --tasks=[TASK]``: it is evaluated
 on the same cells and its row is added to the board already in ``results_dir`` (nothing is trained).
@@ -19,10 +21,12 @@ on the same cells and its row is added to the board already in ``results_dir`` (
 from __future__ import annotations
 
 import json
+import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from lerobot_suture.experiments import leaderboard as cells
+from lerobot_suture.pipelines.ray_stages import StageGraph
 from lerobot_suture.pipelines.stages import StageTimings, calibrate_policy, code_commit, record_recipe
 from lerobot_suture.runtime.config import PolicyPathConfig
 from lerobot_suture.sim.shifts import MAGNITUDES, SHIFTS, Shift
@@ -69,8 +73,10 @@ class LeaderboardConfig:
     seed: base of the test seeds (disjoint from recording, calibration and the other commands' seeds).
     batch_envs: envs run in lockstep with one batched policy call, >= 1 (a seed gives the same episode at
         any value).
-    workers: processes the batches are spread over, >= 1 (one per core is fastest on a CPU); the same
-        episodes.
+    ray_address: the Ray cluster to run the stages on (``HOST:PORT`` of its head, or ``auto``); default: a
+        Ray instance on this machine, one cell per core. Every node must see ``output_dir`` at the same path.
+    train_cpus: cores a training stage reserves (lerobot-train's torch threads and data loader), >= 1.
+    cells_per_gpu: with a CUDA ``device``, the cells (and calibrations) that share one GPU, >= 1.
     output_dir: datasets, checkpoints and finished cells (resumable).
     results_dir: where ``leaderboard.json``, ``leaderboard.md`` and ``leaderboard.png`` go.
     device: torch device for calibration and evaluation (training takes the presets').
@@ -87,7 +93,9 @@ class LeaderboardConfig:
     shifts: list[str] = field(default_factory=default_shifts)
     seed: int = 7_000_000
     batch_envs: int = 8
-    workers: int = 1
+    ray_address: str | None = None
+    train_cpus: int = 2
+    cells_per_gpu: int = 4
     output_dir: Path = Path("outputs/leaderboard")
     results_dir: Path = Path("docs/results/leaderboard")
     device: str = "cpu"
@@ -107,11 +115,14 @@ class LeaderboardConfig:
         unknown = sorted(set(self.policies) - set(POLICIES))
         if unknown:
             raise ValueError(f"`policies` must be among {list(POLICIES)}. Got {unknown}.")
-        if min(self.episodes, self.batch_envs, self.workers) < 1:
+        if min(self.episodes, self.batch_envs, self.train_cpus, self.cells_per_gpu) < 1:
             raise ValueError(
-                "`episodes`, `batch_envs` and `workers` must be >= 1. "
-                f"Got {self.episodes}, {self.batch_envs}, {self.workers}."
+                "`episodes`, `batch_envs`, `train_cpus` and `cells_per_gpu` must be >= 1. Got "
+                f"{self.episodes}, {self.batch_envs}, {self.train_cpus}, {self.cells_per_gpu}."
             )
+        # Ray's workers do not share this process's working directory.
+        self.output_dir = Path(self.output_dir).resolve()
+        self.results_dir = Path(self.results_dir).resolve()
         self.shifts = [Shift.parse(s).label for s in self.shifts]  # raises on an unknown shift
         self.taken = parse_checkpoints(self.checkpoints)
         if self.policy.overrides and self.policy.path is None:
@@ -176,39 +187,91 @@ def row_name(policy_type: str, overrides: dict) -> str:
     return policy_type + "".join(f" {short[k]}={v}" for k, v in sorted(overrides.items()))
 
 
-def evaluate_row(
-    cfg: LeaderboardConfig, task: str, name: str, policy_dir: Path, overrides: dict | None = None
-) -> dict:
-    """Every condition of ``task`` for one policy (with its config ``overrides``); finished cells run with the
-    same overrides are read back, not run again."""
-    from lerobot_suture.runtime.policy import GateMode, PolicyRunner, env_kwargs_for_policy
+def cell_path(cfg: LeaderboardConfig, task: str, name: str, condition: str) -> Path:
+    """Where the cell of row ``name`` on ``condition`` of ``task`` is written."""
+    return cfg.output_dir / "cells" / task / name / f"{condition.replace(':', '_')}.json"
 
-    overrides = dict(overrides or {})
-    row, runner, env_kwargs = {}, None, None
-    commit = code_commit()
-    for condition in cells.conditions(task, cfg.shifts):
-        path = cfg.output_dir / "cells" / task / name / f"{condition.replace(':', '_')}.json"
-        if path.is_file():
-            saved = json.loads(path.read_text())
-            if saved.get("policy_overrides", {}) == overrides:
-                row[condition] = saved
-                continue
-        if runner is None:
-            runner = PolicyRunner.from_pretrained(policy_dir, GateMode.REPORT, cfg.device, overrides)
-            env_kwargs = env_kwargs_for_policy(runner.policy.config)
-        seeds = cells.condition_seeds(cfg.seed, task, condition, cfg.episodes)
-        cell = cells.summarize_cell(
-            *cells.cell_episodes(runner, env_kwargs, task, condition, seeds, cfg.batch_envs, cfg.workers),
-            throws=task_spec(task).throws,
+
+def finished_cell(path: Path, overrides: dict) -> dict | None:
+    """The cell at ``path`` if it was run with the same policy ``overrides``; None otherwise."""
+    if path.is_file():
+        saved = json.loads(path.read_text())
+        if saved.get("policy_overrides", {}) == overrides:
+            return saved
+    return None
+
+
+_RUNNER: dict = {}  # inside a worker: the last policy loaded, by (directory, its files, device, overrides)
+
+
+def _runner(policy_dir: Path, device: str, overrides: dict):
+    """The policy in ``policy_dir``, loaded once per worker while its files stay the same (a calibration
+    written since loads it afresh)."""
+    from lerobot_suture.runtime.policy import GateMode, PolicyRunner
+    from lerobot_suture.runtime.workers import directory_state
+
+    key = (str(policy_dir), directory_state(str(policy_dir)), device, tuple(sorted(overrides.items())))
+    if _RUNNER.get("key") != key:
+        _RUNNER.clear()
+        _RUNNER.update(
+            key=key, runner=PolicyRunner.from_pretrained(policy_dir, GateMode.REPORT, device, overrides)
         )
-        cell["policy_path"] = str(policy_dir)
-        cell["code_commit"] = commit
-        if overrides:
-            cell["policy_overrides"] = overrides
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(cell, separators=(",", ":")))
-        tmp.replace(path)  # a cell is on disk whole or not at all
+    return _RUNNER["runner"]
+
+
+def evaluate_cell(
+    cfg: LeaderboardConfig, task: str, name: str, policy_dir: Path, overrides: dict, condition: str, *after
+) -> dict:
+    """Row ``name``'s cell on ``condition`` of ``task``, written whole to :func:`cell_path` (read back when
+    already there). ``after``: the stages it waits for (a calibration)."""
+    from lerobot_suture.runtime.policy import env_kwargs_for_policy
+
+    path = cell_path(cfg, task, name, condition)
+    cell = finished_cell(path, overrides)
+    if cell is not None:
+        return cell
+    runner = _runner(policy_dir, cfg.device, overrides)
+    seeds = cells.condition_seeds(cfg.seed, task, condition, cfg.episodes)
+    env_kwargs = env_kwargs_for_policy(runner.policy.config)
+    cell = cells.summarize_cell(
+        *cells.cell_episodes(runner, env_kwargs, task, condition, seeds, cfg.batch_envs),
+        throws=task_spec(task).throws,
+    )
+    cell["policy_path"] = str(policy_dir)
+    cell["code_commit"] = code_commit()
+    if overrides:
+        cell["policy_overrides"] = overrides
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f"{path.stem}.{uuid.uuid4().hex}.tmp")  # a retried stage never shares it
+    tmp.write_text(json.dumps(cell, separators=(",", ":")))
+    tmp.replace(path)  # a cell is on disk whole or not at all
+    return cell
+
+
+def submit_row(
+    graph: StageGraph, cfg: LeaderboardConfig, task: str, name: str, policy_dir, overrides: dict, *after
+) -> dict:
+    """Every condition of ``task`` for row ``name``: the finished cells read back, a stage submitted for each
+    other one; {condition: the cell, or its stage's key}."""
+    gpus = 1 / cfg.cells_per_gpu if cfg.device.startswith("cuda") else 0
+    row = {}
+    for condition in cells.conditions(task, cfg.shifts):
+        cell = finished_cell(cell_path(cfg, task, name, condition), overrides)
+        if cell is None:
+            cell = f"evaluate {task} {name} {condition}"
+            graph.submit(
+                cell,
+                "cell",
+                evaluate_cell,
+                cfg,
+                task,
+                name,
+                policy_dir,
+                overrides,
+                condition,
+                *after,
+                gpus=gpus,
+            )
         row[condition] = cell
     return row
 
@@ -235,36 +298,57 @@ def run_leaderboard(cfg: LeaderboardConfig) -> dict:
         board["shifts"] = cfg.shifts
     board.setdefault("tasks", {})
     timings = StageTimings(cfg.output_dir / "timings.json")
+    graph = StageGraph(cfg.ray_address)
+    submitted: dict[tuple[str, str], dict] = {}
     if cfg.policy.path is not None:  # a user's checkpoint joins the board
         # config.json names its type: read it there, before any policy plugin is registered
         policy_type = json.loads((Path(cfg.policy.path) / "config.json").read_text())["type"]
         name = cfg.policy_name or row_name(policy_type, cfg.policy.overrides)
+        policy_dir = Path(cfg.policy.path).resolve()
         for task in cfg.tasks:
-            row = evaluate_row(cfg, task, name, Path(cfg.policy.path), cfg.policy.overrides)
-            board["tasks"].setdefault(task, {})[name] = row
-            timings.seconds[f"evaluate {task} {name}"] = _rollout_seconds(row)
+            submitted[task, name] = submit_row(graph, cfg, task, name, policy_dir, cfg.policy.overrides)
     else:
+        gpus = 1 / cfg.cells_per_gpu if cfg.device.startswith("cuda") else 0
         for task in cfg.tasks:
-            needs_data = any((task, p) not in cfg.taken for p in cfg.policies)
             dataset_root = None
-            if needs_data:
+            if any((task, p) not in cfg.taken for p in cfg.policies):
                 root = cfg.output_dir / "data" / task
-                dataset_root = timings.timed(
-                    f"record {task}", record_recipe, TASK_RECIPES[task][0], root, cfg.toy
+                dataset_root = graph.submit(
+                    f"record {task}", "record", record_recipe, TASK_RECIPES[task][0], root, cfg.toy
                 )
             for policy in cfg.policies:
                 policy_dir = cfg.taken.get((task, policy))
                 if policy_dir is None:
-                    policy_dir = timings.timed(
-                        f"train {task} {policy}", train_policy, cfg, task, policy, dataset_root
-                    )
+                    policy_dir = graph.submit(
+                        f"train {task} {policy}", "train", train_policy, cfg, task, policy, dataset_root,
+                        cpus=cfg.train_cpus,
+                    )  # fmt: skip
+                after = []
                 if policy == "ensemble_diffusion" and dataset_root is not None:
-                    timings.timed(
-                        f"calibrate {task}", calibrate_policy, policy_dir, dataset_root, cfg.device, cfg.toy
+                    after.append(
+                        graph.submit(
+                            f"calibrate {task}",
+                            "calibrate",
+                            calibrate_policy,
+                            policy_dir,
+                            dataset_root,
+                            cfg.device,
+                            cfg.toy,
+                            gpus=gpus,
+                        )  # fmt: skip
                     )
-                row = evaluate_row(cfg, task, policy, policy_dir)
-                board["tasks"].setdefault(task, {})[policy] = row
-                timings.seconds[f"evaluate {task} {policy}"] = _rollout_seconds(row)
+                submitted[task, policy] = submit_row(graph, cfg, task, policy, policy_dir, {}, *after)
+    outputs, seconds, failures = graph.run("leaderboard")
+    for key, s in seconds.items():
+        if graph.kinds[key] != "cell":
+            timings.add(key, s)
+    for (task, name), row in submitted.items():
+        done = {c: outputs.get(cell) if isinstance(cell, str) else cell for c, cell in row.items()}
+        if all(
+            isinstance(cell, dict) for cell in done.values()
+        ):  # a row with a failed cell waits for a rerun
+            board["tasks"].setdefault(task, {})[name] = done
+            timings.seconds[f"evaluate {task} {name}"] = _rollout_seconds(done)
     board["summary"] = {
         task: {
             name: cells.row_summary(row, cells.conditions(task, board["shifts"]))
@@ -277,4 +361,10 @@ def run_leaderboard(cfg: LeaderboardConfig) -> dict:
     board_file.write_text(json.dumps(board, separators=(",", ":")))
     (results / "leaderboard.md").write_text(cells.render(board))
     cells.plot(board, results / "leaderboard.png")
+    if failures:
+        raise RuntimeError(
+            f"{len(failures)} stage(s) failed: "
+            + "; ".join(f"{k}: {v}" for k, v in sorted(failures.items()))
+            + f". Every finished stage is kept under {cfg.output_dir}: rerun the same command to finish the rest."
+        )
     return board

@@ -54,14 +54,14 @@ def _run_batch(rollout_episodes: Callable, factory: bytes, gate, seeds: list[int
     return rollout_episodes(_WORKER["envs"][: len(seeds)], runner, seeds, surgeon)
 
 
-def _directory_state(policy_path: str) -> tuple:
+def directory_state(policy_path: str) -> tuple:
     """What the workers loaded from: every file of the policy directory, with its size and time."""
     files = sorted(p for p in Path(policy_path).iterdir() if p.is_file())
     return tuple((p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in files)
 
 
 def _pool(policy_path: str, device: str, overrides: dict, workers: int) -> ProcessPoolExecutor:
-    key = (policy_path, device, tuple(sorted(overrides.items())), workers, _directory_state(policy_path))
+    key = (policy_path, device, tuple(sorted(overrides.items())), workers, directory_state(policy_path))
     if key not in _POOLS:
         shutdown_pools()  # another policy's workers: free their memory first
         _POOLS[key] = ProcessPoolExecutor(
