@@ -1,9 +1,9 @@
 """The leaderboard's time on a cluster, projected from the stage times its board measured on 2 cores.
 
 Every stage of the board (record, train, calibrate, and each cell) becomes a task of the graph Ray runs
-(:mod:`lerobot_suture.pipelines.leaderboard`): a training waits for its task's recording, a calibration for
+(:mod:`lerobot_suture.leaderboard.pipeline`): a training waits for its task's recording, a calibration for
 the ensemble's training, a cell for its policy (and the ensemble's cells for the calibration).
-:func:`lerobot_suture.pipelines.schedule.makespan` then places the tasks on ``--machines`` nodes of
+:func:`lerobot_suture.leaderboard.schedule.makespan` then places the tasks on ``--machines`` nodes of
 ``--cpus`` cores the way Ray does (a task starts once its inputs exist and a node has its cores).
 
 The inputs are the board's measured times: ``timings`` for record, train and calibrate (a training on
@@ -25,7 +25,7 @@ from statistics import mean
 
 from _report import emit, machine
 
-from lerobot_suture.pipelines.schedule import Stage, makespan
+from lerobot_suture.leaderboard.schedule import Stage, makespan
 
 ROOT = Path(__file__).resolve().parents[1]
 POLICIES = ("act", "diffusion", "ensemble_diffusion")

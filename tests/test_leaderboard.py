@@ -7,15 +7,9 @@ import pytest
 from PIL import Image
 
 from lerobot_suture.cli import main as cli_main
-from lerobot_suture.experiments.leaderboard import (
-    condition_seeds,
-    conditions,
-    plot,
-    render,
-    row_summary,
-    summarize_cell,
-)
-from lerobot_suture.pipelines.leaderboard import LeaderboardConfig, default_shifts, parse_checkpoints
+from lerobot_suture.leaderboard.board import plot, render
+from lerobot_suture.leaderboard.cells import condition_seeds, conditions, row_summary, summarize_cell
+from lerobot_suture.leaderboard.pipeline import LeaderboardConfig, default_shifts, parse_checkpoints
 from lerobot_suture.runtime.config import PolicyPathConfig
 from lerobot_suture.runtime.rollout import EpisodeLog, StepLog
 from lerobot_suture.sim.shifts import SHIFTS

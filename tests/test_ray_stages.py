@@ -12,8 +12,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from lerobot_suture.pipelines.ray_stages import time_left
-from lerobot_suture.pipelines.schedule import Stage, makespan
+from lerobot_suture.leaderboard.ray_stages import time_left
+from lerobot_suture.leaderboard.schedule import Stage, makespan
 
 
 def test_a_chain_takes_its_sum_and_independent_stages_their_longest():

@@ -1,12 +1,12 @@
 """``lerobot-suture leaderboard``: LeRobot's ACT and diffusion and the ensemble on every task, fifty
-episodes a cell (:mod:`lerobot_suture.pipelines.leaderboard` says what runs); ``--policy.path=DIR`` adds a
+episodes a cell (:mod:`lerobot_suture.leaderboard.pipeline` says what runs); ``--policy.path=DIR`` adds a
 user's checkpoint to the board."""
 
 from __future__ import annotations
 
 import draccus
 
-from lerobot_suture.pipelines.leaderboard import LeaderboardConfig, run_leaderboard
+from lerobot_suture.leaderboard.pipeline import LeaderboardConfig, run_leaderboard
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -21,7 +21,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))  # the product's _report
 from _report import emit, machine  # noqa: E402
 
-from lerobot_suture.experiments.leaderboard import condition_seeds  # noqa: E402
+from lerobot_suture.leaderboard.cells import condition_seeds  # noqa: E402
 from lerobot_suture.runtime.policy import env_kwargs_for_policy, reporting_runner  # noqa: E402
 from lerobot_suture.runtime.rollout import make_scenario_env  # noqa: E402
 from lerobot_suture.safety.cbf_config import CBFConfig  # noqa: E402

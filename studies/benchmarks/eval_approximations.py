@@ -32,9 +32,10 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))  # the product's _report
 from _report import emit, machine  # noqa: E402
 
-from lerobot_suture.experiments import leaderboard, metrics  # noqa: E402
+from lerobot_suture.experiments import metrics  # noqa: E402
 from lerobot_suture.experiments.episode_metrics import ood_metrics  # noqa: E402
-from lerobot_suture.pipelines.leaderboard import LeaderboardConfig  # noqa: E402
+from lerobot_suture.leaderboard import cells as leaderboard  # noqa: E402
+from lerobot_suture.leaderboard.pipeline import LeaderboardConfig  # noqa: E402
 from lerobot_suture.pipelines.stages import code_commit  # noqa: E402
 from lerobot_suture.plotting import save_figure  # noqa: E402
 from lerobot_suture.runtime.policy import GateMode, PolicyRunner, copy_with_overrides, env_kwargs_for_policy  # noqa: E402

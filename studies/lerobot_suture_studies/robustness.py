@@ -29,8 +29,8 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from lerobot_suture.experiments.leaderboard import condition_shift
 from lerobot_suture.experiments.metrics import auroc, most_failures_flagged
+from lerobot_suture.leaderboard.cells import condition_shift
 from lerobot_suture.plotting import save_figure
 from lerobot_suture.runtime.calibration import dataset_appearance
 from lerobot_suture.sim.shifts import Shift, within_training_range

@@ -78,7 +78,8 @@ def connect(address: str | None) -> dict:
         raise ConnectionError(
             f"No Ray cluster at --ray_address={address}: start one with `ray start --head` on the head node "
             "and `ray start --address=HEAD:6379` on the others, or leave --ray_address out to run on this "
-            f"machine. ({error})"
+            "machine. A cluster started by `ray start` checks a token: export RAY_AUTH_MODE=token, with the "
+            f"head's ~/.ray/auth_token on this machine. ({error})"
         ) from error
     return ray.cluster_resources()
 

@@ -5,11 +5,11 @@ and ``ensemble_diffusion``) it takes a trained checkpoint (``--checkpoints=TASK:
 from nothing: records the task's dataset recipe (:data:`TASK_RECIPES`) into ``output_dir/data``, trains the
 policy's CPU preset on it with the real ``lerobot-train`` (the same training episodes and the same number of
 steps for the three policies: the task's ensemble preset's), and calibrates the ensemble's gate. Then it
-evaluates every policy on every condition of its task (:mod:`lerobot_suture.experiments.leaderboard`) and
+evaluates every policy on every condition of its task (:mod:`lerobot_suture.leaderboard.cells`) and
 writes ``leaderboard.json``, ``leaderboard.md`` and ``leaderboard.png`` into ``results_dir``.
 
 Every stage (record, train, calibrate, and each cell's evaluation) is a Ray task
-(:mod:`lerobot_suture.pipelines.ray_stages`): on this machine by default, on a cluster with
+(:mod:`lerobot_suture.leaderboard.ray_stages`): on this machine by default, on a cluster with
 ``--ray_address``. Every finished cell is written at once to ``output_dir/cells/TASK/POLICY/CONDITION.json``
 and not run again: an interrupted run, or one whose node died, resumes where it stopped (with the same
 flags). Each stage's time lands in the board's ``timings``.
@@ -25,8 +25,9 @@ import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from lerobot_suture.experiments import leaderboard as cells
-from lerobot_suture.pipelines.ray_stages import StageGraph
+from lerobot_suture.leaderboard import cells
+from lerobot_suture.leaderboard.board import plot, render
+from lerobot_suture.leaderboard.ray_stages import StageGraph
 from lerobot_suture.pipelines.stages import StageTimings, calibrate_policy, code_commit, record_recipe
 from lerobot_suture.runtime.config import PolicyPathConfig
 from lerobot_suture.sim.shifts import MAGNITUDES, SHIFTS, Shift
@@ -359,8 +360,8 @@ def run_leaderboard(cfg: LeaderboardConfig) -> dict:
     # The rows already on the board keep their times; this run's stages add or update theirs.
     board["timings"] = {**board.get("timings", {}), **{k: round(v, 1) for k, v in timings.seconds.items()}}
     board_file.write_text(json.dumps(board, separators=(",", ":")))
-    (results / "leaderboard.md").write_text(cells.render(board))
-    cells.plot(board, results / "leaderboard.png")
+    (results / "leaderboard.md").write_text(render(board))
+    plot(board, results / "leaderboard.png")
     if failures:
         raise RuntimeError(
             f"{len(failures)} stage(s) failed: "
