@@ -22,7 +22,8 @@ from lerobot_suture.sim.appearance import (
     haze_image,
     mottled_texture,
 )
-from lerobot_suture.sim.suture_env import SCENE_XML, SutureEnv
+from lerobot_suture.sim.scene_model import SCENE_XML
+from lerobot_suture.sim.suture_env import SutureEnv
 
 SIZE = 48
 MODERATE = {name: limit / 3 for name, (limit, _) in LIMITS.items()}

@@ -18,7 +18,8 @@ from lerobot_suture.expert import ExpertConfig, ScriptedExpert, iter_expert_step
 from lerobot_suture.sim import suture_env, task
 from lerobot_suture.sim.geometry import pose_vector
 from lerobot_suture.sim.scenarios import SCENARIOS, ScenarioConfig
-from lerobot_suture.sim.suture_env import SCENE_XML, SutureEnv
+from lerobot_suture.sim.scene_model import SCENE_XML
+from lerobot_suture.sim.suture_env import SutureEnv
 
 
 def make(**kwargs) -> gym.Env:

@@ -18,6 +18,7 @@ from lerobot_suture.sim.tasks import DEFAULT_TASK, TASKS, check_scenario, task_s
 _TASK_BY_GYM_NAME = {spec.gym_id.split("/", 1)[1]: name for name, spec in TASKS.items()}
 
 ENDOSCOPE_KEY = "pixels/endoscope"
+WRIST_KEY = "pixels/wrist"
 ENVIRONMENT_STATE_DIM = 18
 
 
@@ -42,6 +43,8 @@ class SutureEnvConfig(EnvConfig):
         appearance: per-episode appearance randomization of the endoscope's view, every option off by
             default (``--env.appearance.light_intensity=0.3``; ranges in
             ``lerobot_suture.sim.appearance``).
+        wrist_camera: add the image of a camera on the instrument's shaft (``observation.images.wrist``,
+            ``image_size`` too); needs an ``obs_type`` with pixels.
     """
 
     task: str | None = DEFAULT_TASK
@@ -55,6 +58,7 @@ class SutureEnvConfig(EnvConfig):
     scenario_magnitude: float | None = None
     cbf: CBFConfig = field(default_factory=CBFConfig)
     appearance: AppearanceConfig = field(default_factory=AppearanceConfig)
+    wrist_camera: bool = False
     features: dict[str, PolicyFeature] = field(
         default_factory=lambda: {
             ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(10,)),
@@ -67,6 +71,7 @@ class SutureEnvConfig(EnvConfig):
             "agent_pos": OBS_STATE,
             "environment_state": OBS_ENV_STATE,
             ENDOSCOPE_KEY: f"{OBS_IMAGES}.endoscope",
+            WRIST_KEY: f"{OBS_IMAGES}.wrist",
         }
     )
 
@@ -86,10 +91,16 @@ class SutureEnvConfig(EnvConfig):
             raise ValueError(f"`episode_length` must be >= 1. Got {self.episode_length}.")
         check_image_side("image_size", self.image_size)
         check_image_side("render_size", self.render_size)
-        if "pixels" in self.obs_type:
-            self.features[ENDOSCOPE_KEY] = PolicyFeature(
-                type=FeatureType.VISUAL, shape=(self.image_size, self.image_size, 3)
+        if self.wrist_camera and "pixels" not in self.obs_type:
+            raise ValueError(
+                f"`wrist_camera` adds an image; `obs_type`={self.obs_type!r} has none. Pass "
+                "--env.obs_type=pixels_agent_pos (or pixels_agent_pos_state)."
             )
+        image = PolicyFeature(type=FeatureType.VISUAL, shape=(self.image_size, self.image_size, 3))
+        if "pixels" in self.obs_type:
+            self.features[ENDOSCOPE_KEY] = image
+        if self.wrist_camera:
+            self.features[WRIST_KEY] = image
         if self.obs_type in ("state", "pixels_agent_pos_state"):
             self.features["environment_state"] = PolicyFeature(
                 type=FeatureType.ENV, shape=(ENVIRONMENT_STATE_DIM,)
@@ -120,4 +131,6 @@ class SutureEnvConfig(EnvConfig):
             # Only when on, so that the default kwargs suit an env without the argument (an EnvHub
             # env.py run against an older lerobot_suture); a dict pickles to async workers as is.
             kwargs["appearance"] = dataclasses.asdict(self.appearance)
+        if self.wrist_camera:
+            kwargs["wrist_camera"] = True
         return kwargs

@@ -79,7 +79,7 @@ def render_description(root: str | Path, template_path: str | Path | None = None
     from lerobot_suture.sim.extraction import STRAIN_BOUND
     from lerobot_suture.sim.pickup import LIFT_HEIGHT
     from lerobot_suture.sim.scenarios import ScenarioConfig
-    from lerobot_suture.sim.suture_env import SCENE_XML
+    from lerobot_suture.sim.scene_model import SCENE_XML
 
     path = Path(template_path) if template_path is not None else default_template_path()
     if not path.is_file():

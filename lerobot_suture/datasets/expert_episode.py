@@ -20,6 +20,7 @@ from lerobot_suture.datasets.features import (
     REWARD_KEY,
     STATE_KEY,
     SUCCESS_KEY,
+    WRIST_IMAGE_KEY,
 )
 from lerobot_suture.expert import iter_expert_steps
 from lerobot_suture.sim import task
@@ -112,6 +113,7 @@ def make_env(
     grasp: str = "narrow",
     appearance: dict | None = None,
     task: str = DEFAULT_TASK,
+    wrist_camera: bool = False,
 ):
     """The env the dataset is recorded in (``gym.make`` of the task's gym id); ``appearance`` the fields of
     an :class:`~lerobot_suture.sim.appearance.AppearanceConfig` (None: all off)."""
@@ -123,6 +125,7 @@ def make_env(
         grasp=grasp,
         appearance=appearance,
         disable_env_checker=True,
+        **({"wrist_camera": True} if wrist_camera else {}),
     )
 
 
@@ -159,6 +162,8 @@ def expert_episode_frames(
         }
         if "pixels" in step.obs:
             frame[IMAGE_KEY] = step.obs["pixels"]["endoscope"]
+            if "wrist" in step.obs["pixels"]:
+                frame[WRIST_IMAGE_KEY] = step.obs["pixels"]["wrist"]
             frame[NEEDLE_KEYPOINTS_KEY] = step.needle_keypoints
         if "environment_state" in step.obs:
             frame[ENV_STATE_KEY] = step.obs["environment_state"]

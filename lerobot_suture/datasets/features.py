@@ -15,6 +15,8 @@ FPS = round(1.0 / task.CONTROL_DT)
 """Dataset fps: the env's control rate (10 Hz)."""
 
 IMAGE_KEY = "observation.images.endoscope"
+WRIST_IMAGE_KEY = "observation.images.wrist"
+"""The wrist camera's image, in datasets recorded with ``--wrist_camera=true``."""
 STATE_KEY = "observation.state"
 ENV_STATE_KEY = "observation.environment_state"
 NEEDLE_KEYPOINTS_KEY = "observation.needle_keypoints"
@@ -39,15 +41,20 @@ NEEDLE_KEYPOINT_NAMES = [f"{point}_{axis}" for point in ("tip", "middle", "tail"
 """The needle in the endoscope image: normalized x (right) and y (down) of its tip, middle and tail."""
 
 
-def dataset_features(obs_type: str, image_size: int, video: bool) -> dict[str, dict]:
+def dataset_features(
+    obs_type: str, image_size: int, video: bool, wrist_camera: bool = False
+) -> dict[str, dict]:
     """LeRobot feature specification of the dataset (``LeRobotDataset.create(features=...)``)."""
     features: dict[str, dict] = {}
     if "pixels" in obs_type:
-        features[IMAGE_KEY] = {
+        image = {
             "dtype": "video" if video else "image",
             "shape": (image_size, image_size, 3),
             "names": ["height", "width", "channels"],
         }
+        features[IMAGE_KEY] = image
+        if wrist_camera:
+            features[WRIST_IMAGE_KEY] = dict(image)
         features[NEEDLE_KEYPOINTS_KEY] = {
             "dtype": "float32",
             "shape": (len(NEEDLE_KEYPOINT_NAMES),),

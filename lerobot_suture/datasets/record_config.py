@@ -40,6 +40,8 @@ class RecordConfig:
         obs_type: ``pixels_agent_pos`` (endoscope + state, the paper's), ``pixels_agent_pos_state`` (adds
             the privileged 18-dim ``observation.environment_state``) or ``state`` (no image).
         image_size: endoscope image side (px), in [16, 640].
+        wrist_camera: also record the image of a camera on the instrument's shaft
+            (``observation.images.wrist``, ``image_size`` too); needs an ``obs_type`` with pixels.
         scenario: perturbation scenario (``lerobot_suture.sim.scenarios.SCENARIOS``); the expert fails
             under some of them and those episodes are discarded.
         seed: env seed of the first attempt; attempt ``k`` uses ``seed + k``.
@@ -83,6 +85,7 @@ class RecordConfig:
     task: str = "insertion"  # the task recorded: insertion | pickup | extraction | running_suture
     obs_type: str = "pixels_agent_pos"  # pixels_agent_pos | pixels_agent_pos_state | state
     image_size: int = 96  # endoscope image side (px)
+    wrist_camera: bool = False  # also record the wrist camera (observation.images.wrist, image_size too)
     scenario: str = "nominal"  # perturbation scenario the expert is recorded in
     grasp: str = "narrow"  # grasp randomization: narrow (the test scenes) | wide
     grasp_blind_expert: bool = False  # the expert plans with the nominal grasp, not the true one
@@ -109,6 +112,11 @@ class RecordConfig:
             raise ValueError(f"`obs_type` must be one of {suture_env.OBS_TYPES}. Got {self.obs_type!r}.")
         if not 16 <= self.image_size <= 640:
             raise ValueError(f"`image_size` must be in [16, 640] px. Got {self.image_size}.")
+        if self.wrist_camera and not self.has_images:
+            raise ValueError(
+                f"`wrist_camera` records an image; `obs_type`={self.obs_type!r} has none. Pass "
+                "--obs_type=pixels_agent_pos."
+            )
         if self.scenario not in SCENARIOS:
             raise ValueError(f"`scenario` must be one of {SCENARIOS}. Got {self.scenario!r}.")
         check_scenario(self.task, self.scenario)  # also names the tasks when `task` is none of them
@@ -153,6 +161,8 @@ class RecordConfig:
             flags.append(f"--{name}={str(value).lower() if isinstance(value, bool) else value}")
         if self.grasp != "narrow":
             flags.append(f"--grasp={self.grasp}")
+        if self.wrist_camera:
+            flags.append("--wrist_camera=true")
         if self.grasp_blind_expert:
             flags.append("--grasp_blind_expert=true")
         if self.approach_detour:

@@ -418,15 +418,17 @@ class EpisodeAppearance:
         config: the env's appearance ranges.
         scene: the model fields a sample edits.
         endoscope: the camera (its pose jitter, and its renderers' copy of the tissue texture).
+        other_cameras: cameras that see the scene too (the wrist camera), their texture kept up to date.
 
     Attributes:
         sample: the look in force; None while every option is off and no look was set by hand.
     """
 
-    def __init__(self, config: AppearanceConfig, scene: SceneAppearance, endoscope: Endoscope):
-        self.config = config
-        self._scene = scene
-        self._endoscope = endoscope
+    def __init__(
+        self, config: AppearanceConfig, scene: SceneAppearance, endoscope: Endoscope, other_cameras=()
+    ):
+        self.config, self._scene, self._endoscope = config, scene, endoscope
+        self._cameras = (endoscope, *other_cameras)
         self.sample: AppearanceSample | None = None
         self._rng: np.random.Generator | None = None
 
@@ -455,7 +457,8 @@ class EpisodeAppearance:
     def _show(self, sample: AppearanceSample, rng: np.random.Generator | None) -> None:
         self.sample, self._rng = sample, rng
         if self._scene.apply(sample):
-            self._endoscope.upload_texture(self._scene.texture_id)
+            for camera in self._cameras:
+                camera.upload_texture(self._scene.texture_id)
         self._endoscope.set_jitter(sample.camera_offset, sample.camera_roll)
 
 

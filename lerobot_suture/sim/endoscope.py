@@ -8,7 +8,7 @@ import mujoco
 import numpy as np
 
 from lerobot_suture.sim.geometry import project_to_image, quat_from_matrix
-from lerobot_suture.sim.rendering import make_renderer
+from lerobot_suture.sim.rendering import make_renderer, upload_texture
 
 # Viewpoint of the training data: spherical about the work site (rad, m).
 ENDOSCOPE_TARGET = np.array([0.0, 0.0, 0.012])
@@ -106,12 +106,7 @@ class Endoscope:
     def upload_texture(self, texture_id: int) -> None:
         """Send a texture whose pixels changed in the model to the renderers made so far (renderers made
         later upload every texture when they open)."""
-        for r in (self._renderer, self._video_renderer):
-            if r is None:
-                continue
-            # mujoco.Renderer keeps its GL and MuJoCo render contexts private; the upload needs both.
-            r._gl_context.make_current()
-            mujoco.mjr_uploadTexture(self._model, r._mjr_context, texture_id)
+        upload_texture(self._model, (self._renderer, self._video_renderer), texture_id)
 
     def close(self) -> None:
         for r in (self._renderer, self._video_renderer):

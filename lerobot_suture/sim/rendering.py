@@ -52,3 +52,16 @@ def make_renderer(model, height: int, width: int):
         raise RuntimeError(
             f"MuJoCo could not open a rendering context (MUJOCO_GL={backend}): {exc}.{hint} {_FIX}"
         ) from exc
+
+
+def upload_texture(model, renderers, texture_id: int) -> None:
+    """Send a texture whose pixels changed in ``model`` to each of ``renderers`` made so far (None: not made;
+    a renderer made later uploads every texture when it opens)."""
+    import mujoco
+
+    for r in renderers:
+        if r is None:
+            continue
+        # mujoco.Renderer keeps its GL and MuJoCo render contexts private; the upload needs both.
+        r._gl_context.make_current()
+        mujoco.mjr_uploadTexture(model, r._mjr_context, texture_id)

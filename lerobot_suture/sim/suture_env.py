@@ -61,6 +61,9 @@ Values outside the action space are clipped; a wrong shape, NaN or inf raise ``V
 "agent_pos": (10,) float32}`` where ``agent_pos`` is the measured jaw pose in the action's layout. Its
 jaw closure reads about 0.88 while the jaw holds the needle, since the wire keeps the jaws apart (the
 exact value depends on where along the jaw it sits), and 1 once a closed jaw has lost it.
+With ``wrist_camera=True`` ``pixels`` also holds ``"wrist"``, the image of a camera on the instrument's
+shaft (``lerobot_suture.sim.wrist_camera``): the scene's look is the endoscope's, without the endoscope's
+pose jitter and image effects.
 ``obs_type="state"``: ``{"agent_pos", "environment_state"}`` with no image, for fast
 low-dimensional experiments; ``obs_type="pixels_agent_pos_state"``: all three.
 ``environment_state`` (18,) float32 is privileged: entry point (3), exit point (3), needle centre
@@ -134,12 +137,11 @@ argument                 default                 meaning
 ``task``                 ``"insertion"``         the task (``tasks.TASKS``; see Tasks above):
                                                  ``insertion``, ``pickup``,
                                                  ``extraction`` or ``running_suture``
+``wrist_camera``         ``False``               add the wrist camera's image to ``pixels``
 =======================  ======================  ===============================================
 """
 
 from __future__ import annotations
-
-from pathlib import Path
 
 import gymnasium as gym
 import mujoco
@@ -152,7 +154,6 @@ from lerobot_suture.sim.appearance import (
     AppearanceSample,
     EpisodeAppearance,
     SceneAppearance,
-    add_tissue_texture,
 )
 from lerobot_suture.sim.endoscope import Endoscope
 from lerobot_suture.sim.geometry import (
@@ -166,8 +167,8 @@ from lerobot_suture.sim.geometry import (
 from lerobot_suture.sim.grasp import NeedleGrasp
 from lerobot_suture.sim.privileged_state import PrivilegedState
 from lerobot_suture.sim.psm import PSM
-from lerobot_suture.sim.running_suture import add_suture_marks
 from lerobot_suture.sim.scenarios import Scenario, ScenarioConfig
+from lerobot_suture.sim.scene_model import scene_model
 from lerobot_suture.sim.task import (
     CONTROL_DT,
     GRASP_RANGES,
@@ -179,8 +180,7 @@ from lerobot_suture.sim.task import (
 )
 from lerobot_suture.sim.task_scenes import TaskScenes
 from lerobot_suture.sim.tasks import DEFAULT_TASK, check_scenario, task_spec
-
-SCENE_XML = Path(__file__).parent / "assets" / "scene.xml"
+from lerobot_suture.sim.wrist_camera import WristCamera
 
 OBS_TYPES = ("pixels_agent_pos", "state", "pixels_agent_pos_state")
 IMAGE_SIDE_RANGE = (16, 640)  # px; the upper bound is the offscreen buffer of scene.xml
@@ -215,12 +215,15 @@ class SutureEnv(TaskScenes, PrivilegedState, gym.Env):
         grasp: str = "narrow",
         appearance: AppearanceConfig | dict | None = None,
         task: str = DEFAULT_TASK,
+        wrist_camera: bool = False,
     ):
         self.task_spec = task_spec(task)
         check_scenario(task, scenario)
         if obs_type not in OBS_TYPES:
             raise ValueError(f"`obs_type` must be one of {OBS_TYPES}. Got {obs_type!r}.")
         check_image_side("image_size", image_size)
+        if wrist_camera and "pixels" not in obs_type:
+            raise ValueError(f"`wrist_camera` adds an image; `obs_type`={obs_type!r} has none.")
         if grasp not in GRASP_RANGES:
             raise ValueError(f"`grasp` must be one of {list(GRASP_RANGES)}. Got {grasp!r}.")
         if render_mode not in (None, "rgb_array"):
@@ -242,15 +245,7 @@ class SutureEnv(TaskScenes, PrivilegedState, gym.Env):
 
         self.appearance = AppearanceConfig.from_value(appearance)
 
-        if self.appearance.tissue_texture > 0 or task == "running_suture":
-            spec = mujoco.MjSpec.from_file(str(SCENE_XML))
-            if self.appearance.tissue_texture > 0:
-                add_tissue_texture(spec)
-            if task == "running_suture":
-                add_suture_marks(spec)
-            self.model = spec.compile()
-        else:
-            self.model = mujoco.MjModel.from_xml_path(str(SCENE_XML))
+        self.model = scene_model(task, self.appearance.tissue_texture > 0, wrist_camera)
         self.data = mujoco.MjData(self.model)
         self.physics_dt = float(self.model.opt.timestep)
         self.control_dt = CONTROL_DT
@@ -261,7 +256,10 @@ class SutureEnv(TaskScenes, PrivilegedState, gym.Env):
         self._grasp = NeedleGrasp(m, self._arm)
         self._phantom_mocap = m.body("phantom").mocapid[0]
         self._endoscope = Endoscope(m, self.image_size, self.render_size)
-        self._look = EpisodeAppearance(self.appearance, SceneAppearance(m), self._endoscope)
+        self._wrist = WristCamera(m, self.image_size) if wrist_camera else None
+        self._look = EpisodeAppearance(
+            self.appearance, SceneAppearance(m), self._endoscope, [self._wrist] if self._wrist else []
+        )
         self._entry_local = m.site("entry_point").pos.copy()
         self._exit_local = m.site("exit_point").pos.copy()
         self._arc_local = needle_arc_points(_N_ARC_POINTS)
@@ -276,8 +274,9 @@ class SutureEnv(TaskScenes, PrivilegedState, gym.Env):
         )
         obs_spaces: dict[str, spaces.Space] = {}
         if "pixels" in obs_type:
+            image = spaces.Box(0, 255, (self.image_size, self.image_size, 3), dtype=np.uint8)
             obs_spaces["pixels"] = spaces.Dict(
-                {"endoscope": spaces.Box(0, 255, (self.image_size, self.image_size, 3), dtype=np.uint8)}
+                {"endoscope": image, **({"wrist": image} if wrist_camera else {})}
             )
         obs_spaces["agent_pos"] = spaces.Box(-np.inf, np.inf, (10,), dtype=np.float32)
         if obs_type in ("state", "pixels_agent_pos_state"):
@@ -426,6 +425,8 @@ class SutureEnv(TaskScenes, PrivilegedState, gym.Env):
 
     def close(self):
         self._endoscope.close()
+        if self._wrist is not None:
+            self._wrist.close()
 
     # ------------------------------------------------------------------ internals
     def _reset_state(self) -> None:
@@ -469,6 +470,8 @@ class SutureEnv(TaskScenes, PrivilegedState, gym.Env):
         }
         if "pixels" in self.obs_type:
             obs["pixels"] = {"endoscope": self._look.degrade(self._endoscope.image(self.data))}
+            if self._wrist is not None:
+                obs["pixels"]["wrist"] = self._wrist.image(self.data)
         if self.obs_type in ("state", "pixels_agent_pos_state"):
             centre, rot = self.needle_pose()
             obs["environment_state"] = np.concatenate(

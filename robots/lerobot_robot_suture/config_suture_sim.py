@@ -19,6 +19,8 @@ from .faults import FaultConfig
 
 CAMERA = "endoscope"
 """The camera's name: LeRobot stores it as ``observation.images.endoscope``, the expert data's key."""
+WRIST_CAMERA = "wrist"
+"""The wrist camera's name (``--robot.wrist_camera=true``): ``observation.images.wrist``."""
 POSE_FEATURES = [f"{name}.pos" for name in POSE_NAMES]
 """The pose's scalar feature names, in the expert data's order (x, y, z, r11, r21, r31, r12, r22, r32,
 jaw). LeRobot stacks them into ``observation.state`` (10,) and ``action`` (10,); the ``.pos`` suffix is
@@ -40,6 +42,8 @@ class SutureSimConfig(RobotConfig):
         seed: seed of the scene at ``connect``; LeRobot's dataset episode ``N`` (``lerobot-record``,
             ``lerobot-rollout --strategy.type=episodic``) plays the scene of ``seed + N``.
         image_size: endoscope image side (px).
+        wrist_camera: add the image of a camera on the instrument's shaft (``wrist``, ``image_size`` too), as
+            a surgical robot with a wrist camera on each instrument reports it.
         scenario: perturbation scenario, one of ``lerobot_suture.sim.scenarios.SCENARIOS`` (or, in a task with a
             throw, ``SAFETY_SCENARIOS``: tissue that breathes).
         scenario_onset_step: onset (control steps); None takes the scenario's default.
@@ -74,6 +78,7 @@ class SutureSimConfig(RobotConfig):
     task: str = "insertion"
     seed: int = 0
     image_size: int = 96
+    wrist_camera: bool = False
     scenario: str = "nominal"
     scenario_onset_step: int | None = None
     scenario_magnitude: float | None = None
@@ -124,4 +129,5 @@ class SutureSimConfig(RobotConfig):
             "cbf": self.cbf if self.cbf.enabled else None,
             "tip_tracking": self.tip_tracking,
             "record_tip_trace": self.tip_trace,
+            **({"wrist_camera": True} if self.wrist_camera else {}),
         }

@@ -6,7 +6,8 @@ made with ``gym.make`` (behind the CBF safety filter when ``--robot.cbf.enabled=
 that ``lerobot-eval --env.type=suture`` and the expert recordings run.
 
 - ``get_observation()``: ``{"endoscope": (H, W, 3) uint8, "x.pos": ..., ..., "jaw.pos": ...}``, the
-  endoscope image and the measured pose of the needle holder (the env's ``agent_pos``).
+  endoscope image and the measured pose of the needle holder (the env's ``agent_pos``);
+  ``--robot.wrist_camera=true`` adds ``"wrist"``, the image of a camera on the instrument's shaft.
 - ``send_action({"x.pos": ..., ..., "jaw.pos": ...})``: the target pose of the needle holder; the env steps
   one control period (0.1 s, 50 physics steps) towards it. Returns the target clipped to the action space.
 - ``--robot.registration=true`` adds the registered wound and the needle in the jaw to the observation (what
@@ -37,7 +38,7 @@ from lerobot_suture.sim.tasks import task_spec
 from . import link
 from .cbf_step import GRASP_FEATURES, THROW_FEATURE, WOUND_FEATURES
 from .clock import ControlClock
-from .config_suture_sim import CAMERA, POSE_FEATURES, SutureSimConfig
+from .config_suture_sim import CAMERA, POSE_FEATURES, WRIST_CAMERA, SutureSimConfig
 from .episode_cues import EpisodeCues
 from .faults import FaultInjector
 
@@ -66,7 +67,8 @@ class SutureSim(Robot):
     def __init__(self, config: SutureSimConfig):
         super().__init__(config)
         self.config = config
-        self.cameras = {CAMERA: SimulatedCamera(config.image_size, config.image_size)}
+        cameras = (CAMERA, WRIST_CAMERA) if config.wrist_camera else (CAMERA,)
+        self.cameras = {name: SimulatedCamera(config.image_size, config.image_size) for name in cameras}
         self.task = task_spec(config.task).instruction
         """The task in words (pass it as ``--dataset.single_task``)."""
         self.env: gym.Env | None = None
@@ -97,7 +99,8 @@ class SutureSim(Robot):
     @cached_property
     def observation_features(self) -> dict[str, type | tuple]:
         size = self.config.image_size
-        return {**dict.fromkeys(POSE_FEATURES, float), CAMERA: (size, size, 3), **self._registration_features}
+        images = dict.fromkeys(self.cameras, (size, size, 3))
+        return {**dict.fromkeys(POSE_FEATURES, float), **images, **self._registration_features}
 
     @cached_property
     def _registration_features(self) -> dict[str, type]:
@@ -202,7 +205,8 @@ class SutureSim(Robot):
         """What the arm reports for the state it is in now, through the configured faults (once per step)."""
         pose = self._obs["agent_pos"]
         observation: dict = {name: float(v) for name, v in zip(POSE_FEATURES, pose, strict=True)}
-        observation[CAMERA] = self._obs["pixels"]["endoscope"]
+        for name in self.cameras:  # the env's pixels carry the same names
+            observation[name] = self._obs["pixels"][name]
         observation.update(self._registration())
         self._observed = self._faults.observe(observation)
 
