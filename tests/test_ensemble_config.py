@@ -85,7 +85,12 @@ def test_every_diffusion_field_is_reused():
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [
-        ({"n_members": 1}, "`n_members` must be >= 2. Got 1."),
+        ({"n_members": 0}, "`n_members` must be >= 1. Got 0."),
+        ({"n_members": 1}, r"A single member .* needs `uncertainty_samples_per_member` >= 2"),
+        (
+            {"n_members": 1, "uncertainty_samples_per_member": 4, "uncertainty_source": "epistemic"},
+            "has no members to disagree",
+        ),
         ({"member_seeds": [1, 2, 3]}, r"`member_seeds` must hold one seed per member \(2\). Got 3"),
         ({"member_seeds": [4, 4]}, "`member_seeds` must be distinct"),
         (

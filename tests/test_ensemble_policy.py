@@ -234,6 +234,19 @@ def test_prediction_shapes_and_statistics(policy):
     assert k1.normalized.aleatoric is None and k1.normalized.samples.shape[2] == 1
 
 
+def test_one_member_trains_and_reads_its_own_spread():
+    """The ensemble's member recipe as a single policy: one member, K samples, the same loss and target."""
+    policy = _policy(n_members=1, uncertainty_samples_per_member=4)
+    loss, _ = policy.forward(_train_batch(policy.config))
+    loss.backward()
+    assert torch.isfinite(loss)
+    pred = policy.eval().predict_action_distribution(random_observation(policy.config, batch_size=2))
+    stats = pred.normalized
+    assert stats.samples.shape[1:3] == (1, 4)
+    assert not stats.epistemic.any() and (pred.score > 0).all()
+    torch.testing.assert_close(stats.covariance, stats.aleatoric)
+
+
 def test_unnormalized_matches_lerobot_postprocessor(policy):
     from lerobot.policies.factory import make_pre_post_processors
 

@@ -125,6 +125,16 @@ def test_compute_ensemble_stats_shapes_and_k1():
     torch.testing.assert_close(stats_k.covariance, stats_k.aleatoric + stats_k.epistemic)
 
 
+def test_a_single_member_s_covariance_is_its_own_over_its_samples():
+    samples = torch.randn(2, 1, 6, 8, 3, generator=torch.Generator().manual_seed(4), dtype=torch.float64)
+    stats = compute_ensemble_stats(samples)
+    torch.testing.assert_close(stats.covariance, ensemble_covariance(samples[:, 0]))
+    torch.testing.assert_close(stats.aleatoric, stats.covariance)
+    assert not stats.epistemic.any()
+    with pytest.raises(ValueError, match="needs at least 2 samples"):
+        compute_ensemble_stats(samples[:, :, :1])
+
+
 def test_affine_matches_statistics_of_transformed_samples():
     samples = torch.randn(2, 5, 3, 8, 4, dtype=torch.float64)
     scale = torch.tensor([0.5, 2.0, 1.0, 3.0], dtype=torch.float64)

@@ -244,9 +244,9 @@ def test_an_approximation_must_leave_at_least_one_step_and_sample():
 
 
 @pytest.mark.slow
-def test_toy_leaderboard_trains_the_three_policies_and_ranks_them(tmp_path):
-    """The whole pipeline at toy scale: record, train LeRobot's ACT and diffusion and the ensemble with the
-    real lerobot-train, calibrate, evaluate."""
+def test_toy_leaderboard_trains_the_four_policies_and_ranks_them(tmp_path):
+    """The whole pipeline at toy scale: record, train LeRobot's ACT and diffusion, the ensemble and its member
+    with the real lerobot-train, calibrate, evaluate."""
     results = tmp_path / "results"
     cli_main(
         [
@@ -260,8 +260,17 @@ def test_toy_leaderboard_trains_the_three_policies_and_ranks_them(tmp_path):
         ]
     )
     board = json.loads((results / "leaderboard.json").read_text())
-    assert set(board["tasks"]["insertion"]) == {"act", "diffusion", "ensemble_diffusion"}
+    assert set(board["tasks"]["insertion"]) == {"act", "diffusion", "ensemble_member", "ensemble_diffusion"}
     assert board["tasks"]["insertion"]["act"]["nominal"]["gate"] is None
+    # The ensemble's member as a single policy: one member of the ensemble's recipe, with its own gate.
+    member = json.loads(
+        (
+            tmp_path / "work/train/insertion/ensemble_member/checkpoints/last/pretrained_model/config.json"
+        ).read_text()
+    )
+    assert member["n_members"] == 1 and member["uncertainty_samples_per_member"] > 1
+    assert board["tasks"]["insertion"]["ensemble_member"]["nominal"]["gate"] is not None
+    assert "calibrate insertion ensemble_member" in board["timings"]
     assert {"record insertion", "train insertion act", "evaluate insertion diffusion"} <= set(
         board["timings"]
     )

@@ -1,10 +1,11 @@
 """``lerobot-suture leaderboard``: LeRobot's policies and the ensemble on every task, the same test seeds for all.
 
 For each task (``tasks.TASKS``) and each policy (:data:`POLICIES`: LeRobot's own ``act`` and ``diffusion``,
-and ``ensemble_diffusion``) it takes a trained checkpoint (``--checkpoints=TASK:POLICY=DIR``) or makes one
-from nothing: records the task's dataset recipe (:data:`TASK_RECIPES`) into ``output_dir/data``, trains the
-policy's CPU preset on it with the real ``lerobot-train`` (the same training episodes and the same number of
-steps for the three policies: the task's ensemble preset's), and calibrates the ensemble's gate. Then it
+``ensemble_member`` and ``ensemble_diffusion``) it takes a trained checkpoint (``--checkpoints=TASK:POLICY=DIR``)
+or makes one from nothing: records the task's dataset recipe (:data:`TASK_RECIPES`) into ``output_dir/data``,
+trains the policy's CPU preset on it with the real ``lerobot-train`` (the same training episodes and the same
+number of steps for every policy: the task's ensemble preset's), and calibrates the gates of the ensemble and
+of its member. Then it
 evaluates every policy on every condition of its task (:mod:`lerobot_suture.leaderboard.cells`) and
 writes ``leaderboard.json``, ``leaderboard.md`` and ``leaderboard.png`` into ``results_dir``.
 
@@ -42,9 +43,13 @@ TASK_RECIPES = {
     "running_suture": (REPO_ROOT / "recipes" / "suture_running.yaml", PRESETS / "running_suture.json"),
 }
 """Each task's dataset recipe and its ensemble preset (whose dataset episodes and steps every policy uses)."""
-POLICIES = ("act", "diffusion", "ensemble_diffusion")
+POLICIES = ("act", "diffusion", "ensemble_member", "ensemble_diffusion")
 POLICY_PRESETS = {"act": PRESETS / "act.json", "diffusion": PRESETS / "diffusion.json"}
 """LeRobot's own policies' CPU presets; ``ensemble_diffusion`` trains with the task's own preset."""
+GATED = {"ensemble_member": ["--policy.n_members=1"], "ensemble_diffusion": []}
+"""The rows with a gate to calibrate, trained from the task's ensemble preset with these flags:
+``ensemble_member`` is the ensemble's member recipe as a single policy (the same target, backbone and K
+samples), so the difference between the two rows is the ensemble's."""
 
 
 def default_shifts() -> list[str]:
@@ -163,7 +168,7 @@ def train_policy(cfg: LeaderboardConfig, task: str, policy: str, dataset_root: P
 
     task_preset = TASK_RECIPES[task][1]
     reference = json.loads(task_preset.read_text())
-    preset = task_preset if policy == "ensemble_diffusion" else POLICY_PRESETS[policy]
+    preset = task_preset if policy in GATED else POLICY_PRESETS[policy]
     steps = 4 if cfg.toy else int(reference["steps"])
     episodes = train_episodes(dataset_root) if cfg.toy else reference["dataset"]["episodes"]
     fresh = [
@@ -171,6 +176,7 @@ def train_policy(cfg: LeaderboardConfig, task: str, policy: str, dataset_root: P
         f"--dataset.repo_id={reference['dataset']['repo_id']}",
         f"--dataset.episodes=[{','.join(str(e) for e in episodes)}]",
         f"--job_name={task}_{policy}",
+        *GATED.get(policy, []),
     ]
     if cfg.toy:
         fresh += ["--batch_size=4", "--num_workers=0", "--log_freq=1"]
@@ -325,10 +331,10 @@ def run_leaderboard(cfg: LeaderboardConfig) -> dict:
                         cpus=cfg.train_cpus,
                     )  # fmt: skip
                 after = []
-                if policy == "ensemble_diffusion" and dataset_root is not None:
+                if policy in GATED and dataset_root is not None:
                     after.append(
                         graph.submit(
-                            f"calibrate {task}",
+                            f"calibrate {task}" + ("" if policy == "ensemble_diffusion" else f" {policy}"),
                             "calibrate",
                             calibrate_policy,
                             policy_dir,

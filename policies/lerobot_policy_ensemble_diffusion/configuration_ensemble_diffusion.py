@@ -95,7 +95,9 @@ class EnsembleDiffusionConfig(DiffusionConfig):
             such as the needle, steer the keypoints; fewer stages also cost less.
         optimizer_weight_decay: Weight decay (paper: 0.1), decoupled when `optimizer_name="adamw"`.
         scheduler_warmup_steps: Learning-rate warm-up steps (paper: 100).
-        n_members: Number of ensemble members N. Must be >= 2 (a covariance needs two samples).
+        n_members: Number of ensemble members N, >= 1. N = 1 is the ensemble's member recipe as a single
+            policy (the same target, backbone and K samples): its covariance is the member's own over its
+            K >= 2 samples, and its epistemic part is zero (no other member to disagree with).
         member_seeds: Seed of each member's initialisation, one per member. None (default): members are
             initialised one after another from the global torch RNG (seeded by `lerobot-train --seed`),
             which already makes them independent and reproducible.
@@ -185,8 +187,16 @@ class EnsembleDiffusionConfig(DiffusionConfig):
     def __post_init__(self):
         super().__post_init__()
 
-        if self.n_members < 2:
-            raise ValueError(f"`n_members` must be >= 2. Got {self.n_members}.")
+        if self.n_members < 1:
+            raise ValueError(f"`n_members` must be >= 1. Got {self.n_members}.")
+        if self.n_members == 1 and (
+            self.uncertainty_samples_per_member < 2 or self.uncertainty_source == "epistemic"
+        ):
+            raise ValueError(
+                "A single member (`n_members`=1) has no members to disagree: its covariance needs "
+                "`uncertainty_samples_per_member` >= 2 and `uncertainty_source` 'total' or 'aleatoric'. Got "
+                f"{self.uncertainty_samples_per_member} and {self.uncertainty_source!r}."
+            )
         if self.member_seeds is not None:
             self.member_seeds = [int(s) for s in self.member_seeds]
             if len(self.member_seeds) != self.n_members:
@@ -212,7 +222,7 @@ class EnsembleDiffusionConfig(DiffusionConfig):
             )
         if self.covariance_correction not in (0, 1):
             raise ValueError(f"`covariance_correction` must be 0 or 1. Got {self.covariance_correction}.")
-        if self.covariance_correction >= self.n_members:
+        if self.n_members > 1 and self.covariance_correction >= self.n_members:
             raise ValueError(
                 f"`covariance_correction` ({self.covariance_correction}) must be < `n_members` ({self.n_members})."
             )

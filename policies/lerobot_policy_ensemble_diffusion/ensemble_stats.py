@@ -78,16 +78,19 @@ def total_covariance_split(samples: Tensor, correction: int = 1) -> tuple[Tensor
     """Split the ensemble covariance by the law of total covariance.
 
     Args:
-        samples: (..., N, K, T, A) samples, K per member, K >= 2 and N >= 2 (for `correction=1`).
+        samples: (..., N, K, T, A) samples, K per member, K >= 2 (for `correction=1`), N >= 1.
         correction: Bessel correction of both terms (see module docstring).
     Returns:
         aleatoric: (..., T, A, A) mean over members of each member's covariance over its K samples.
-        epistemic: (..., T, A, A) covariance over members of each member's mean over its K samples.
+        epistemic: (..., T, A, A) covariance over members of each member's mean over its K samples; zero
+            for a single member, which has none to disagree with.
         total: (..., T, A, A) aleatoric + epistemic.
     """
     member_means = ensemble_mean(samples)  # (..., N, T, A): mean over each member's K samples
     within = ensemble_covariance(samples, correction=correction)  # (..., N, T, A, A)
     aleatoric = within.mean(dim=-4)  # (..., T, A, A)
+    if member_means.shape[-3] == 1:
+        return aleatoric, torch.zeros_like(aleatoric), aleatoric
     epistemic = ensemble_covariance(member_means, correction=correction)  # (..., T, A, A)
     return aleatoric, epistemic, aleatoric + epistemic
 
@@ -154,7 +157,7 @@ def compute_ensemble_stats(samples: Tensor, correction: int = 1) -> EnsembleActi
     """All statistics of a batch of ensemble samples.
 
     Args:
-        samples: (B, N, K, T, A) samples, N >= 2.
+        samples: (B, N, K, T, A) samples, N >= 2, or N = 1 with K >= 2.
         correction: Bessel correction of the covariances.
     Returns:
         EnsembleActionStats; with K = 1 `covariance` is the paper's ensemble covariance over the N members.

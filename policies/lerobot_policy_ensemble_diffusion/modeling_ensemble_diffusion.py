@@ -270,7 +270,7 @@ class EnsembleDiffusionPolicy(GatedPolicyMixin, FeatureCaptureMixin, PreTrainedP
             raise ValueError(
                 f"`noise` must have shape (B, N, K, T, A) = {(batch_size, n, k, t_len, a)}. Got {tuple(noise.shape)}."
             )
-        if self.config.batched_inference and not self.training:
+        if self.config.batched_inference and n > 1 and not self.training:  # one member: nothing to fuse
             fused = self._fused_members()
             global_cond = fused.encode(batch)  # (B, N, G)
             out = fused.sample(
