@@ -151,12 +151,10 @@ class StageGraph:
                 left = time_left(
                     [k for k in pending.values()], self.kinds, self.cpus, seconds, running, slots
                 )
-                bar.set_postfix_str(
-                    f"{sum(self.kinds.get(k) == unit_kind for k in running)} running, "
-                    + ", ".join(sorted(k for k in running if self.kinds.get(k) != unit_kind)[:2])
-                    + f"{', ' if running else ''}left {_clock(left)}",
-                    refresh=False,
-                )
+                others = sorted(k for k in running if self.kinds.get(k) != unit_kind)[:2]
+                cells_running = sum(self.kinds.get(k) == unit_kind for k in running)
+                # Redrawn at every wait, so that a long training shows it is running.
+                bar.set_postfix_str(", ".join([f"{cells_running} running", *others, f"left {_clock(left)}"]))
         return results, seconds, failures
 
 
