@@ -5,9 +5,9 @@ For each task (``tasks.TASKS``) and each policy (:data:`POLICIES`: LeRobot's own
 or makes one from nothing: records the task's dataset recipe (:data:`TASK_RECIPES`) into ``output_dir/data``,
 trains the policy's CPU preset on it with the real ``lerobot-train`` (the same training episodes and the same
 number of steps for every policy: the task's ensemble preset's), and calibrates the gates of the ensemble and
-of its member. Then it
-evaluates every policy on every condition of its task (:mod:`lerobot_suture.leaderboard.cells`) and
-writes ``leaderboard.json``, ``leaderboard.md`` and ``leaderboard.png`` into ``results_dir``.
+of its member. Then it evaluates every policy on every condition of its task
+(:mod:`lerobot_suture.leaderboard.cells`) and writes ``leaderboard.json``, ``leaderboard.md`` and
+``leaderboard.png`` into ``results_dir``.
 
 Every stage (record, train, calibrate, and each cell's evaluation) is a Ray task
 (:mod:`lerobot_suture.leaderboard.ray_stages`): on this machine by default, on a cluster with
@@ -45,7 +45,7 @@ TASK_RECIPES = {
 """Each task's dataset recipe and its ensemble preset (whose dataset episodes and steps every policy uses)."""
 POLICIES = ("act", "diffusion", "ensemble_member", "ensemble_diffusion")
 POLICY_PRESETS = {"act": PRESETS / "act.json", "diffusion": PRESETS / "diffusion.json"}
-"""LeRobot's own policies' CPU presets; ``ensemble_diffusion`` trains with the task's own preset."""
+"""LeRobot's own policies' CPU presets; the rows of :data:`GATED` train with the task's own preset."""
 GATED = {"ensemble_member": ["--policy.n_members=1"], "ensemble_diffusion": []}
 """The rows with a gate to calibrate, trained from the task's ensemble preset with these flags:
 ``ensemble_member`` is the ensemble's member recipe as a single policy (the same target, backbone and K

@@ -147,10 +147,12 @@ class StageGraph:
                         logger.error("stage %s failed: %s", key, failures[key])
                     if self.kinds[key] == unit_kind:
                         bar.update(1)
-                running = ray.get(self._progress.snapshot.remote())
-                left = time_left(
-                    [k for k in pending.values()], self.kinds, self.cpus, seconds, running, slots
-                )
+                unfinished = list(pending.values())
+                # A stage's "finished" may reach the board after its result reached this loop.
+                running = {
+                    k: t for k, t in ray.get(self._progress.snapshot.remote()).items() if k in unfinished
+                }
+                left = time_left(unfinished, self.kinds, self.cpus, seconds, running, slots)
                 others = sorted(k for k in running if self.kinds.get(k) != unit_kind)[:2]
                 cells_running = sum(self.kinds.get(k) == unit_kind for k in running)
                 # Redrawn at every wait, so that a long training shows it is running.
