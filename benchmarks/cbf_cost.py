@@ -4,7 +4,9 @@ A filter that froze the arm would pass every violation bar, so its cost is part 
 (``attack_episodes.CONDITIONS`` within the bounds: tissue still, servoed, moved after insertion, breathing at the
 declared bound; on the robot path also an arm lagging 10, 20 or 30%), ``--episodes`` nominal throws (seeds from
 ``--first-seed``) with ``CBFConfig(enabled=True)`` and the same seeds with the filter only watching
-(``enabled=False``). The actor is the scripted expert, or a trained policy (``--policy-path``, env path only).
+(``enabled=False``). The actor is the scripted expert, or a trained policy (``--policy-path``): on the robot
+path it acts from the arm's observation, through the condition's faults, and its action goes through the
+robot's ``suture_cbf`` step, as ``lerobot-rollout`` runs it.
 Harm is counted as in ``benchmarks/cbf_adversary.py``, at every physics step.
 
 Prints one JSON object: per condition, with and without the filter, success (and its Wilson 95% interval),
@@ -52,7 +54,7 @@ class ExpertActor:
 
 
 class PolicyActor:
-    """A trained policy, acting from the env path's observations."""
+    """A trained policy, acting from the path's observations."""
 
     def __init__(self, runner):
         self.runner = runner
@@ -104,7 +106,7 @@ def main() -> None:
     )
     parser.add_argument("--episodes", type=int, default=100)
     parser.add_argument("--first-seed", type=int, default=1000)
-    parser.add_argument("--policy-path", type=Path, default=None, help="a trained policy (env path)")
+    parser.add_argument("--policy-path", type=Path, default=None, help="a trained policy")
     parser.add_argument("--output", type=Path, default=None, help="also write the JSON here")
     args = parser.parse_args()
 
@@ -115,8 +117,6 @@ def main() -> None:
     env_kwargs: dict = {}
     actor = ExpertActor()
     if args.policy_path is not None:
-        if args.path != "env":
-            parser.error("--policy-path runs on the env path")
         from lerobot_suture.runtime.policy import GateMode, PolicyRunner, env_kwargs_for_policy
 
         runner = PolicyRunner.from_pretrained(args.policy_path, GateMode.REPORT)

@@ -570,3 +570,29 @@ def test_commands_are_slowed_to_the_arm_s_tip_speed_relative_to_moving_tissue():
     assert np.linalg.norm(result.v_safe) == pytest.approx(0.05, rel=1e-9) and result.intervened
     with pytest.raises(ValueError, match="max_tip_speed"):
         TipGuard(max_tip_speed=0.0)
+
+
+def test_a_policy_on_the_robot_path_sees_the_arm_s_observation_in_the_env_s_layout():
+    """What ``cbf_cost.py --path robot --policy-path`` hands a policy: the env's keys, shapes and dtypes, from
+    the arm's own observation (its faults included), not from the simulator."""
+    from lerobot_robot_suture.attacks import RobotPath
+
+    from lerobot_suture.sim.suture_env import SutureEnv
+
+    env = SutureEnv(image_size=24)
+    expected, _ = env.reset(seed=4)
+    env.close()
+    path = RobotPath(CONDITIONS["observation_latency_3"], image_size=24)
+    try:
+        path.reset(4)
+        seen = path.observation
+        assert seen["pixels"]["endoscope"].shape == expected["pixels"]["endoscope"].shape
+        assert seen["agent_pos"].dtype == expected["agent_pos"].dtype == np.float32
+        np.testing.assert_allclose(seen["agent_pos"], expected["agent_pos"], atol=1e-6)
+        held = seen["agent_pos"].copy()
+        target = held.copy()
+        target[2] += 0.01
+        path.send(target)
+        np.testing.assert_array_equal(path.observation["agent_pos"], held)  # 3 steps late: not moved yet
+    finally:
+        path.close()

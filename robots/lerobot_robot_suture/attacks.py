@@ -17,7 +17,7 @@ from lerobot_suture.experiments.attack_episodes import AttackCondition, PathStep
 from lerobot_suture.safety.cbf_config import CBFConfig
 
 from .cbf_step import SutureCBFStep
-from .config_suture_sim import POSE_FEATURES, SutureSimConfig
+from .config_suture_sim import CAMERA, POSE_FEATURES, SutureSimConfig
 from .faults import FaultConfig
 from .suture_sim import SutureSim
 
@@ -28,7 +28,8 @@ class RobotPath:
 
     Args:
         condition: the scene and the arm's faults. cbf: the filter (None: ``CBFConfig(enabled=True)``).
-        image_size: the endoscope image side (px), small: the attacks do not read it.
+        image_size: the endoscope image side (px): small for the attacks, which do not read it; a policy's
+            own for a policy acting from :attr:`observation`.
     """
 
     def __init__(self, condition: AttackCondition, cbf: CBFConfig | None = None, image_size: int = 32):
@@ -61,6 +62,14 @@ class RobotPath:
     @property
     def scene(self):
         return self.robot.env
+
+    @property
+    def observation(self) -> dict:
+        """What a policy acting on the arm sees, in the env's layout (``pixels``, ``agent_pos``): the robot's
+        observation, through its faults, as ``lerobot-rollout`` hands it to a policy."""
+        observation = self.robot.get_observation()
+        pose = np.array([observation[name] for name in POSE_FEATURES], dtype=np.float32)
+        return {"pixels": {CAMERA: observation[CAMERA]}, "agent_pos": pose}
 
     @property
     def phase(self) -> str:
