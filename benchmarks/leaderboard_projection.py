@@ -11,7 +11,8 @@ The inputs are the board's measured times: ``timings`` for record, train and cal
 on Ray a cell holds one core, so its time is scaled by the one-core slowdown measured by
 ``eval_throughput.json`` (8 envs in one process on 2 threads, against each of 2 one-thread workers). A
 stage the board lacks (a row that joined with its checkpoint, not trained by the board) takes the mean of
-the same stage on the other tasks, and is listed under ``estimated``.
+the same stage on the other tasks, and is listed under ``estimated``; a row the board lacks on a task takes
+its cells' times from the ensemble's row there.
 
     .venv/bin/python benchmarks/leaderboard_projection.py [--machines 1 16] [--output FILE]
 """
@@ -25,10 +26,11 @@ from statistics import mean
 
 from _report import emit, machine
 
+from lerobot_suture.leaderboard.cells import conditions
+from lerobot_suture.leaderboard.pipeline import GATED, POLICIES
 from lerobot_suture.leaderboard.schedule import Stage, makespan
 
 ROOT = Path(__file__).resolve().parents[1]
-POLICIES = ("act", "diffusion", "ensemble_diffusion")
 
 
 def one_core_slowdown(throughput: dict) -> float:
@@ -46,13 +48,10 @@ def board_graph(board: dict, slowdown: float, train_cpus: int) -> tuple[list[Sta
     def seconds(stage: str) -> float:
         if stage in timings:
             return timings[stage]
-        kind, _, rest = stage.partition(" ")
-        policy = rest.split(" ", 1)[1] if kind == "train" else None
-        same = [
-            s
-            for key, s in timings.items()
-            if key.startswith(kind + " ") and (policy is None or key.endswith(" " + policy))
-        ]
+        kind, task, *row = stage.split(" ")
+        # The same stage on the other tasks; else any stage of its kind on its task.
+        same = [s for key, s in timings.items() if key.split(" ")[0] == kind and key.split(" ")[2:] == row]
+        same = same or [s for key, s in timings.items() if key.split(" ")[:2] == [kind, task]]
         estimated.append(stage)
         return mean(same)
 
@@ -60,19 +59,20 @@ def board_graph(board: dict, slowdown: float, train_cpus: int) -> tuple[list[Sta
         record = f"record {task}"
         stages.append(Stage(record, seconds(record)))
         for policy in POLICIES:
-            if policy not in rows:
-                continue
+            row = rows.get(policy)
+            if row is None:
+                row = rows["ensemble_diffusion"]
+                estimated.append(f"evaluate {task} {policy}")
             train = f"train {task} {policy}"
             stages.append(Stage(train, seconds(train), cpus=train_cpus, after=(record,)))
             before = (train,)
-            if policy == "ensemble_diffusion":
-                calibrate = f"calibrate {task}"
+            if policy in GATED:
+                calibrate = f"calibrate {task}" + ("" if policy == "ensemble_diffusion" else f" {policy}")
                 stages.append(Stage(calibrate, seconds(calibrate), after=(train,)))
                 before = (train, calibrate)
-            for condition, cell in rows[policy].items():
-                stages.append(
-                    Stage(f"evaluate {task} {policy} {condition}", cell["seconds"] * slowdown, after=before)
-                )
+            for condition in conditions(task, board["shifts"]):  # the cells a run of the table makes
+                seconds_one_core = row[condition]["seconds"] * slowdown
+                stages.append(Stage(f"evaluate {task} {policy} {condition}", seconds_one_core, after=before))
     return stages, estimated
 
 
