@@ -121,3 +121,12 @@ def test_the_studies_subcommands_run_from_their_own_distribution(name, capsys):
     with pytest.raises(SystemExit) as exit_:
         cli_main([name, "--help"])
     assert exit_.value.code == 0 and "--output_dir" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("name", list(SUBCOMMANDS))
+def test_every_subcommand_s_help_lists_its_flags(name, capsys):
+    """Each subcommand, run as a user would, answers ``--help`` with its usage and exits 0."""
+    with pytest.raises(SystemExit) as exit_:
+        cli_main([name, "--help"])
+    out = capsys.readouterr().out
+    assert exit_.value.code == 0 and "usage" in out.lower() and "--" in out, out[:500]
