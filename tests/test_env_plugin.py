@@ -23,6 +23,16 @@ def suture_config_cls():
     return EnvConfig.get_choice_class("suture")
 
 
+@dataclass
+class EvalLike:  # how lerobot-eval and lerobot-train nest the env config
+    env: EnvConfig
+
+
+def _parse_env(*flags: str) -> EnvConfig:
+    """The env config from ``--env.*`` flags, as LeRobot's commands parse it (plugins registered first)."""
+    return draccus.parse(EvalLike, args=["--env.type=suture", *flags]).env
+
+
 def test_policy_features_from_env_config(suture_config_cls):
     cfg = suture_config_cls(image_size=32)
     features = env_to_policy_features(cfg)
@@ -35,19 +45,7 @@ def test_policy_features_from_env_config(suture_config_cls):
 
 
 def test_cli_flags_parse_nested_cbf_and_scenario(suture_config_cls):
-    @dataclass
-    class EvalLike:  # how lerobot-eval nests the env config
-        env: EnvConfig
-
-    cfg = draccus.parse(
-        EvalLike,
-        args=[
-            "--env.type=suture",
-            "--env.scenario=needle_drop",
-            "--env.cbf.enabled=true",
-            "--env.cbf.alpha=3.0",
-        ],
-    ).env
+    cfg = _parse_env("--env.scenario=needle_drop", "--env.cbf.enabled=true", "--env.cbf.alpha=3.0")
     assert isinstance(cfg, suture_config_cls)
     assert cfg.scenario == "needle_drop" and cfg.cbf.enabled and cfg.cbf.alpha == 3.0
     assert cfg.gym_kwargs["cbf"] is cfg.cbf
@@ -71,13 +69,8 @@ def test_cli_flags_parse_nested_cbf_and_scenario(suture_config_cls):
 )
 def test_bad_config_values_raise_naming_the_field(suture_config_cls, flag, message):
     """Each check of the env config, from the flag as lerobot-eval and lerobot-train parse it."""
-
-    @dataclass
-    class EvalLike:
-        env: EnvConfig
-
     with pytest.raises(draccus.utils.ParsingError) as err:
-        draccus.parse(EvalLike, args=["--env.type=suture", flag])
+        _parse_env(flag)
     assert isinstance(err.value.__cause__, ValueError) and message in str(err.value.__cause__)
 
 
@@ -122,15 +115,7 @@ def test_cbf_enabled_from_the_env_config_wraps_every_env(suture_config_cls):
 
 def test_appearance_flags_reach_the_env(suture_config_cls):
     """``--env.appearance.<option>`` as lerobot-eval parses it; the default kwargs do not name it."""
-
-    @dataclass
-    class EvalLike:
-        env: EnvConfig
-
-    cfg = draccus.parse(
-        EvalLike,
-        args=["--env.type=suture", "--env.obs_type=state", "--env.appearance.camera_roll=0.2"],
-    ).env
+    cfg = _parse_env("--env.obs_type=state", "--env.appearance.camera_roll=0.2")
     assert cfg.gym_kwargs["appearance"]["camera_roll"] == 0.2
     assert "appearance" not in suture_config_cls().gym_kwargs
     vec = make_env(cfg, n_envs=1, use_async_envs=False)["suture"][0]
@@ -140,3 +125,21 @@ def test_appearance_flags_reach_the_env(suture_config_cls):
         assert sample is not None and 0 < abs(sample.camera_roll) <= 0.2
     finally:
         vec.close()
+
+
+def test_the_wrist_camera_flag_adds_its_image(suture_config_cls):
+    """``--env.wrist_camera=true``: ``observation.images.wrist`` beside the endoscope, through LeRobot's factory
+    and preprocessing; the default kwargs do not name it, and a config without images refuses it."""
+    cfg = _parse_env("--env.wrist_camera=true", "--env.image_size=32", "--env.episode_length=2")
+    features = env_to_policy_features(cfg)
+    assert features["observation.images.wrist"].shape == features["observation.images.endoscope"].shape
+    assert "wrist_camera" not in suture_config_cls().gym_kwargs
+    vec = make_env(cfg, n_envs=1, use_async_envs=False)["suture"][0]
+    try:
+        obs, _ = vec.reset(seed=[0])
+        batch = preprocess_observation(obs)
+        assert batch["observation.images.wrist"].shape == (1, 3, 32, 32)
+    finally:
+        vec.close()
+    with pytest.raises(ValueError, match="--env.obs_type=pixels_agent_pos"):
+        suture_config_cls(obs_type="state", wrist_camera=True)

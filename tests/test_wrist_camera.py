@@ -1,16 +1,10 @@
-"""The wrist camera: opt-in on the env and through LeRobot's env config; an env without it is unchanged."""
+"""The wrist camera: opt-in on the env, the robot and the recorder; an env without it is unchanged (its LeRobot
+env-config flag is tested with the others in `test_env_plugin.py`)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
-import draccus
 import numpy as np
 import pytest
-from lerobot.envs.configs import EnvConfig
-from lerobot.envs.factory import make_env
-from lerobot.envs.utils import env_to_policy_features, preprocess_observation
-from lerobot.utils.import_utils import register_third_party_plugins
 
 from lerobot_suture.expert import ScriptedExpert
 from lerobot_suture.sim.suture_env import SutureEnv
@@ -52,36 +46,6 @@ def test_the_wrist_camera_leaves_the_episode_as_it_was_and_sees_the_instrument_m
 def test_a_wrist_camera_needs_an_observation_with_images():
     with pytest.raises(ValueError, match="`wrist_camera` adds an image"):
         SutureEnv(obs_type="state", wrist_camera=True)
-
-
-def test_lerobot_env_config_adds_the_wrist_image():
-    register_third_party_plugins()
-
-    @dataclass
-    class EvalLike:  # how lerobot-eval nests the env config
-        env: EnvConfig
-
-    cfg = draccus.parse(
-        EvalLike,
-        args=[
-            "--env.type=suture",
-            "--env.wrist_camera=true",
-            "--env.image_size=32",
-            "--env.episode_length=2",
-        ],
-    ).env
-    features = env_to_policy_features(cfg)
-    assert features["observation.images.wrist"].shape == features["observation.images.endoscope"].shape
-    assert "wrist_camera" not in EnvConfig.get_choice_class("suture")().gym_kwargs
-    vec = make_env(cfg, n_envs=1, use_async_envs=False)["suture"][0]
-    try:
-        obs, _ = vec.reset(seed=[0])
-        batch = preprocess_observation(obs)
-        assert batch["observation.images.wrist"].shape == (1, 3, 32, 32)
-    finally:
-        vec.close()
-    with pytest.raises(ValueError, match="--env.obs_type=pixels_agent_pos"):
-        EnvConfig.get_choice_class("suture")(obs_type="state", wrist_camera=True)
 
 
 def test_the_robot_reports_the_wrist_image_as_a_second_camera():
