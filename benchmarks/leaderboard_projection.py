@@ -27,7 +27,7 @@ from statistics import mean
 from _report import emit, machine
 
 from lerobot_suture.leaderboard.cells import conditions
-from lerobot_suture.leaderboard.pipeline import GATED, POLICIES
+from lerobot_suture.leaderboard.pipeline import GATED, POLICIES, calibrate_stage
 from lerobot_suture.leaderboard.schedule import Stage, makespan
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -67,7 +67,7 @@ def board_graph(board: dict, slowdown: float, train_cpus: int) -> tuple[list[Sta
             stages.append(Stage(train, seconds(train), cpus=train_cpus, after=(record,)))
             before = (train,)
             if policy in GATED:
-                calibrate = f"calibrate {task}" + ("" if policy == "ensemble_diffusion" else f" {policy}")
+                calibrate = calibrate_stage(task, policy)
                 stages.append(Stage(calibrate, seconds(calibrate), after=(train,)))
                 before = (train, calibrate)
             for condition in conditions(task, board["shifts"]):  # the cells a run of the table makes

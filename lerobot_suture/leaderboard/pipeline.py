@@ -142,6 +142,17 @@ class LeaderboardConfig:
                 "of a lerobot-train checkpoint."
             )
 
+    @property
+    def cell_gpus(self) -> float:
+        """The share of a GPU a cell or a calibration holds: 1 / ``cells_per_gpu`` with a CUDA device, else 0."""
+        return 1 / self.cells_per_gpu if self.device.startswith("cuda") else 0
+
+
+def calibrate_stage(task: str, policy: str) -> str:
+    """The key of the calibration of ``policy``'s gate on ``task`` (the ensemble's keeps its first name,
+    ``calibrate TASK``, so that boards timed before the member's row read the same)."""
+    return f"calibrate {task}" + ("" if policy == "ensemble_diffusion" else f" {policy}")
+
 
 def parse_checkpoints(entries: list[str]) -> dict[tuple[str, str], Path]:
     """``TASK:POLICY=DIR`` entries as {(task, policy): DIR}; a ValueError names a malformed one."""
@@ -260,7 +271,6 @@ def submit_row(
 ) -> dict:
     """Every condition of ``task`` for row ``name``: the finished cells read back, a stage submitted for each
     other one; {condition: the cell, or its stage's key}."""
-    gpus = 1 / cfg.cells_per_gpu if cfg.device.startswith("cuda") else 0
     row = {}
     for condition in cells.conditions(task, cfg.shifts):
         cell = finished_cell(cell_path(cfg, task, name, condition), overrides)
@@ -277,7 +287,7 @@ def submit_row(
                 overrides,
                 condition,
                 *after,
-                gpus=gpus,
+                gpus=cfg.cell_gpus,
             )
         row[condition] = cell
     return row
@@ -315,7 +325,6 @@ def run_leaderboard(cfg: LeaderboardConfig) -> dict:
         for task in cfg.tasks:
             submitted[task, name] = submit_row(graph, cfg, task, name, policy_dir, cfg.policy.overrides)
     else:
-        gpus = 1 / cfg.cells_per_gpu if cfg.device.startswith("cuda") else 0
         for task in cfg.tasks:
             dataset_root = None
             if any((task, p) not in cfg.taken for p in cfg.policies):
@@ -334,14 +343,14 @@ def run_leaderboard(cfg: LeaderboardConfig) -> dict:
                 if policy in GATED and dataset_root is not None:
                     after.append(
                         graph.submit(
-                            f"calibrate {task}" + ("" if policy == "ensemble_diffusion" else f" {policy}"),
+                            calibrate_stage(task, policy),
                             "calibrate",
                             calibrate_policy,
                             policy_dir,
                             dataset_root,
                             cfg.device,
                             cfg.toy,
-                            gpus=gpus,
+                            gpus=cfg.cell_gpus,
                         )  # fmt: skip
                     )
                 submitted[task, policy] = submit_row(graph, cfg, task, policy, policy_dir, {}, *after)
