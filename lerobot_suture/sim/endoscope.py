@@ -8,7 +8,7 @@ import mujoco
 import numpy as np
 
 from lerobot_suture.sim.geometry import project_to_image, quat_from_matrix
-from lerobot_suture.sim.rendering import make_renderer, upload_texture
+from lerobot_suture.sim.rendering import make_renderer, update_poses, upload_texture
 
 # Viewpoint of the training data: spherical about the work site (rad, m).
 ENDOSCOPE_TARGET = np.array([0.0, 0.0, 0.012])
@@ -72,9 +72,7 @@ class Endoscope:
 
     def update_poses(self, data: mujoco.MjData) -> None:
         """Bring body and camera poses up to date before a render or a projection."""
-        # The held needle was snapped and the camera may have moved after MuJoCo's last forward pass.
-        mujoco.mj_kinematics(self._model, data)
-        mujoco.mj_camlight(self._model, data)
+        update_poses(self._model, data)
 
     def image(self, data: mujoco.MjData) -> np.ndarray:
         """The observation image, (image_size, image_size, 3) uint8."""

@@ -65,3 +65,12 @@ def upload_texture(model, renderers, texture_id: int) -> None:
         # mujoco.Renderer keeps its GL and MuJoCo render contexts private; the upload needs both.
         r._gl_context.make_current()
         mujoco.mjr_uploadTexture(model, r._mjr_context, texture_id)
+
+
+def update_poses(model, data) -> None:
+    """Bring body and camera poses up to date before a render or a projection: the held needle was snapped,
+    and a camera may have moved, after MuJoCo's last forward pass."""
+    import mujoco
+
+    mujoco.mj_kinematics(model, data)
+    mujoco.mj_camlight(model, data)

@@ -13,7 +13,7 @@ import math
 import mujoco
 import numpy as np
 
-from lerobot_suture.sim.rendering import make_renderer, upload_texture
+from lerobot_suture.sim.rendering import make_renderer, update_poses, upload_texture
 
 WRIST_CAMERA = "wrist"
 WRIST_CAMERA_POS = (0.005, 0.0, 0.03)
@@ -53,8 +53,7 @@ class WristCamera:
         """The wrist image, (image_size, image_size, 3) uint8."""
         if self._renderer is None:
             self._renderer = make_renderer(self._model, self._image_size, self._image_size)
-        mujoco.mj_kinematics(self._model, data)  # the held needle was snapped after the last forward pass
-        mujoco.mj_camlight(self._model, data)
+        update_poses(self._model, data)
         self._renderer.update_scene(data, camera=self._camera)
         return self._renderer.render().copy()
 
