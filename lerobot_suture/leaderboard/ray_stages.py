@@ -22,7 +22,7 @@ import logging
 import time
 from collections import defaultdict
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from tqdm import tqdm
 
@@ -90,16 +90,15 @@ class StageGraph:
     :meth:`run` waits for all of them with a progress bar."""
 
     address: str | None = None
-    kinds: dict[str, str] = field(default_factory=dict)  # stage key -> kind ("record", "cell", ...)
-    cpus: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self):
         import ray
-
-        self.resources = connect(self.address)
-        self._nodes_cpus = [n["Resources"].get("CPU", 0) for n in ray.nodes() if n["Alive"]]
         from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
+        self.kinds: dict[str, str] = {}  # stage key -> kind ("record", "cell", ...)
+        self.cpus: dict[str, float] = {}  # stage key -> the cores it holds
+        self.resources = connect(self.address)
+        self._nodes_cpus = [n["Resources"].get("CPU", 0) for n in ray.nodes() if n["Alive"]]
         # On the driver's node: the board outlives any other node.
         here = NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=False)
         self._progress = ray.remote(num_cpus=0)(ProgressBoard).options(scheduling_strategy=here).remote()
@@ -153,8 +152,8 @@ class StageGraph:
                     k: t for k, t in ray.get(self._progress.snapshot.remote()).items() if k in unfinished
                 }
                 left = time_left(unfinished, self.kinds, self.cpus, seconds, running, slots)
-                others = sorted(k for k in running if self.kinds.get(k) != unit_kind)[:2]
-                cells_running = sum(self.kinds.get(k) == unit_kind for k in running)
+                others = sorted(k for k in running if self.kinds[k] != unit_kind)[:2]
+                cells_running = sum(self.kinds[k] == unit_kind for k in running)
                 # Redrawn at every wait, so that a long training shows it is running.
                 bar.set_postfix_str(", ".join([f"{cells_running} running", *others, f"left {_clock(left)}"]))
         return results, seconds, failures
