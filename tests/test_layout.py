@@ -173,6 +173,7 @@ FLOORS = {
     },
     "lerobot_suture.safety": {"lerobot_suture.sim", "lerobot_suture.safety", "lerobot_suture.plotting"},
     "lerobot_suture.plotting": set(),
+    "lerobot_suture.lerobot_shim": set(),
     "lerobot_suture.datasets": {
         "lerobot_suture.sim",
         "lerobot_suture.expert",

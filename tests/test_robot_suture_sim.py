@@ -39,16 +39,6 @@ def robot():
         robot.disconnect()
 
 
-@pytest.fixture
-def info_logging():
-    """The root logger at INFO, as LeRobot's ``init_logging`` leaves it."""
-    root = logging.getLogger()
-    level = root.level
-    root.setLevel(logging.INFO)
-    yield
-    root.setLevel(level)
-
-
 def _pose_action(vector) -> dict:
     return {name: float(v) for name, v in zip(POSE_FEATURES, vector, strict=True)}
 
@@ -135,35 +125,34 @@ def test_calibrate_is_a_no_op_that_says_so_and_commands_are_refused(robot, caplo
         robot.get_observation()
 
 
-def test_lerobot_s_episode_announcements_reset_the_scene(robot, info_logging):
-    """Dataset episode N plays the scene of seed + N, fresh; the reset phase holds the next scene."""
+def test_lerobot_s_episodes_reset_the_scene(robot):
+    """Dataset episode N plays the scene of seed + N, fresh; after an episode, the next scene is held."""
+    from lerobot_suture.lerobot_shim import EpisodeAware, episode
+
+    assert isinstance(robot, EpisodeAware)
     hold = _pose_action(robot.measured_pose())
-    logging.info("Recording episode 0")
-    assert (robot.scene_seed, robot.scene_count) == (7, 1)  # the scene of connect is fresh: kept
-    robot.send_action(hold)
-    robot.send_action(hold)
-    logging.info("Reset the environment")
+    with episode(robot, 0):
+        assert (robot.scene_seed, robot.scene_count) == (7, 1)  # the scene of connect is fresh: kept
+        robot.send_action(hold)
+        robot.send_action(hold)
     assert (robot.scene_seed, robot.scene_steps, robot.holding) == (8, 0, True)
     robot.send_action(hold)  # LeRobot's reset-phase motions are not executed
     assert robot.scene_steps == 0
-    logging.info("Recording episode 1")
+    robot.start_episode(1)
     assert (robot.scene_seed, robot.holding, robot.scene_count) == (8, False, 2)
     robot.send_action(hold)
-    logging.info("Reset the environment")
+    robot.end_episode()
     assert robot.scene_seed == 9
-    logging.info("Re-record episode")
-    logging.info("Recording episode 1")  # re-recorded: the same scene again
+    robot.start_episode(1)  # re-recorded: the same scene again
     assert (robot.scene_seed, robot.scene_steps) == (8, 0)
-    logging.info("Recording episode 5")  # a resumed dataset with five episodes
-    assert robot.scene_seed == 12
-    logging.info("Recording episode one")  # not an announcement
+    robot.start_episode(5)  # a resumed dataset with five episodes
     assert robot.scene_seed == 12
     env = gym.make(lerobot_suture.ENV_ID, disable_env_checker=True, image_size=SIZE)
     np.testing.assert_allclose(robot.measured_pose(), env.reset(seed=12)[0]["agent_pos"])
     env.close()
     robot.disconnect()
-    logging.info("Recording episode 2")  # disconnected: no longer listening
-    assert robot.scene_seed == 12
+    with pytest.raises(Exception, match="not connected"):
+        robot.start_episode(2)
 
 
 def test_realtime_clock_holds_a_step_to_the_control_period():
@@ -179,15 +168,15 @@ def test_realtime_clock_holds_a_step_to_the_control_period():
         assert low <= elapsed <= high, (clock, elapsed)
 
 
-def test_trace_has_a_line_per_executed_step(tmp_path, info_logging):
+def test_trace_has_a_line_per_executed_step(tmp_path):
     path = tmp_path / "trace" / "steps.jsonl"
     robot = SutureSim(SutureSimConfig(seed=3, image_size=16, clock="fast", trace_path=path))
     robot.connect()
     hold = _pose_action(robot.measured_pose())
     robot.send_action(hold)
-    logging.info("Reset the environment")
+    robot.end_episode()
     robot.send_action(hold)  # held: not executed, not traced
-    logging.info("Recording episode 1")
+    robot.start_episode(1)
     robot.send_action(hold)
     tip = robot.needle_tip
     robot.disconnect()

@@ -211,7 +211,8 @@ def test_a_new_scene_s_first_chunk_is_predicted_from_that_scene(tiny_policy_dir)
 
     from lerobot.utils.feature_utils import build_dataset_frame, hw_to_dataset_features
     from lerobot_robot_suture.gated_dagger import restart_engine
-    from lerobot_robot_suture.rtc_queue import ExecutedActionQueue
+
+    from lerobot_suture.lerobot_shim import ExecutedActionQueue
 
     policy, _, robot, engine = rtc_engine_on_the_arm(tiny_policy_dir, seed=7)
     states, lock = [], threading.Lock()
@@ -270,7 +271,8 @@ def test_a_new_chunk_resumes_at_the_first_action_not_yet_executed(queue_class):
     queue resumes at the new chunk's third action, the first not executed. LeRobot's own queue skips it."""
     from lerobot.policies.rtc import ActionQueue
     from lerobot.policies.rtc.configuration_rtc import RTCConfig
-    from lerobot_robot_suture.rtc_queue import ExecutedActionQueue
+
+    from lerobot_suture.lerobot_shim import ExecutedActionQueue
 
     queue = (ActionQueue if queue_class == "lerobot" else ExecutedActionQueue)(RTCConfig(enabled=True))
     old = torch.arange(8.0)[:, None].expand(8, 2).clone()
@@ -287,7 +289,8 @@ def test_a_new_chunk_resumes_at_the_first_action_not_yet_executed(queue_class):
 def test_the_executed_action_queue_is_put_on_a_real_time_engine_only():
     from lerobot.policies.rtc import ActionQueue
     from lerobot.policies.rtc.configuration_rtc import RTCConfig
-    from lerobot_robot_suture.rtc_queue import ExecutedActionQueue, merge_after_executed_actions
+
+    from lerobot_suture.lerobot_shim import ExecutedActionQueue, merge_after_executed_actions
 
     class Engine:
         action_queue = ActionQueue(RTCConfig(enabled=True))

@@ -19,6 +19,8 @@ from __future__ import annotations
 import threading
 from collections.abc import Mapping, Sequence
 
+from lerobot_suture.lerobot_shim import key_callbacks
+
 
 def _key(name: str):
     """A pynput key from a name: a character (``"p"``) or a ``Key`` member (``"space"``, ``"up"``)."""
@@ -65,7 +67,7 @@ class KeyScript:
     def __init__(self, teleop, script: Mapping[int, Sequence[str]]):
         self.teleop = teleop
         self.script = {int(k): list(v) for k, v in script.items()}
-        self.listener = scripted_key_listener_class()(teleop._on_press, teleop._on_release)
+        self.listener = scripted_key_listener_class()(*key_callbacks(teleop))
         self.listener.start()
         self.listener.wait()
         teleop.listener = self.listener  # what `connect` would set on a desktop

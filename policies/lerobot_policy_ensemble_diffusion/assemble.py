@@ -37,6 +37,8 @@ from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
 from lerobot.utils.constants import POLICY_POSTPROCESSOR_DEFAULT_NAME, POLICY_PREPROCESSOR_DEFAULT_NAME
 from safetensors.torch import load_file, save_file
 
+from lerobot_suture.lerobot_shim import save_config
+
 from .compatibility import MEMBERS_PREFIX
 from .configuration_ensemble_diffusion import EnsembleDiffusionConfig
 from .modeling_ensemble_diffusion import EnsembleDiffusionPolicy
@@ -249,7 +251,7 @@ def export_member(
 
     output_dir = Path(output_dir)
     _prepare_output_dir(output_dir, overwrite)
-    config.member_config()._save_pretrained(output_dir)
+    save_config(config.member_config(), output_dir)
     save_file(member_state, str(output_dir / SAFETENSORS_SINGLE_FILE), metadata={"format": "pt"})
     for p in _processor_files(ensemble_dir):
         shutil.copy2(p, output_dir / p.name)

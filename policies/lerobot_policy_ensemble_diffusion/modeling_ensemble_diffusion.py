@@ -36,6 +36,7 @@ from lerobot.utils.import_utils import require_package
 from safetensors.torch import load_model as load_model_as_safetensor
 from torch import Tensor, nn
 
+from lerobot_suture.lerobot_shim import prepare_global_conditioning
 from lerobot_suture.safety.ood.calibration import OODCalibration
 from lerobot_suture.safety.ood.gate import OODGate
 
@@ -189,7 +190,6 @@ class EnsembleDiffusionPolicy(GatedPolicyMixin, FeatureCaptureMixin, PreTrainedP
         return self._fused_cache["model"]
 
     # ---- training -----------------------------------------------------------------------------------
-
     def forward(self, batch: dict[str, Tensor]) -> tuple[Tensor, dict]:
         """Mean of the member losses on one shared batch (each member's own bootstrap resample if enabled).
 
@@ -286,7 +286,7 @@ class EnsembleDiffusionPolicy(GatedPolicyMixin, FeatureCaptureMixin, PreTrainedP
         samples, conds = [], []
         for i, member in enumerate(self.members):
             model = member.diffusion
-            global_cond = model._prepare_global_conditioning(batch)  # (B, G)
+            global_cond = prepare_global_conditioning(model, batch)  # (B, G)
             conds.append(global_cond)
             global_cond = global_cond.repeat_interleave(k, dim=0)  # (B*K, G)
             member_noise = None if noise is None else noise[:, i].reshape(batch_size * k, t_len, a)

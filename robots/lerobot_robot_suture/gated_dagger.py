@@ -32,13 +32,13 @@ from lerobot.utils.feature_utils import build_dataset_frame
 from lerobot.utils.robot_utils import precise_sleep
 from lerobot.utils.utils import log_say
 
+from lerobot_suture.lerobot_shim import DAggerInternals, episode, merge_after_executed_actions
 from lerobot_suture.safety.camera_watchdog import CameraWatchdogConfig
 from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.safety.wound import GraspModel
 
 from .cbf_step import SutureCBFStep
 from .rollout_gate import GATE_KINDS, GateReading, RolloutGate
-from .rtc_queue import merge_after_executed_actions
 
 logger = logging.getLogger(__name__)
 
@@ -60,7 +60,8 @@ def restart_engine(engine) -> None:
     The real-time engine's thread is joined, so a chunk still being predicted for the last scene never joins
     the new scene's queue; and it holds no observation until the new scene's first. Reset and resumed only, it
     would predict the new scene's first chunk from the last scene's final frame (its latest observation). Its
-    new queue merges each chunk after the actions actually executed meanwhile (:mod:`.rtc_queue`).
+    new queue merges each chunk after the actions actually executed meanwhile
+    (:class:`lerobot_suture.lerobot_shim.ExecutedActionQueue`).
     """
     engine.stop()
     engine.start()
@@ -160,6 +161,7 @@ class GatedDAggerStrategy(DAggerStrategy):
 
     def setup(self, ctx) -> None:
         super().setup(ctx)
+        self.dagger = DAggerInternals(self)
         self.cbf_step = None
         if self.config.cbf.enabled:
             latency = self.config.cbf_latency_steps
@@ -184,12 +186,13 @@ class GatedDAggerStrategy(DAggerStrategy):
         dataset = ctx.data.dataset
         start = time.perf_counter()
         for _ in range(self.config.num_episodes):
-            if self._events.stop_recording.is_set() or ctx.runtime.shutdown_event.is_set():
+            if self.dagger.events.stop_recording.is_set() or ctx.runtime.shutdown_event.is_set():
                 break
             if cfg.duration > 0 and time.perf_counter() - start >= cfg.duration:
                 break
             log_say(f"Recording episode {dataset.num_episodes}", cfg.play_sounds)
-            handover = self._run_episode(ctx)
+            with episode(ctx.hardware.robot_wrapper, dataset.num_episodes):
+                handover = self._run_episode(ctx)
             frames = dataset.writer.episode_buffer["size"] if dataset.has_pending_frames() else 0
             if dataset.meta.video_keys and 0 < frames < MIN_EPISODE_FRAMES:
                 # LeRobot's streaming video encoder gives no statistics for such an episode, and the dataset's
@@ -204,9 +207,9 @@ class GatedDAggerStrategy(DAggerStrategy):
                 )
                 dataset.clear_episode_buffer()
             elif frames > 0:
-                with self._episode_lock:
+                with self.dagger.episode_lock:
                     dataset.save_episode()
-                self._needs_push.set()
+                self.dagger.request_push()
                 self.handovers.append(handover)
                 logger.info("Episode %d saved (handover at frame %s)", dataset.num_episodes - 1, handover)
             if len(self.handovers) < self.config.num_episodes and cfg.dataset.reset_time_s > 0:
@@ -221,7 +224,8 @@ class GatedDAggerStrategy(DAggerStrategy):
     # ------------------------------------------------------------------
     def _run_episode(self, ctx) -> int | None:
         """One episode: the policy until the gate (or a key) hands over, then the teleoperator."""
-        cfg, events, engine, interpolator = ctx.runtime.cfg, self._events, self._engine, self._interpolator
+        cfg, dagger = ctx.runtime.cfg, self.dagger
+        events, engine, interpolator = dagger.events, dagger.engine, dagger.interpolator
         robot = ctx.hardware.robot_wrapper
         control_interval = interpolator.get_control_interval(cfg.fps)
         task = cfg.dataset.single_task if cfg.dataset else cfg.task
@@ -252,9 +256,9 @@ class GatedDAggerStrategy(DAggerStrategy):
                     # Handed back: the engine resumes from the arm as it is now, not as it was when the
                     # surgeon took over (the last observation it was handed).
                     engine.notify_observation(ctx.processors.robot_observation_processor(obs))
-                self._apply_transition(*transition, engine, interpolator, ctx, last_action)
+                dagger.apply_transition(*transition, ctx, last_action)
             if events.phase == DAggerPhase.AUTONOMOUS:
-                obs_processed = self._process_observation_and_notify(ctx.processors, obs)
+                obs_processed = dagger.process_observation_and_notify(ctx.processors, obs)
                 action = next_policy_action(obs_processed, ctx, interpolator)
                 # The gate reads the prediction before it reaches the arm: a chunk it flags is never executed,
                 # as with the ensemble's enforced gate on the env path. The real-time chunking engine's policy
@@ -313,14 +317,10 @@ class GatedDAggerStrategy(DAggerStrategy):
 
     def _hand_over(self, ctx, last_action) -> None:
         """The gate's decision does what LeRobot's pause and correction keys do, at once."""
-        events = self._events
-        self._apply_transition(
-            DAggerPhase.AUTONOMOUS, DAggerPhase.PAUSED, self._engine, self._interpolator, ctx, last_action
-        )
-        self._apply_transition(
-            DAggerPhase.PAUSED, DAggerPhase.CORRECTING, self._engine, self._interpolator, ctx, last_action
-        )
-        events.phase = DAggerPhase.CORRECTING
+        dagger = self.dagger
+        dagger.apply_transition(DAggerPhase.AUTONOMOUS, DAggerPhase.PAUSED, ctx, last_action)
+        dagger.apply_transition(DAggerPhase.PAUSED, DAggerPhase.CORRECTING, ctx, last_action)
+        dagger.events.phase = DAggerPhase.CORRECTING
 
     def _record(self, ctx, obs_processed, action, task, intervention: bool, reading: GateReading) -> None:
         features = ctx.data.dataset_features

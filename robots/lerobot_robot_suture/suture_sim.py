@@ -13,8 +13,10 @@ that ``lerobot-eval --env.type=suture`` and the expert recordings run.
 - ``--robot.registration=true`` adds the registered wound and the needle in the jaw to the observation (what
   the ``suture_cbf`` step reads); ``--robot.faults.*`` passes the observation and the command through the faults
   of :mod:`.faults` (computed once per control step, so any number of ``get_observation`` calls agree).
-- Episodes: at LeRobot's "Recording episode N" the scene is that of ``seed + N``; at "Reset the
-  environment" it is reset to the next seed and held (see :mod:`.episode_cues` and ``docs/robot.md``).
+- Episodes: when LeRobot starts dataset episode N (``lerobot-record``, the episodic and gated DAgger
+  strategies) the scene is that of ``seed + N``; when the episode ends, the next seed's scene is reset and
+  held until the next episode starts (:func:`lerobot_suture.lerobot_shim.install_episode_hooks`, which
+  :meth:`SutureSim.connect` installs; ``docs/robot.md``).
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from lerobot.lerobot_types import RobotAction, RobotObservation
 from lerobot.robots.robot import Robot
 from lerobot.utils.decorators import check_if_already_connected, check_if_not_connected
 
+from lerobot_suture.lerobot_shim import install_episode_hooks
 from lerobot_suture.sim.task import CONTROL_DT
 from lerobot_suture.sim.tasks import task_spec
 
@@ -39,7 +42,6 @@ from . import link
 from .cbf_step import GRASP_FEATURES, THROW_FEATURE, WOUND_FEATURES
 from .clock import ControlClock
 from .config_suture_sim import CAMERA, POSE_FEATURES, WRIST_CAMERA, SutureSimConfig
-from .episode_cues import EpisodeCues
 from .faults import FaultInjector
 
 logger = logging.getLogger(__name__)
@@ -74,7 +76,6 @@ class SutureSim(Robot):
         self.env: gym.Env | None = None
         self._lock = threading.RLock()
         self._clock = ControlClock(CONTROL_DT, realtime=config.clock == "realtime")
-        self._cues = EpisodeCues(self._on_episode, self._on_reset_phase)
         self._trace = None
         self._obs: dict | None = None
         self._faults = FaultInjector(config.faults, camera_key=CAMERA, pose_keys=tuple(POSE_FEATURES))
@@ -130,7 +131,7 @@ class SutureSim(Robot):
         self.holding = False
         self._reset_scene(self.config.seed)
         self.configure()
-        self._cues.attach()
+        install_episode_hooks()
         link.register(self)
         logger.info("%s connected: scene seed %d, %s clock.", self, self.config.seed, self.config.clock)
 
@@ -147,7 +148,6 @@ class SutureSim(Robot):
     @check_if_not_connected
     def disconnect(self) -> None:
         link.unregister(self)
-        self._cues.detach()
         with self._lock:
             self.env.close()
             self.env = None
@@ -160,14 +160,12 @@ class SutureSim(Robot):
     @check_if_not_connected
     def get_observation(self) -> RobotObservation:
         with self._lock:
-            self._cues.raise_pending()
             return dict(self._observed)
 
     @check_if_not_connected
     def send_action(self, action: RobotAction) -> RobotAction:
         target = self._target(action)
         with self._lock:
-            self._cues.raise_pending()
             if self.holding or self.scene_over:
                 return dict(zip(POSE_FEATURES, target.tolist(), strict=True))
             space = self.env.unwrapped.action_space
@@ -195,7 +193,7 @@ class SutureSim(Robot):
         return np.asarray(self.last_info["needle_tip_pos"], dtype=np.float64).copy()
 
     def reset_scene(self, seed: int) -> None:
-        """Start the scene of ``seed`` now (what LeRobot's episode announcements do)."""
+        """Start the scene of ``seed`` now (what the start of a dataset episode does for ``seed + N``)."""
         with self._lock:
             self.holding = False
             self._reset_scene(seed)
@@ -247,7 +245,9 @@ class SutureSim(Robot):
         self.scene_count += 1
         self._clock.restart()
 
-    def _on_episode(self, episode: int) -> None:
+    # ------------------------------------------------------------------ episodes (lerobot_shim.EpisodeAware)
+    @check_if_not_connected
+    def start_episode(self, episode: int) -> None:
         """LeRobot starts dataset episode ``episode``: its scene is that of ``seed + episode``, fresh."""
         seed = self.config.seed + episode
         with self._lock:
@@ -257,8 +257,10 @@ class SutureSim(Robot):
                 self._reset_scene(seed)
             logger.info("%s: episode %d on the scene of seed %d.", self, episode, seed)
 
-    def _on_reset_phase(self) -> None:
-        """LeRobot's reset phase: the next episode's scene, held until that episode starts."""
+    @check_if_not_connected
+    def end_episode(self) -> None:
+        """The episode ended: the next episode's scene, held until that episode starts (LeRobot's reset phase,
+        a teleoperator's and the episodic strategy's return to the initial position are not executed)."""
         with self._lock:
             episode = self._episode if self._episode is not None else self.scene_seed - self.config.seed
             self._reset_scene(self.config.seed + episode + 1)
