@@ -88,3 +88,30 @@ def test_a_recording_with_the_wrist_camera_stores_it_as_video_and_resumes_only_w
         record(RecordConfig(**{**cfg, "num_episodes": 2}, resume=True))
     with pytest.raises(ValueError, match="--obs_type=pixels_agent_pos"):
         RecordConfig(**cfg, obs_type="state", wrist_camera=True)
+
+
+def test_a_policy_that_reads_the_wrist_camera_gets_an_env_that_renders_it():
+    from types import SimpleNamespace
+
+    import gymnasium as gym
+    from lerobot.configs import FeatureType, PolicyFeature
+
+    from lerobot_suture.runtime.policy import WRIST_IMAGE, env_kwargs_for_policy
+
+    image = PolicyFeature(type=FeatureType.VISUAL, shape=(3, 32, 32))
+    state = PolicyFeature(type=FeatureType.STATE, shape=(10,))
+    both = {"observation.images.endoscope": image, WRIST_IMAGE: image, "observation.state": state}
+    kwargs = env_kwargs_for_policy(SimpleNamespace(input_features=both))
+    assert kwargs == {"obs_type": "pixels_agent_pos", "image_size": 32, "wrist_camera": True}
+    env = gym.make("lerobot_suture/NeedlePickup-v0", disable_env_checker=True, **kwargs)
+    obs, _ = env.reset(seed=0)
+    env.close()
+    assert {name: obs["pixels"][name].shape for name in obs["pixels"]} == {
+        "endoscope": (32, 32, 3),
+        "wrist": (32, 32, 3),
+    }
+    endoscope_only = {k: v for k, v in both.items() if k != WRIST_IMAGE}
+    assert "wrist_camera" not in env_kwargs_for_policy(SimpleNamespace(input_features=endoscope_only))
+    small_wrist = {**both, WRIST_IMAGE: PolicyFeature(type=FeatureType.VISUAL, shape=(3, 16, 16))}
+    with pytest.raises(ValueError, match="one size"):
+        env_kwargs_for_policy(SimpleNamespace(input_features=small_wrist))

@@ -120,6 +120,10 @@ def copy_with_overrides(source: str | Path, target: str | Path, overrides: dict)
     return target
 
 
+WRIST_IMAGE = "observation.images.wrist"
+"""The wrist camera's image feature (the env's ``pixels["wrist"]`` with ``wrist_camera=True``)."""
+
+
 def env_kwargs_for_policy(config) -> dict:
     """The suture env's observation arguments that produce what a trained policy reads.
 
@@ -139,23 +143,32 @@ def env_kwargs_for_policy(config) -> dict:
         for key in privileged:
             features.pop(key)
     images = [k for k in features if k.startswith("observation.images.")]
-    unknown = sorted(
-        set(features) - {"observation.images.endoscope", "observation.state", "observation.environment_state"}
-    )
+    produced = {
+        "observation.images.endoscope",
+        WRIST_IMAGE,
+        "observation.state",
+        "observation.environment_state",
+    }
+    unknown = sorted(set(features) - produced)
     if unknown:
         raise ValueError(
-            f"The policy reads {unknown}, which the suture env does not produce (it has "
-            "observation.images.endoscope, observation.state, observation.environment_state)."
+            f"The policy reads {unknown}, which the suture env does not produce (it has {sorted(produced)}; "
+            f"{WRIST_IMAGE} with wrist_camera=True)."
         )
     env_state = "observation.environment_state" in features
     if images:
-        height, width = features[images[0]].shape[-2:]
-        if height != width:
-            raise ValueError(f"The suture env renders square images; the policy reads {height}x{width}.")
-        return {
+        sizes = {tuple(features[k].shape[-2:]) for k in images}
+        height, width = sizes.pop()
+        if height != width or sizes:
+            raise ValueError(
+                f"The suture env renders square images of one size; the policy reads {images} at "
+                f"{sorted({tuple(features[k].shape[-2:]) for k in images})}."
+            )
+        kwargs = {
             "obs_type": "pixels_agent_pos_state" if env_state else "pixels_agent_pos",
             "image_size": int(height),
         }
+        return {**kwargs, "wrist_camera": True} if WRIST_IMAGE in features else kwargs
     return {"obs_type": "state"}
 
 

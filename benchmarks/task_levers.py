@@ -1,0 +1,227 @@
+"""What each observation and data lever does to one task's learned policy: one line per lever, on 50 test seeds.
+
+A lever line records its dataset with the scripted expert (``lerobot-suture record``, the task's recipe),
+trains the task's preset with the real ``lerobot-train`` for the preset's steps on the recording's training
+episodes, and evaluates the checkpoint on the leaderboard's nominal test seeds of the task (the same scenes
+as the board's nominal cell; the CBF on, the gate only reporting). One thing changes from one line to the
+next, so that data scale and an added camera are told apart; the training steps stay the preset's.
+
+    .venv/bin/python benchmarks/task_levers.py --task pickup [--members 1] [--output FILE]
+
+Every stage is resumable: a finished recording, training or evaluation is read back, so an interrupted run
+goes on where it stopped. Each stage's wall time is reported. ``--figure`` draws each line's success rate
+with its Wilson interval.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from _report import emit, machine
+
+ROOT = Path(__file__).resolve().parents[1]
+NEEDS = "a task to run (--task); records, trains and evaluates each lever (about 30 min a lever on 2 cores)"
+
+
+@dataclass(frozen=True)
+class Lever:
+    """One line of the table: the episodes recorded and whether the wrist camera is recorded and read."""
+
+    name: str
+    episodes: int | None  # None: the task recipe's own count
+    wrist_camera: bool = False
+
+
+LEVERS = (
+    Lever("recipe", None),
+    Lever("data x500", 500),
+    Lever("data x500 + wrist camera", 500, wrist_camera=True),
+)
+
+
+def _run(command: list[str], log: Path) -> float:
+    """Run ``command`` with its output appended to ``log``; its wall time (s). A failure names the log."""
+    start = time.perf_counter()
+    with log.open("a") as out:
+        done = subprocess.run(command, stdout=out, stderr=subprocess.STDOUT, check=False)
+    if done.returncode != 0:
+        raise RuntimeError(f"{' '.join(command[:3])} ... exited {done.returncode}; see {log}")
+    return time.perf_counter() - start
+
+
+def record(task: str, lever: Lever, root: Path, log: Path) -> dict:
+    """The lever's dataset (resumed if a run was interrupted); its episodes and recording time (s)."""
+    from lerobot_suture.leaderboard.pipeline import TASK_RECIPES
+
+    recipe = TASK_RECIPES[task][0]
+    info = root / "meta" / "info.json"
+    done = root / "recorded.json"
+    if done.is_file():
+        return json.loads(done.read_text())
+    command = [
+        str(Path(sys.executable).parent / "lerobot-suture"),
+        "record",
+        f"--config_path={recipe}",
+        f"--root={root}",
+        f"--repo_id=local/levers_{task}_{root.name}",
+        f"--wrist_camera={str(lever.wrist_camera).lower()}",
+        f"--resume={str(info.is_file()).lower()}",
+    ]
+    if lever.episodes is not None:
+        command.append(f"--num_episodes={lever.episodes}")
+    seconds = _run(command, log)
+    episodes = json.loads(info.read_text())["total_episodes"]
+    result = {"episodes": episodes, "record_s": round(seconds, 1)}
+    done.write_text(json.dumps(result))
+    return result
+
+
+def train(task: str, root: Path, out: Path, members: int) -> tuple[Path, float]:
+    """``lerobot-train`` of the task's preset on the recording's training episodes (resumable); the
+    pretrained directory and the training's wall time (s), summed over the runs that resumed it."""
+    from lerobot_suture.datasets.split import train_episodes
+    from lerobot_suture.datasets.video import resolve_video_backend
+    from lerobot_suture.leaderboard.pipeline import TASK_RECIPES
+    from lerobot_suture.runtime.training import run_lerobot_train
+
+    preset = TASK_RECIPES[task][1]
+    reference = json.loads(preset.read_text())
+    fresh = [
+        f"--config_path={preset}",
+        f"--dataset.repo_id=local/levers_{task}_{root.name}",
+        f"--dataset.episodes=[{','.join(str(e) for e in train_episodes(root))}]",
+        f"--job_name=levers_{task}_{root.name}",
+        f"--policy.n_members={members}",
+    ]
+    common = [
+        f"--dataset.root={root}",
+        f"--dataset.video_backend={resolve_video_backend()}",
+        f"--save_freq={reference['save_freq']}",
+    ]
+    timing = out.parent / f"{out.name}.train_s.json"  # beside the run: lerobot-train owns its output_dir
+    spent = json.loads(timing.read_text())["train_s"] if timing.is_file() else 0.0
+    start = time.perf_counter()
+    pretrained = run_lerobot_train(out, fresh, int(reference["steps"]), common)
+    spent += time.perf_counter() - start
+    timing.write_text(json.dumps({"train_s": spent}))
+    return pretrained, spent
+
+
+def evaluate(task: str, pretrained: Path, episodes: int, seed: int, batch_envs: int) -> dict:
+    """The checkpoint on the board's nominal test seeds of ``task``: the leaderboard's cell."""
+    from lerobot_suture.leaderboard import cells
+    from lerobot_suture.runtime.policy import GateMode, PolicyRunner, env_kwargs_for_policy
+    from lerobot_suture.sim.tasks import task_spec
+
+    runner = PolicyRunner.from_pretrained(pretrained, GateMode.REPORT, "cpu", {})
+    seeds = cells.condition_seeds(seed, task, "nominal", episodes)
+    env_kwargs = env_kwargs_for_policy(runner.policy.config)
+    logs, seconds = cells.cell_episodes(runner, env_kwargs, task, "nominal", seeds, batch_envs)
+    return cells.summarize_cell(logs, seconds, throws=task_spec(task).throws)
+
+
+def figure(report: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from lerobot_suture.plotting import save_figure
+
+    lines = report["levers"]
+    fig, ax = plt.subplots(figsize=(6, 0.6 + 0.5 * len(lines)))
+    for i, line in enumerate(lines):
+        cell = line["nominal"]
+        low, high = cell["success_interval"]
+        ax.errorbar(
+            cell["success_rate"],
+            i,
+            xerr=[[cell["success_rate"] - low], [high - cell["success_rate"]]],
+            fmt="o",
+            color="C0",
+            capsize=3,
+        )
+    ax.set_yticks(range(len(lines)), [f"{line['lever']} ({line['episodes']} ep.)" for line in lines])
+    ax.invert_yaxis()
+    ax.set_xlim(0, 1)
+    ax.set_xlabel(
+        f"{report['task']}: nominal success on {lines[0]['nominal']['episodes']} test seeds (Wilson 95%)"
+    )
+    ax.grid(axis="x", alpha=0.3)
+    fig.tight_layout()
+    save_figure(fig, path, dpi=110)
+    plt.close(fig)
+
+
+def main() -> None:
+    from lerobot_suture.sim.tasks import TASK_NAMES
+
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--task", required=True, choices=[t for t in TASK_NAMES if t != "running_suture"])
+    parser.add_argument("--members", type=int, default=1, help="ensemble members (1: the member recipe)")
+    parser.add_argument("--levers", nargs="*", default=[lever.name for lever in LEVERS])
+    parser.add_argument("--episodes", type=int, default=50, help="test episodes a line")
+    parser.add_argument("--seed", type=int, default=7_000_000, help="the leaderboard's base of test seeds")
+    parser.add_argument("--batch-envs", type=int, default=8)
+    parser.add_argument("--work-dir", type=Path, default=ROOT / "outputs" / "levers")
+    parser.add_argument("--output", type=Path)
+    parser.add_argument("--figure", type=Path)
+    args = parser.parse_args()
+    unknown = sorted(set(args.levers) - {lever.name for lever in LEVERS})
+    if unknown:
+        parser.error(f"unknown levers {unknown}; choose among {[lever.name for lever in LEVERS]}")
+
+    work = args.work_dir / args.task
+    work.mkdir(parents=True, exist_ok=True)
+    lines = []
+    for lever in (lever for lever in LEVERS if lever.name in args.levers):
+        slug = lever.name.replace(" + ", "_").replace(" ", "_")
+        root, log = work / "data" / slug, work / f"{slug}.log"
+        print(f"[{lever.name}] recording ...", flush=True)
+        recorded = record(args.task, lever, root, log)
+        print(f"[{lever.name}] training {args.members} member(s) ...", flush=True)
+        pretrained, train_s = train(args.task, root, work / "train" / f"{slug}_n{args.members}", args.members)
+        cell_path = work / "cells" / f"{slug}_n{args.members}.json"
+        if cell_path.is_file():
+            cell = json.loads(cell_path.read_text())
+        else:
+            print(f"[{lever.name}] evaluating {args.episodes} test episodes ...", flush=True)
+            cell = evaluate(args.task, pretrained, args.episodes, args.seed, args.batch_envs)
+            cell_path.parent.mkdir(parents=True, exist_ok=True)
+            cell_path.write_text(json.dumps(cell))
+        lines.append(
+            {
+                "lever": lever.name,
+                "episodes": recorded["episodes"],
+                "wrist_camera": lever.wrist_camera,
+                "record_s": recorded["record_s"],
+                "train_s": round(train_s, 1),
+                "nominal": {
+                    k: cell[k]
+                    for k in (
+                        "episodes",
+                        "successes",
+                        "success_rate",
+                        "success_interval",
+                        "mean_steps",
+                        "seconds",
+                        "per_episode",
+                    )
+                },
+            }
+        )
+        print(f"[{lever.name}] {cell['successes']}/{cell['episodes']} successes", flush=True)
+    report = {"task": args.task, "members": args.members, "machine": machine(), "levers": lines}
+    if args.figure is not None:
+        figure(report, args.figure)
+    emit(report, args.output)
+
+
+if __name__ == "__main__":
+    main()
