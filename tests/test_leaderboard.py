@@ -8,8 +8,22 @@ from PIL import Image
 
 from lerobot_suture.cli import main as cli_main
 from lerobot_suture.leaderboard.board import plot, render
-from lerobot_suture.leaderboard.cells import condition_seeds, conditions, row_summary, summarize_cell
-from lerobot_suture.leaderboard.pipeline import LeaderboardConfig, default_shifts, parse_checkpoints
+from lerobot_suture.leaderboard.cells import (
+    best_rows,
+    condition_seeds,
+    conditions,
+    row_summary,
+    seed_spread,
+    seed_spreads,
+    summarize_cell,
+)
+from lerobot_suture.leaderboard.pipeline import (
+    PRESET_SEED,
+    LeaderboardConfig,
+    default_shifts,
+    parse_checkpoints,
+    seeded_rows,
+)
 from lerobot_suture.runtime.config import PolicyPathConfig
 from lerobot_suture.runtime.rollout import EpisodeLog, StepLog
 from lerobot_suture.sim.shifts import SHIFTS
@@ -121,11 +135,57 @@ def test_conditions_and_seeds_are_shared_by_policies_and_disjoint_across_cells()
         ({"shifts": ["fog@0.2"]}, "Unknown shift"),
         ({"checkpoints": ["insertion=outputs/x"]}, "TASK:POLICY=DIR"),
         ({"policy": PolicyPathConfig(num_inference_steps=2)}, "apply to the checkpoint of `--policy.path`"),
+        ({"train_seeds": [PRESET_SEED, 2000]}, "not the presets' own"),
+        ({"train_seeds": [2000, 2000]}, "distinct"),
+        ({"train_seeds": [2000], "seeded_rows": ["insertion:pi0"]}, "TASK:POLICY"),
+        ({"train_seeds": [2000], "tasks": ["pickup"], "seeded_rows": ["insertion:act"]}, "TASK:POLICY"),
     ],
 )
 def test_bad_config_names_the_field(args, match):
     with pytest.raises(ValueError, match=match):
         LeaderboardConfig(**args)
+
+
+def test_every_preset_trains_with_the_seed_the_board_s_rows_are_said_to_have():
+    from lerobot_suture.leaderboard.pipeline import POLICY_PRESETS, TASK_RECIPES
+
+    presets = [*POLICY_PRESETS.values(), *(preset for _, preset in TASK_RECIPES.values())]
+    assert {json.loads(p.read_text())["seed"] for p in presets} == {PRESET_SEED}
+
+
+def _cell(successes: int, n: int = 10) -> dict:
+    logs = [EpisodeLog(seed=k, scenario="nominal", success=k < successes, steps=[_step()]) for k in range(n)]
+    return summarize_cell(logs, 1.0)
+
+
+def test_a_row_s_spread_over_training_seeds_and_the_rows_seeded_by_default():
+    spread = seed_spread({1000: _cell(6), 2000: _cell(2), 3000: _cell(7)})
+    assert spread["seeds"] == [1000, 2000, 3000]
+    assert spread["success_mean"] == pytest.approx(0.5) and spread["success_range"] == [0.2, 0.7]
+    low, high = spread["per_seed"]["2000"]["success_interval"]
+    assert low < 0.2 < high
+    board = {
+        "tasks": {"insertion": {"act": {"nominal": _cell(6), "shift:dim_light@0.2": _cell(5)}}},
+        "seeds": {"insertion": {"act": {"2000": {"nominal": _cell(2)}}}},
+    }
+    spreads = seed_spreads(board, PRESET_SEED)
+    assert list(spreads["insertion"]["act"]) == ["nominal"]  # the further seeds run no shifts
+    assert spreads["insertion"]["act"]["nominal"]["seeds"] == [PRESET_SEED, 2000]
+    board["seed_spread"], board["episodes"] = spreads, 10
+    assert "| act | nominal | 40 [20, 60] | 1000: 60 [" in render(board)
+    summary = {
+        "act": {"nominal_success": 0.2, "scenario_success_mean": 0.1},
+        "diffusion": {"nominal_success": 0.2, "scenario_success_mean": 0.3},
+        "ensemble_diffusion": {"nominal_success": 0.9, "scenario_success_mean": None},
+    }
+    assert best_rows(summary) == ["ensemble_diffusion", "diffusion"]
+    cfg = LeaderboardConfig(tasks=["insertion", "pickup", "extraction"], train_seeds=[2000, 3000])
+    rows = seeded_rows(cfg, {"summary": {"pickup": summary}})
+    assert rows == [("insertion", p) for p in cfg.policies] + [
+        ("pickup", "ensemble_diffusion"),
+        ("pickup", "diffusion"),
+    ]
+    assert seeded_rows(LeaderboardConfig(), {"summary": {"pickup": summary}}) == []
 
 
 def test_a_joining_checkpoint_names_its_task(tiny_policy_dir):
@@ -255,12 +315,22 @@ def test_toy_leaderboard_trains_the_four_policies_and_ranks_them(tmp_path):
             "--toy=true",
             "--episodes=1",
             "--shifts=[]",
+            "--train_seeds=[1001]",
+            "--seeded_rows=[insertion:ensemble_member]",
             f"--output_dir={tmp_path / 'work'}",
             f"--results_dir={results}",
         ]
     )
     board = json.loads((results / "leaderboard.json").read_text())
     assert set(board["tasks"]["insertion"]) == {"act", "diffusion", "ensemble_member", "ensemble_diffusion"}
+    # The member trained again from a further seed: calibrated, on nominal and the scenarios.
+    seeded = board["seeds"]["insertion"]["ensemble_member"]["1001"]
+    assert list(seeded) == conditions("insertion", []) and seeded["nominal"]["gate"] is not None
+    train_config = tmp_path / "work/train/insertion/ensemble_member_seed1001/checkpoints/last/pretrained_model"
+    assert json.loads((train_config / "train_config.json").read_text())["seed"] == 1001
+    assert board["seed_spread"]["insertion"]["ensemble_member"]["nominal"]["seeds"] == [1000, 1001]
+    assert "calibrate insertion ensemble_member seed 1001" in board["timings"]
+    assert "## insertion: training seeds" in (results / "leaderboard.md").read_text()
     assert board["tasks"]["insertion"]["act"]["nominal"]["gate"] is None
     # The ensemble's member as a single policy: one member of the ensemble's recipe, with its own gate.
     member = json.loads(

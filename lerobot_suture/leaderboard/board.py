@@ -86,11 +86,42 @@ def render(board: dict) -> str:
                 cells.append(text)
             lines.append(f"| {cond} | " + " | ".join(cells) + " |")
         lines.append("")
+    lines += _seed_lines(board)
     if board.get("timings"):
         lines += ["## Time", "", "| stage | seconds |", "|---|---|"]
         lines += [f"| {k} | {v:.0f} |" for k, v in board["timings"].items()]
         lines.append("")
     return "\n".join(lines)
+
+
+def _seed_lines(board: dict) -> list[str]:
+    """Per task, each seeded row's success over its training seeds: the mean with the range over the seeds,
+    then each seed's rate with its Wilson interval."""
+    lines = []
+    for task, policies in board.get("seed_spread", {}).items():
+        lines += [
+            f"## {task}: training seeds",
+            "",
+            "Success % over the training seeds: mean [lowest, highest seed], then each seed's rate [95% Wilson "
+            "interval]. The further seeds run nominal and the scenarios only.",
+            "",
+            "| policy | condition | mean [range] over seeds | per seed |",
+            "|---|---|---|---|",
+        ]
+        for policy, by_condition in policies.items():
+            for condition, spread in by_condition.items():
+                low, high = spread["success_range"]
+                per_seed = "; ".join(
+                    f"{seed}: {_percent(s['success_rate'])} [{_percent(s['success_interval'][0])}, "
+                    f"{_percent(s['success_interval'][1])}]"
+                    for seed, s in spread["per_seed"].items()
+                )
+                lines.append(
+                    f"| {policy} | {condition} | {_percent(spread['success_mean'])} [{_percent(low)}, "
+                    f"{_percent(high)}] | {per_seed} |"
+                )
+        lines.append("")
+    return lines
 
 
 def _bars(ax, rows: dict, conds: list[str], colour: dict, value, interval=None) -> None:

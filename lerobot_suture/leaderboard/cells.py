@@ -171,3 +171,47 @@ def row_summary(row: dict, conditions: Sequence[str] | None = None) -> dict:
         "cbf_violating_episodes": sum(row[c]["cbf"]["violating_episodes"] for c in conditions if c in row),
         "episodes": sum(row[c]["episodes"] for c in conditions if c in row),
     }
+
+
+def seed_spread(cells_by_seed: dict[int, dict]) -> dict:
+    """One condition of a row over its training seeds: the mean success rate with its range over the seeds,
+    beside each seed's rate and Wilson interval."""
+    seeds = sorted(cells_by_seed)
+    rates = [cells_by_seed[s]["success_rate"] for s in seeds]
+    return {
+        "seeds": seeds,
+        "success_mean": float(np.mean(rates)),
+        "success_range": [float(min(rates)), float(max(rates))],
+        "per_seed": {
+            str(s): {"success_rate": c["success_rate"], "success_interval": c["success_interval"]}
+            for s, c in ((s, cells_by_seed[s]) for s in seeds)
+        },
+    }
+
+
+def best_rows(summary: dict, n: int = 2) -> list[str]:
+    """The ``n`` rows of a task's summary with the highest nominal success, ties broken by the mean over the
+    scenarios, then by name (a missing figure counts as 0)."""
+
+    def key(name: str) -> tuple:
+        s = summary[name]
+        return (-(s["nominal_success"] or 0.0), -(s["scenario_success_mean"] or 0.0), name)
+
+    return sorted(summary, key=key)[:n]
+
+
+def seed_spreads(board: dict, preset_seed: int) -> dict:
+    """{task: {policy: {condition: :func:`seed_spread`}}} for every row of ``board["seeds"]``: the board's own
+    row (trained from ``preset_seed``) and its further seeds, on the conditions every one of them holds."""
+    spreads: dict = {}
+    for task, policies in board.get("seeds", {}).items():
+        for policy, by_seed in policies.items():
+            main = board["tasks"].get(task, {}).get(policy)
+            if main is None:
+                continue
+            rows = {preset_seed: main, **{int(s): row for s, row in by_seed.items()}}
+            shared = [c for c in main if all(c in row for row in rows.values())]
+            spreads.setdefault(task, {})[policy] = {
+                c: seed_spread({s: row[c] for s, row in rows.items()}) for c in shared
+            }
+    return spreads

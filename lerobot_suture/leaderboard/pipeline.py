@@ -22,6 +22,7 @@ on the same cells and its row is added to the board already in ``results_dir`` (
 from __future__ import annotations
 
 import json
+import logging
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,6 +34,8 @@ from lerobot_suture.pipelines.stages import StageTimings, calibrate_policy, code
 from lerobot_suture.runtime.config import PolicyPathConfig
 from lerobot_suture.sim.shifts import MAGNITUDES, SHIFTS, Shift
 from lerobot_suture.sim.tasks import TASK_NAMES, task_spec
+
+logger = logging.getLogger(__name__)
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 PRESETS = REPO_ROOT / "policies" / "presets"
@@ -46,6 +49,8 @@ TASK_RECIPES = {
 POLICIES = ("act", "diffusion", "ensemble_member", "ensemble_diffusion")
 POLICY_PRESETS = {"act": PRESETS / "act.json", "diffusion": PRESETS / "diffusion.json"}
 """LeRobot's own policies' CPU presets; the rows of :data:`GATED` train with the task's own preset."""
+PRESET_SEED = 1000
+"""The training seed of every preset (``seed`` in ``policies/presets/*.json``): the board's rows train with it."""
 GATED = {"ensemble_member": ["--policy.n_members=1"], "ensemble_diffusion": []}
 """The rows with a gate to calibrate, trained from the task's ensemble preset with these flags:
 ``ensemble_member`` is the ensemble's member recipe as a single policy (the same target, backbone and K
@@ -86,6 +91,11 @@ class LeaderboardConfig:
     output_dir: datasets, checkpoints and finished cells (resumable).
     results_dir: where ``leaderboard.json``, ``leaderboard.md`` and ``leaderboard.png`` go.
     device: torch device for calibration and evaluation (training takes the presets').
+    train_seeds: further training seeds: each row of ``seeded_rows`` is trained again from each (the board's
+        rows train with :data:`PRESET_SEED`), and evaluated on nominal and the task's scenarios only; the board
+        gives each such cell's mean and range over the seeds.
+    seeded_rows: ``TASK:POLICY`` rows trained from ``train_seeds`` (default: every policy on insertion, and on
+        each other task the two best rows already on the board in ``results_dir``, so run the board first).
     toy: the same pipeline at toy scale (4 recorded episodes, 4 training steps, 2 calibration episodes):
         a smoke test whose figures mean nothing.
     """
@@ -106,6 +116,8 @@ class LeaderboardConfig:
     results_dir: Path = Path("docs/results/leaderboard")
     device: str = "cpu"
     toy: bool = False
+    train_seeds: list[int] = field(default_factory=list)
+    seeded_rows: list[str] | None = None
 
     def __post_init__(self):
         if self.tasks is None:
@@ -131,6 +143,22 @@ class LeaderboardConfig:
         self.results_dir = Path(self.results_dir).resolve()
         self.shifts = [Shift.parse(s).label for s in self.shifts]  # raises on an unknown shift
         self.taken = parse_checkpoints(self.checkpoints)
+        if len(set(self.train_seeds)) != len(self.train_seeds) or PRESET_SEED in self.train_seeds:
+            raise ValueError(
+                f"`train_seeds` are further training seeds: distinct, and not the presets' own {PRESET_SEED}, "
+                f"which trains the board's rows. Got {self.train_seeds}."
+            )
+        if self.train_seeds and self.policy.path is not None:
+            raise ValueError(
+                "`train_seeds` train the board's rows again; a `--policy.path` row joins as trained."
+            )
+        for entry in self.seeded_rows or []:
+            task, colon, policy = entry.partition(":")
+            if not colon or task not in self.tasks or policy not in self.policies:
+                raise ValueError(
+                    f"`seeded_rows` entries are TASK:POLICY with TASK in --tasks {self.tasks} and POLICY in "
+                    f"--policies {self.policies}. Got {entry!r}."
+                )
         if self.policy.overrides and self.policy.path is None:
             raise ValueError(
                 "`--policy.num_inference_steps` / `--policy.uncertainty_samples_per_member` apply to the "
@@ -171,8 +199,11 @@ def parse_checkpoints(entries: list[str]) -> dict[tuple[str, str], Path]:
     return out
 
 
-def train_policy(cfg: LeaderboardConfig, task: str, policy: str, dataset_root: Path) -> Path:
-    """``lerobot-train`` of ``policy``'s preset on the task's dataset (resumable); its pretrained directory."""
+def train_policy(
+    cfg: LeaderboardConfig, task: str, policy: str, dataset_root: Path, seed: int | None = None
+) -> Path:
+    """``lerobot-train`` of ``policy``'s preset on the task's dataset (resumable); its pretrained directory.
+    ``seed``: a further training seed (None: the preset's own)."""
     from lerobot_suture.datasets.split import train_episodes
     from lerobot_suture.datasets.video import resolve_video_backend
     from lerobot_suture.runtime.training import run_lerobot_train
@@ -186,8 +217,9 @@ def train_policy(cfg: LeaderboardConfig, task: str, policy: str, dataset_root: P
         f"--config_path={preset}",
         f"--dataset.repo_id={reference['dataset']['repo_id']}",
         f"--dataset.episodes=[{','.join(str(e) for e in episodes)}]",
-        f"--job_name={task}_{policy}",
+        f"--job_name={task}_{policy}" + ("" if seed is None else f"_seed{seed}"),
         *GATED.get(policy, []),
+        *([] if seed is None else [f"--seed={seed}"]),
     ]
     if cfg.toy:
         fresh += ["--batch_size=4", "--num_workers=0", "--log_freq=1"]
@@ -196,7 +228,34 @@ def train_policy(cfg: LeaderboardConfig, task: str, policy: str, dataset_root: P
         f"--dataset.video_backend={resolve_video_backend()}",
         f"--save_freq={2 if cfg.toy else reference['save_freq']}",
     ]
-    return run_lerobot_train(cfg.output_dir / "train" / task / policy, fresh, steps, common)
+    out = cfg.output_dir / "train" / task / (policy if seed is None else f"{policy}_seed{seed}")
+    return run_lerobot_train(out, fresh, steps, common)
+
+
+def seeded_name(policy: str, seed: int) -> str:
+    """The name of ``policy``'s row trained from the further seed ``seed`` (its cells' folder)."""
+    return f"{policy}@seed{seed}"
+
+
+def seeded_rows(cfg: LeaderboardConfig, board: dict) -> list[tuple[str, str]]:
+    """The (task, policy) rows to train from ``cfg.train_seeds`` (see :class:`LeaderboardConfig`)."""
+    if not cfg.train_seeds:
+        return []
+    if cfg.seeded_rows is not None:
+        return [tuple(entry.split(":", 1)) for entry in cfg.seeded_rows]
+    rows = []
+    for task in cfg.tasks:
+        if task == "insertion":
+            rows += [(task, policy) for policy in cfg.policies]
+        elif task in board.get("summary", {}):
+            rows += [(task, p) for p in cells.best_rows(board["summary"][task]) if p in cfg.policies]
+        else:
+            logger.warning(
+                "No seeded rows on %s yet: its two best rows are known once the board has the task. Run the board "
+                "first, then again with --train_seeds.",
+                task,
+            )
+    return rows
 
 
 def row_name(policy_type: str, overrides: dict) -> str:
@@ -267,12 +326,19 @@ def evaluate_cell(
 
 
 def submit_row(
-    graph: StageGraph, cfg: LeaderboardConfig, task: str, name: str, policy_dir, overrides: dict, *after
+    graph: StageGraph,
+    cfg: LeaderboardConfig,
+    task: str,
+    name: str,
+    policy_dir,
+    overrides: dict,
+    *after,
+    shifts: list[str] | None = None,
 ) -> dict:
-    """Every condition of ``task`` for row ``name``: the finished cells read back, a stage submitted for each
-    other one; {condition: the cell, or its stage's key}."""
+    """Every condition of ``task`` for row ``name`` (the board's shifts, or ``shifts``): the finished cells
+    read back, a stage submitted for each other one; {condition: the cell, or its stage's key}."""
     row = {}
-    for condition in cells.conditions(task, cfg.shifts):
+    for condition in cells.conditions(task, cfg.shifts if shifts is None else shifts):
         cell = finished_cell(cell_path(cfg, task, name, condition), overrides)
         if cell is None:
             cell = f"evaluate {task} {name} {condition}"
@@ -291,6 +357,33 @@ def submit_row(
             )
         row[condition] = cell
     return row
+
+
+def _submit_seeded_row(
+    graph: StageGraph, cfg: LeaderboardConfig, task: str, policy: str, seed: int, dataset_root
+) -> dict:
+    """``policy`` trained again from ``seed`` (and calibrated, for a gated row), then evaluated on nominal and
+    the task's scenarios."""
+    name = seeded_name(policy, seed)
+    policy_dir = graph.submit(
+        f"train {task} {policy} seed {seed}", "train", train_policy, cfg, task, policy, dataset_root, seed,
+        cpus=cfg.train_cpus,
+    )  # fmt: skip
+    after = []
+    if policy in GATED:
+        after.append(
+            graph.submit(
+                f"{calibrate_stage(task, policy)} seed {seed}",
+                "calibrate",
+                calibrate_policy,
+                policy_dir,
+                dataset_root,
+                cfg.device,
+                cfg.toy,
+                gpus=cfg.cell_gpus,
+            )  # fmt: skip
+        )
+    return submit_row(graph, cfg, task, name, policy_dir, {}, *after, shifts=[])
 
 
 def _rollout_seconds(row: dict) -> float:
@@ -324,10 +417,12 @@ def run_leaderboard(cfg: LeaderboardConfig) -> dict:
         policy_dir = Path(cfg.policy.path).resolve()
         for task in cfg.tasks:
             submitted[task, name] = submit_row(graph, cfg, task, name, policy_dir, cfg.policy.overrides)
-    else:
+    seeded = seeded_rows(cfg, board)
+    seeded_submitted: dict[tuple[str, str, int], dict] = {}
+    if cfg.policy.path is None:
         for task in cfg.tasks:
             dataset_root = None
-            if any((task, p) not in cfg.taken for p in cfg.policies):
+            if any((task, p) not in cfg.taken for p in cfg.policies) or any(t == task for t, _ in seeded):
                 root = cfg.output_dir / "data" / task
                 dataset_root = graph.submit(
                     f"record {task}", "record", record_recipe, TASK_RECIPES[task][0], root, cfg.toy
@@ -354,6 +449,11 @@ def run_leaderboard(cfg: LeaderboardConfig) -> dict:
                         )  # fmt: skip
                     )
                 submitted[task, policy] = submit_row(graph, cfg, task, policy, policy_dir, {}, *after)
+            for policy in (p for t, p in seeded if t == task):
+                for seed in cfg.train_seeds:
+                    seeded_submitted[task, policy, seed] = _submit_seeded_row(
+                        graph, cfg, task, policy, seed, dataset_root
+                    )
     outputs, seconds, failures = graph.run("leaderboard")
     for key, s in seconds.items():
         if graph.kinds[key] != "cell":
@@ -365,6 +465,13 @@ def run_leaderboard(cfg: LeaderboardConfig) -> dict:
         ):  # a row with a failed cell waits for a rerun
             board["tasks"].setdefault(task, {})[name] = done
             timings.seconds[f"evaluate {task} {name}"] = _rollout_seconds(done)
+    for (task, policy, seed), row in seeded_submitted.items():
+        done = {c: outputs.get(cell) if isinstance(cell, str) else cell for c, cell in row.items()}
+        if all(isinstance(cell, dict) for cell in done.values()):
+            board.setdefault("seeds", {}).setdefault(task, {}).setdefault(policy, {})[str(seed)] = done
+            timings.seconds[f"evaluate {task} {seeded_name(policy, seed)}"] = _rollout_seconds(done)
+    if board.get("seeds"):
+        board["seed_spread"] = cells.seed_spreads(board, PRESET_SEED)
     board["summary"] = {
         task: {
             name: cells.row_summary(row, cells.conditions(task, board["shifts"]))
