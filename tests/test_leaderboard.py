@@ -326,7 +326,9 @@ def test_toy_leaderboard_trains_the_four_policies_and_ranks_them(tmp_path):
     # The member trained again from a further seed: calibrated, on nominal and the scenarios.
     seeded = board["seeds"]["insertion"]["ensemble_member"]["1001"]
     assert list(seeded) == conditions("insertion", []) and seeded["nominal"]["gate"] is not None
-    train_config = tmp_path / "work/train/insertion/ensemble_member_seed1001/checkpoints/last/pretrained_model"
+    train_config = (
+        tmp_path / "work/train/insertion/ensemble_member_seed1001/checkpoints/last/pretrained_model"
+    )
     assert json.loads((train_config / "train_config.json").read_text())["seed"] == 1001
     assert board["seed_spread"]["insertion"]["ensemble_member"]["nominal"]["seeds"] == [1000, 1001]
     assert "calibrate insertion ensemble_member seed 1001" in board["timings"]
