@@ -14,7 +14,7 @@ MAX_EPISODE_STEPS = TASKS[DEFAULT_TASK].max_episode_steps
 _ENTRY_POINT = "lerobot_suture.registration:make_suture_env"
 
 
-def make_suture_env(cbf=None, id_task: str | None = None, **kwargs) -> gym.Env:
+def make_suture_env(cbf=None, id_task: str | None = None, marks: bool = False, **kwargs) -> gym.Env:
     """A :class:`~lerobot_suture.sim.suture_env.SutureEnv`, behind the CBF safety filter when asked.
 
     Args:
@@ -23,6 +23,8 @@ def make_suture_env(cbf=None, id_task: str | None = None, **kwargs) -> gym.Env:
             :class:`~lerobot_suture.safety.cbf_wrapper.CBFActionWrapper`.
         id_task: the task of the Gymnasium id that made the env (its registration passes it): the id's
             ``max_episode_steps`` is that task's.
+        marks: add the current throw's entry and exit marks to the observation as ``environment_state``
+            (:class:`~lerobot_suture.sim.wound_marks.WoundMarks`).
         **kwargs: the env's own arguments (see its docstring), ``task`` among them.
 
     Raises:
@@ -40,6 +42,10 @@ def make_suture_env(cbf=None, id_task: str | None = None, **kwargs) -> gym.Env:
         )
 
     env = SutureEnv(**kwargs)
+    if marks:
+        from lerobot_suture.sim.wound_marks import WoundMarks
+
+        env = WoundMarks(env)
     if cbf is None:
         return env
     from lerobot_suture.safety.cbf_config import CBFConfig

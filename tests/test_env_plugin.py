@@ -143,3 +143,22 @@ def test_the_wrist_camera_flag_adds_its_image(suture_config_cls):
         vec.close()
     with pytest.raises(ValueError, match="--env.obs_type=pixels_agent_pos"):
         suture_config_cls(obs_type="state", wrist_camera=True)
+
+
+def test_the_marks_flag_adds_the_wound_s_marks_as_environment_state(suture_config_cls):
+    """``--env.marks=true``: the current throw's entry and exit marks as ``observation.environment_state``
+    (6,), through LeRobot's factory and preprocessing; a config whose obs_type holds the privileged state refuses it."""
+    cfg = _parse_env("--env.marks=true", "--env.image_size=32", "--env.episode_length=2")
+    assert env_to_policy_features(cfg)["observation.environment_state"].shape == (6,)
+    assert "marks" not in suture_config_cls().gym_kwargs
+    vec = make_env(cfg, n_envs=1, use_async_envs=False)["suture"][0]
+    try:
+        obs, _ = vec.reset(seed=[0])
+        batch = preprocess_observation(obs)
+        base = vec.envs[0].unwrapped
+        expected = np.concatenate([base.entry_point, base.exit_point])
+        np.testing.assert_allclose(batch["observation.environment_state"][0].numpy(), expected, atol=1e-6)
+    finally:
+        vec.close()
+    with pytest.raises(ValueError, match="--env.obs_type=pixels_agent_pos"):
+        suture_config_cls(obs_type="pixels_agent_pos_state", marks=True)

@@ -14,6 +14,7 @@ from lerobot_suture.sim.appearance import AppearanceConfig
 from lerobot_suture.sim.scenarios import SCENARIOS
 from lerobot_suture.sim.suture_env import OBS_TYPES, check_image_side
 from lerobot_suture.sim.tasks import DEFAULT_TASK, TASKS, check_scenario, task_spec
+from lerobot_suture.sim.wound_marks import MARKS_DIM
 
 _TASK_BY_GYM_NAME = {spec.gym_id.split("/", 1)[1]: name for name, spec in TASKS.items()}
 
@@ -45,6 +46,9 @@ class SutureEnvConfig(EnvConfig):
             ``lerobot_suture.sim.appearance``).
         wrist_camera: add the image of a camera on the instrument's shaft (``observation.images.wrist``,
             ``image_size`` too); needs an ``obs_type`` with pixels.
+        marks: add the current throw's entry and exit marks, as a registered wound gives them
+            (``observation.environment_state``, (6,) m; ``lerobot_suture.sim.wound_marks``); needs
+            ``obs_type=pixels_agent_pos``.
     """
 
     task: str | None = DEFAULT_TASK
@@ -59,6 +63,7 @@ class SutureEnvConfig(EnvConfig):
     cbf: CBFConfig = field(default_factory=CBFConfig)
     appearance: AppearanceConfig = field(default_factory=AppearanceConfig)
     wrist_camera: bool = False
+    marks: bool = False
     features: dict[str, PolicyFeature] = field(
         default_factory=lambda: {
             ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(10,)),
@@ -101,10 +106,17 @@ class SutureEnvConfig(EnvConfig):
             self.features[ENDOSCOPE_KEY] = image
         if self.wrist_camera:
             self.features[WRIST_KEY] = image
+        if self.marks and self.obs_type != "pixels_agent_pos":
+            raise ValueError(
+                f"`marks` adds the wound's marks as observation.environment_state; `obs_type`={self.obs_type!r} "
+                "holds the privileged one there. Pass --env.obs_type=pixels_agent_pos."
+            )
         if self.obs_type in ("state", "pixels_agent_pos_state"):
             self.features["environment_state"] = PolicyFeature(
                 type=FeatureType.ENV, shape=(ENVIRONMENT_STATE_DIM,)
             )
+        if self.marks:
+            self.features["environment_state"] = PolicyFeature(type=FeatureType.ENV, shape=(MARKS_DIM,))
 
     @property
     def package_name(self) -> str:
@@ -133,4 +145,6 @@ class SutureEnvConfig(EnvConfig):
             kwargs["appearance"] = dataclasses.asdict(self.appearance)
         if self.wrist_camera:
             kwargs["wrist_camera"] = True
+        if self.marks:
+            kwargs["marks"] = True
         return kwargs

@@ -31,6 +31,9 @@ TAGS = ["lerobot-suture", "surgical-robotics", "suturing", "needle-insertion", "
 """Hub tags added to LeRobot's own ``LeRobot`` tag."""
 TEMPLATE_NAME = "card_template.md"
 
+_MARKS_DESCRIPTION = (
+    "the current throw's entry and exit marks (m), as a registered wound gives them (`--marks=true`)"
+)
 _DESCRIPTIONS = {
     "observation.images.endoscope": "endoscope RGB image",
     "observation.state": "measured jaw-tip pose (pose layout below)",
@@ -100,7 +103,9 @@ def render_description(root: str | Path, template_path: str | Path | None = None
             "key": key,
             "dtype": ft["dtype"],
             "shape": str(tuple(ft["shape"])),
-            "description": _DESCRIPTIONS.get(key, ""),
+            "description": _MARKS_DESCRIPTION
+            if key == "observation.environment_state" and tuple(ft["shape"]) == (6,)
+            else _DESCRIPTIONS.get(key, ""),
         }
         for key, ft in info["features"].items()
     ]

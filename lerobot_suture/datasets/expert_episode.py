@@ -114,6 +114,7 @@ def make_env(
     appearance: dict | None = None,
     task: str = DEFAULT_TASK,
     wrist_camera: bool = False,
+    marks: bool = False,
 ):
     """The env the dataset is recorded in (``gym.make`` of the task's gym id); ``appearance`` the fields of
     an :class:`~lerobot_suture.sim.appearance.AppearanceConfig` (None: all off)."""
@@ -126,6 +127,7 @@ def make_env(
         appearance=appearance,
         disable_env_checker=True,
         **({"wrist_camera": True} if wrist_camera else {}),
+        **({"marks": True} if marks else {}),
     )
 
 

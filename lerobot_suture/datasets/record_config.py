@@ -42,6 +42,8 @@ class RecordConfig:
         image_size: endoscope image side (px), in [16, 640].
         wrist_camera: also record the image of a camera on the instrument's shaft
             (``observation.images.wrist``, ``image_size`` too); needs an ``obs_type`` with pixels.
+        marks: also record the current throw's entry and exit marks, as a registered wound gives them
+            (``observation.environment_state``, (6,) m); needs ``obs_type=pixels_agent_pos``.
         scenario: perturbation scenario (``lerobot_suture.sim.scenarios.SCENARIOS``); the expert fails
             under some of them and those episodes are discarded.
         seed: env seed of the first attempt; attempt ``k`` uses ``seed + k``.
@@ -86,6 +88,7 @@ class RecordConfig:
     obs_type: str = "pixels_agent_pos"  # pixels_agent_pos | pixels_agent_pos_state | state
     image_size: int = 96  # endoscope image side (px)
     wrist_camera: bool = False  # also record the wrist camera (observation.images.wrist, image_size too)
+    marks: bool = False  # also record the wound's marks (observation.environment_state, (6,) m)
     scenario: str = "nominal"  # perturbation scenario the expert is recorded in
     grasp: str = "narrow"  # grasp randomization: narrow (the test scenes) | wide
     grasp_blind_expert: bool = False  # the expert plans with the nominal grasp, not the true one
@@ -116,6 +119,11 @@ class RecordConfig:
             raise ValueError(
                 f"`wrist_camera` records an image; `obs_type`={self.obs_type!r} has none. Pass "
                 "--obs_type=pixels_agent_pos."
+            )
+        if self.marks and self.obs_type != "pixels_agent_pos":
+            raise ValueError(
+                f"`marks` records the wound's marks as observation.environment_state; `obs_type`={self.obs_type!r} "
+                "holds the privileged one there. Pass --obs_type=pixels_agent_pos."
             )
         if self.scenario not in SCENARIOS:
             raise ValueError(f"`scenario` must be one of {SCENARIOS}. Got {self.scenario!r}.")
@@ -163,6 +171,8 @@ class RecordConfig:
             flags.append(f"--grasp={self.grasp}")
         if self.wrist_camera:
             flags.append("--wrist_camera=true")
+        if self.marks:
+            flags.append("--marks=true")
         if self.grasp_blind_expert:
             flags.append("--grasp_blind_expert=true")
         if self.approach_detour:

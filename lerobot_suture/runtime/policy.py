@@ -22,6 +22,7 @@ import torch
 from lerobot_suture.datasets.features import PRIVILEGED_FEATURES
 from lerobot_suture.safety.ood.calibration_file import CALIBRATION_FILENAME, CALIBRATION_REPORT_FILENAME
 from lerobot_suture.sim.task import TASK
+from lerobot_suture.sim.wound_marks import MARKS_DIM
 
 logger = logging.getLogger(__name__)
 ACTION = "action"  # LeRobot's key of the action (and of a policy's action queue)
@@ -156,6 +157,7 @@ def env_kwargs_for_policy(config) -> dict:
             f"{WRIST_IMAGE} with wrist_camera=True)."
         )
     env_state = "observation.environment_state" in features
+    marks = env_state and tuple(features["observation.environment_state"].shape) == (MARKS_DIM,)
     if images:
         sizes = {tuple(features[k].shape[-2:]) for k in images}
         height, width = sizes.pop()
@@ -165,10 +167,18 @@ def env_kwargs_for_policy(config) -> dict:
                 f"{sorted({tuple(features[k].shape[-2:]) for k in images})}."
             )
         kwargs = {
-            "obs_type": "pixels_agent_pos_state" if env_state else "pixels_agent_pos",
+            "obs_type": "pixels_agent_pos_state" if env_state and not marks else "pixels_agent_pos",
             "image_size": int(height),
         }
-        return {**kwargs, "wrist_camera": True} if WRIST_IMAGE in features else kwargs
+        if WRIST_IMAGE in features:
+            kwargs["wrist_camera"] = True
+        if marks:
+            kwargs["marks"] = True  # the wound's marks (6,), not the privileged state (18,)
+        return kwargs
+    if marks:
+        raise ValueError(
+            "The policy reads the wound's marks without an image: the suture env gives them beside one."
+        )
     return {"obs_type": "state"}
 
 
