@@ -31,17 +31,20 @@ NEEDS = "a task to run (--task); records, trains and evaluates each lever (about
 
 @dataclass(frozen=True)
 class Lever:
-    """One line of the table: the episodes recorded and whether the wrist camera is recorded and read."""
+    """One line of the table: the episodes recorded, and whether the wrist camera and the wound's marks are
+    recorded (a policy trained on them reads them)."""
 
     name: str
     episodes: int | None  # None: the task recipe's own count
     wrist_camera: bool = False
+    marks: bool = False
 
 
 LEVERS = (
     Lever("recipe", None),
     Lever("data x500", 500),
     Lever("data x500 + wrist camera", 500, wrist_camera=True),
+    Lever("data x500 + marks", 500, marks=True),
 )
 
 
@@ -71,6 +74,7 @@ def record(task: str, lever: Lever, root: Path, log: Path) -> dict:
         f"--root={root}",
         f"--repo_id=local/levers_{task}_{root.name}",
         f"--wrist_camera={str(lever.wrist_camera).lower()}",
+        f"--marks={str(lever.marks).lower()}",
         f"--resume={str(info.is_file()).lower()}",
     ]
     if lever.episodes is not None:
@@ -124,6 +128,18 @@ def evaluate(task: str, pretrained: Path, episodes: int, seed: int, batch_envs: 
     env_kwargs = env_kwargs_for_policy(runner.policy.config)
     logs, seconds = cells.cell_episodes(runner, env_kwargs, task, "nominal", seeds, batch_envs)
     return cells.summarize_cell(logs, seconds, throws=task_spec(task).throws)
+
+
+def _with_earlier_lines(lines: list[dict], output: Path | None, task: str, members: int) -> list[dict]:
+    """``lines`` with the lines of the other levers that ``output`` already holds for the same task and
+    members (a run of some levers adds to the table), in the order of :data:`LEVERS`."""
+    if output is None or not output.is_file():
+        return lines
+    earlier = json.loads(output.read_text())
+    if (earlier.get("task"), earlier.get("members")) != (task, members):
+        return lines
+    by_name = {line["lever"]: line for line in earlier["levers"]} | {line["lever"]: line for line in lines}
+    return [by_name[lever.name] for lever in LEVERS if lever.name in by_name]
 
 
 def figure(report: dict, path: Path) -> None:
@@ -200,6 +216,7 @@ def main() -> None:
                 "lever": lever.name,
                 "episodes": recorded["episodes"],
                 "wrist_camera": lever.wrist_camera,
+                "marks": lever.marks,
                 "record_s": recorded["record_s"],
                 "train_s": round(train_s, 1),
                 "nominal": {
@@ -217,6 +234,7 @@ def main() -> None:
             }
         )
         print(f"[{lever.name}] {cell['successes']}/{cell['episodes']} successes", flush=True)
+    lines = _with_earlier_lines(lines, args.output, args.task, args.members)
     report = {"task": args.task, "members": args.members, "machine": machine(), "levers": lines}
     if args.figure is not None:
         figure(report, args.figure)
