@@ -22,8 +22,8 @@ from lerobot_suture.leaderboard.pipeline import (
     LeaderboardConfig,
     default_shifts,
     parse_checkpoints,
-    seeded_rows,
 )
+from lerobot_suture.leaderboard.run import seeded_rows
 from lerobot_suture.runtime.config import PolicyPathConfig
 from lerobot_suture.runtime.rollout import EpisodeLog, StepLog
 from lerobot_suture.sim.shifts import SHIFTS

@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import draccus
 
-from lerobot_suture.leaderboard.pipeline import LeaderboardConfig, run_leaderboard
+from lerobot_suture.leaderboard.pipeline import LeaderboardConfig
+from lerobot_suture.leaderboard.run import run_leaderboard
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -9,9 +9,9 @@ of its member. Then it evaluates every policy on every condition of its task
 (:mod:`lerobot_suture.leaderboard.cells`) and writes ``leaderboard.json``, ``leaderboard.md`` and
 ``leaderboard.png`` into ``results_dir``.
 
-Every stage (record, train, calibrate, and each cell's evaluation) is a Ray task
-(:mod:`lerobot_suture.leaderboard.ray_stages`): on this machine by default, on a cluster with
-``--ray_address``. Every finished cell is written at once to ``output_dir/cells/TASK/POLICY/CONDITION.json``
+This module holds the run's config and each stage (record, train, calibrate, and each cell's evaluation);
+:mod:`.run` submits them as Ray tasks (:mod:`lerobot_suture.leaderboard.ray_stages`): on this machine by
+default, on a cluster with ``--ray_address``. Every finished cell is written at once to ``output_dir/cells/TASK/POLICY/CONDITION.json``
 and not run again: an interrupted run, or one whose node died, resumes where it stopped (with the same
 flags). Each stage's time lands in the board's ``timings``.
 
@@ -22,20 +22,15 @@ on the same cells and its row is added to the board already in ``results_dir`` (
 from __future__ import annotations
 
 import json
-import logging
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from lerobot_suture.leaderboard import cells
-from lerobot_suture.leaderboard.board import plot, render
-from lerobot_suture.leaderboard.ray_stages import StageGraph
-from lerobot_suture.pipelines.stages import StageTimings, calibrate_policy, code_commit, record_recipe
+from lerobot_suture.pipelines.stages import code_commit
 from lerobot_suture.runtime.config import PolicyPathConfig
 from lerobot_suture.sim.shifts import MAGNITUDES, SHIFTS, Shift
 from lerobot_suture.sim.tasks import TASK_NAMES, task_spec
-
-logger = logging.getLogger(__name__)
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 PRESETS = REPO_ROOT / "policies" / "presets"
@@ -232,32 +227,6 @@ def train_policy(
     return run_lerobot_train(out, fresh, steps, common)
 
 
-def seeded_name(policy: str, seed: int) -> str:
-    """The name of ``policy``'s row trained from the further seed ``seed`` (its cells' folder)."""
-    return f"{policy}@seed{seed}"
-
-
-def seeded_rows(cfg: LeaderboardConfig, board: dict) -> list[tuple[str, str]]:
-    """The (task, policy) rows to train from ``cfg.train_seeds`` (see :class:`LeaderboardConfig`)."""
-    if not cfg.train_seeds:
-        return []
-    if cfg.seeded_rows is not None:
-        return [tuple(entry.split(":", 1)) for entry in cfg.seeded_rows]
-    rows = []
-    for task in cfg.tasks:
-        if task == "insertion":
-            rows += [(task, policy) for policy in cfg.policies]
-        elif task in board.get("summary", {}):
-            rows += [(task, p) for p in cells.best_rows(board["summary"][task]) if p in cfg.policies]
-        else:
-            logger.warning(
-                "No seeded rows on %s yet: its two best rows are known once the board has the task. Run the board "
-                "first, then again with --train_seeds.",
-                task,
-            )
-    return rows
-
-
 def row_name(policy_type: str, overrides: dict) -> str:
     """A row's default name: the policy type, and the inference approximations it runs with, if any."""
     short = {"num_inference_steps": "S", "uncertainty_samples_per_member": "K"}
@@ -323,171 +292,3 @@ def evaluate_cell(
     tmp.write_text(json.dumps(cell, separators=(",", ":")))
     tmp.replace(path)  # a cell is on disk whole or not at all
     return cell
-
-
-def submit_row(
-    graph: StageGraph,
-    cfg: LeaderboardConfig,
-    task: str,
-    name: str,
-    policy_dir,
-    overrides: dict,
-    *after,
-    shifts: list[str] | None = None,
-) -> dict:
-    """Every condition of ``task`` for row ``name`` (the board's shifts, or ``shifts``): the finished cells
-    read back, a stage submitted for each other one; {condition: the cell, or its stage's key}."""
-    row = {}
-    for condition in cells.conditions(task, cfg.shifts if shifts is None else shifts):
-        cell = finished_cell(cell_path(cfg, task, name, condition), overrides)
-        if cell is None:
-            cell = f"evaluate {task} {name} {condition}"
-            graph.submit(
-                cell,
-                "cell",
-                evaluate_cell,
-                cfg,
-                task,
-                name,
-                policy_dir,
-                overrides,
-                condition,
-                *after,
-                gpus=cfg.cell_gpus,
-            )
-        row[condition] = cell
-    return row
-
-
-def _submit_seeded_row(
-    graph: StageGraph, cfg: LeaderboardConfig, task: str, policy: str, seed: int, dataset_root
-) -> dict:
-    """``policy`` trained again from ``seed`` (and calibrated, for a gated row), then evaluated on nominal and
-    the task's scenarios."""
-    name = seeded_name(policy, seed)
-    policy_dir = graph.submit(
-        f"train {task} {policy} seed {seed}", "train", train_policy, cfg, task, policy, dataset_root, seed,
-        cpus=cfg.train_cpus,
-    )  # fmt: skip
-    after = []
-    if policy in GATED:
-        after.append(
-            graph.submit(
-                f"{calibrate_stage(task, policy)} seed {seed}",
-                "calibrate",
-                calibrate_policy,
-                policy_dir,
-                dataset_root,
-                cfg.device,
-                cfg.toy,
-                gpus=cfg.cell_gpus,
-            )  # fmt: skip
-        )
-    return submit_row(graph, cfg, task, name, policy_dir, {}, *after, shifts=[])
-
-
-def _rollout_seconds(row: dict) -> float:
-    """A row's evaluation time: its cells' rollout seconds, whichever runs they were made in."""
-    return sum(cell["seconds"] for cell in row.values())
-
-
-def run_leaderboard(cfg: LeaderboardConfig) -> dict:
-    """Train or take every policy, evaluate every cell, write the board; returns it."""
-    results = Path(cfg.results_dir)
-    results.mkdir(parents=True, exist_ok=True)
-    board_file = results / "leaderboard.json"
-    board = json.loads(board_file.read_text()) if board_file.is_file() else {}
-    for key in ("episodes", "seed"):  # rows run on other seeds or counts would not compare
-        if board.get(key, getattr(cfg, key)) != getattr(cfg, key):
-            raise ValueError(
-                f"The board in {results} was run with --{key}={board[key]}; this run has "
-                f"--{key}={getattr(cfg, key)}. Pass --{key}={board[key]} to join it, or another --results_dir."
-            )
-    board.update(episodes=cfg.episodes, seed=cfg.seed)
-    if cfg.policy.path is None or "shifts" not in board:  # a joining row keeps the board's conditions
-        board["shifts"] = cfg.shifts
-    board.setdefault("tasks", {})
-    timings = StageTimings(cfg.output_dir / "timings.json")
-    graph = StageGraph(cfg.ray_address)
-    submitted: dict[tuple[str, str], dict] = {}
-    if cfg.policy.path is not None:  # a user's checkpoint joins the board
-        # config.json names its type: read it there, before any policy plugin is registered
-        policy_type = json.loads((Path(cfg.policy.path) / "config.json").read_text())["type"]
-        name = cfg.policy_name or row_name(policy_type, cfg.policy.overrides)
-        policy_dir = Path(cfg.policy.path).resolve()
-        for task in cfg.tasks:
-            submitted[task, name] = submit_row(graph, cfg, task, name, policy_dir, cfg.policy.overrides)
-    seeded = seeded_rows(cfg, board)
-    seeded_submitted: dict[tuple[str, str, int], dict] = {}
-    if cfg.policy.path is None:
-        for task in cfg.tasks:
-            dataset_root = None
-            if any((task, p) not in cfg.taken for p in cfg.policies) or any(t == task for t, _ in seeded):
-                root = cfg.output_dir / "data" / task
-                dataset_root = graph.submit(
-                    f"record {task}", "record", record_recipe, TASK_RECIPES[task][0], root, cfg.toy
-                )
-            for policy in cfg.policies:
-                policy_dir = cfg.taken.get((task, policy))
-                if policy_dir is None:
-                    policy_dir = graph.submit(
-                        f"train {task} {policy}", "train", train_policy, cfg, task, policy, dataset_root,
-                        cpus=cfg.train_cpus,
-                    )  # fmt: skip
-                after = []
-                if policy in GATED and dataset_root is not None:
-                    after.append(
-                        graph.submit(
-                            calibrate_stage(task, policy),
-                            "calibrate",
-                            calibrate_policy,
-                            policy_dir,
-                            dataset_root,
-                            cfg.device,
-                            cfg.toy,
-                            gpus=cfg.cell_gpus,
-                        )  # fmt: skip
-                    )
-                submitted[task, policy] = submit_row(graph, cfg, task, policy, policy_dir, {}, *after)
-            for policy in (p for t, p in seeded if t == task):
-                for seed in cfg.train_seeds:
-                    seeded_submitted[task, policy, seed] = _submit_seeded_row(
-                        graph, cfg, task, policy, seed, dataset_root
-                    )
-    outputs, seconds, failures = graph.run("leaderboard")
-    for key, s in seconds.items():
-        if graph.kinds[key] != "cell":
-            timings.add(key, s)
-    for (task, name), row in submitted.items():
-        done = {c: outputs.get(cell) if isinstance(cell, str) else cell for c, cell in row.items()}
-        if all(
-            isinstance(cell, dict) for cell in done.values()
-        ):  # a row with a failed cell waits for a rerun
-            board["tasks"].setdefault(task, {})[name] = done
-            timings.seconds[f"evaluate {task} {name}"] = _rollout_seconds(done)
-    for (task, policy, seed), row in seeded_submitted.items():
-        done = {c: outputs.get(cell) if isinstance(cell, str) else cell for c, cell in row.items()}
-        if all(isinstance(cell, dict) for cell in done.values()):
-            board.setdefault("seeds", {}).setdefault(task, {}).setdefault(policy, {})[str(seed)] = done
-            timings.seconds[f"evaluate {task} {seeded_name(policy, seed)}"] = _rollout_seconds(done)
-    if board.get("seeds"):
-        board["seed_spread"] = cells.seed_spreads(board, PRESET_SEED)
-    board["summary"] = {
-        task: {
-            name: cells.row_summary(row, cells.conditions(task, board["shifts"]))
-            for name, row in rows.items()
-        }
-        for task, rows in board["tasks"].items()
-    }
-    # The rows already on the board keep their times; this run's stages add or update theirs.
-    board["timings"] = {**board.get("timings", {}), **{k: round(v, 1) for k, v in timings.seconds.items()}}
-    board_file.write_text(json.dumps(board, separators=(",", ":")))
-    (results / "leaderboard.md").write_text(render(board))
-    plot(board, results / "leaderboard.png")
-    if failures:
-        raise RuntimeError(
-            f"{len(failures)} stage(s) failed: "
-            + "; ".join(f"{k}: {v}" for k, v in sorted(failures.items()))
-            + f". Every finished stage is kept under {cfg.output_dir}: rerun the same command to finish the rest."
-        )
-    return board
