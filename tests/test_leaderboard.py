@@ -415,3 +415,62 @@ def test_a_default_lerobot_train_act_checkpoint_evaluates_and_joins_the_board(tm
     )
     row = json.loads((results / "leaderboard.json").read_text())["tasks"]["insertion"]["users_act"]
     assert all(cell["episodes"] == 1 for cell in row.values())
+
+
+def test_tuning_chooses_on_validation_seeds_apart_from_the_test_seeds(monkeypatch):
+    from lerobot_suture.leaderboard import tuning
+    from lerobot_suture.leaderboard.tuning import (
+        check_validation_seeds_are_apart,
+        choose,
+        families,
+        validation_base,
+    )
+    from lerobot_suture.runtime.seeds import SEED_STRIDE
+
+    assert families(list(LeaderboardConfig().policies)) == ["act", "diffusion", "ensemble_diffusion"]
+    scores = {
+        "preset": {"mean": 0.5, "nominal": 0.9},
+        "lerobot_defaults": {"mean": 0.6, "nominal": 0.7},
+        "small": {"mean": 0.6, "nominal": 0.8},
+    }
+    assert choose(scores) == "small"
+    assert (
+        choose({"preset": {"mean": 0.5, "nominal": 0.5}, "other": {"mean": 0.5, "nominal": 0.5}}) == "preset"
+    )
+    cfg = LeaderboardConfig()
+    check_validation_seeds_are_apart(cfg)  # the default bases: no validation seed is a test seed
+    assert validation_base(cfg) != cfg.seed
+    monkeypatch.setattr(tuning, "VALIDATION_OFFSET", SEED_STRIDE)  # the scenarios' groups, one further on
+    with pytest.raises(ValueError, match="validation seeds are test seeds"):
+        check_validation_seeds_are_apart(cfg)
+    with pytest.raises(ValueError, match="`tune`"):
+        LeaderboardConfig(tune=True, train_seeds=[2000])
+
+
+@pytest.mark.slow
+def test_toy_tuning_trains_each_configuration_and_writes_the_chosen_preset(tmp_path):
+    from lerobot_suture.leaderboard.tuning import CONFIGURATIONS
+
+    results = tmp_path / "results"
+    cli_main(
+        [
+            "leaderboard",
+            "--tune=true",
+            "--policies=[act]",
+            "--toy=true",
+            "--episodes=1",
+            f"--output_dir={tmp_path / 'work'}",
+            f"--results_dir={results}",
+        ]
+    )
+    report = json.loads((results / "tuning.json").read_text())
+    act = report["families"]["act"]
+    assert set(act["configurations"]) == set(CONFIGURATIONS["act"])
+    assert list(act["configurations"]["preset"]["validation"]) == conditions("insertion", [])
+    preset = json.loads((results / "presets" / "act.json").read_text())
+    chosen_flags = act["configurations"][act["chosen"]]["flags"]
+    for flag in chosen_flags:
+        name, value = flag.removeprefix("--policy.").split("=")
+        assert str(preset["policy"][name]) == str(float(value) if "e-" in value else int(value)), flag
+    assert report["validation_seed"] == 7_000_000 + 500_000
+    assert "| act | half_encoder |" in (results / "tuning.md").read_text()

@@ -7,6 +7,7 @@ config and the calibration report that the reference run committed in ``docs/res
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from dataclasses import fields
@@ -173,3 +174,44 @@ def test_latency_benchmark_times_a_preset_with_the_needle_target():
     assert out.returncode == 0, out.stderr[-2000:]
     result = json.loads(out.stdout)["result"]
     assert result["n_members"] == 2 and result["batched_s"] > 0
+
+
+@pytest.mark.parametrize(
+    ("family", "configuration"),
+    [
+        (family, configuration)
+        for family, configurations in __import__(
+            "lerobot_suture.leaderboard.tuning", fromlist=["CONFIGURATIONS"]
+        ).CONFIGURATIONS.items()
+        for configuration in configurations
+    ],
+)
+def test_every_tuning_configuration_parses_and_changes_only_its_flags(family, configuration, tmp_path):
+    """A family's tuning configurations are its preset with their flags, as `lerobot-train` parses them;
+    none downloads weights, and LeRobot's defaults for our shapes are LeRobot's own where LeRobot has the policy."""
+    from lerobot_suture.leaderboard.pipeline import POLICY_PRESETS, TASK_RECIPES
+    from lerobot_suture.leaderboard.tuning import CONFIGURATIONS, TUNING_TASK
+
+    preset = POLICY_PRESETS.get(family, TASK_RECIPES[TUNING_TASK][1])
+    flags = CONFIGURATIONS[family][configuration]
+    base = _parse_train_config(preset, tmp_path / "base")
+    cfg = _parse_train_config(preset, tmp_path / "candidate", *flags)
+    assert (
+        cfg.policy.pretrained_backbone_weights is None and cfg.steps == base.steps and cfg.seed == base.seed
+    )
+
+    def same(a, b) -> bool:
+        return (
+            tuple(a) == tuple(b) if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)) else a == b
+        )
+
+    changed = {
+        f.name
+        for f in dataclasses.fields(cfg.policy)
+        if not same(getattr(cfg.policy, f.name), getattr(base.policy, f.name))
+    }
+    assert changed == {flag.split("=")[0].removeprefix("--policy.") for flag in flags}
+    if configuration == "lerobot_defaults":
+        lerobot_default = type(cfg.policy)()
+        for name in changed:
+            assert same(getattr(cfg.policy, name), getattr(lerobot_default, name)), name

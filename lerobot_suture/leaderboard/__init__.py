@@ -6,6 +6,7 @@
   evaluate each cell);
 - :mod:`~lerobot_suture.leaderboard.run`: one run as a graph of those stages, the further training seeds
   included, and the board it writes;
+- :mod:`~lerobot_suture.leaderboard.tuning`: each family's configurations scored on validation seeds;
 - :mod:`~lerobot_suture.leaderboard.ray_stages`: those stages as Ray tasks, on this machine or a cluster;
 - :mod:`~lerobot_suture.leaderboard.schedule`: the graph's time on N machines, projected from stage times.
 """

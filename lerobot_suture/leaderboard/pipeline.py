@@ -89,6 +89,9 @@ class LeaderboardConfig:
     train_seeds: further training seeds: each row of ``seeded_rows`` is trained again from each (the board's
         rows train with :data:`PRESET_SEED`), and evaluated on nominal and the task's scenarios only; the board
         gives each such cell's mean and range over the seeds.
+    tune: instead of the board, tune each family of ``policies`` on insertion: its configurations
+        (:data:`lerobot_suture.leaderboard.tuning.CONFIGURATIONS`) trained like the board's rows and scored on
+        validation seeds; writes ``tuning.json``, ``tuning.md`` and each family's chosen preset.
     seeded_rows: ``TASK:POLICY`` rows trained from ``train_seeds`` (default: every policy on insertion, and on
         each other task the two best rows already on the board in ``results_dir``, so run the board first).
     toy: the same pipeline at toy scale (4 recorded episodes, 4 training steps, 2 calibration episodes):
@@ -111,6 +114,7 @@ class LeaderboardConfig:
     results_dir: Path = Path("docs/results/leaderboard")
     device: str = "cpu"
     toy: bool = False
+    tune: bool = False
     train_seeds: list[int] = field(default_factory=list)
     seeded_rows: list[str] | None = None
 
@@ -142,6 +146,10 @@ class LeaderboardConfig:
             raise ValueError(
                 f"`train_seeds` are further training seeds: distinct, and not the presets' own {PRESET_SEED}, "
                 f"which trains the board's rows. Got {self.train_seeds}."
+            )
+        if self.tune and (self.policy.path is not None or self.train_seeds):
+            raise ValueError(
+                "`tune` trains the families' configurations; pass no --policy.path or --train_seeds."
             )
         if self.train_seeds and self.policy.path is not None:
             raise ValueError(
@@ -195,10 +203,17 @@ def parse_checkpoints(entries: list[str]) -> dict[tuple[str, str], Path]:
 
 
 def train_policy(
-    cfg: LeaderboardConfig, task: str, policy: str, dataset_root: Path, seed: int | None = None
+    cfg: LeaderboardConfig,
+    task: str,
+    policy: str,
+    dataset_root: Path,
+    seed: int | None = None,
+    configuration: str | None = None,
+    flags: tuple[str, ...] = (),
 ) -> Path:
     """``lerobot-train`` of ``policy``'s preset on the task's dataset (resumable); its pretrained directory.
-    ``seed``: a further training seed (None: the preset's own)."""
+    ``seed``: a further training seed (None: the preset's own); ``configuration``: a tuning candidate's name,
+    whose ``flags`` go on top of the preset."""
     from lerobot_suture.datasets.split import train_episodes
     from lerobot_suture.datasets.video import resolve_video_backend
     from lerobot_suture.runtime.training import run_lerobot_train
@@ -215,6 +230,7 @@ def train_policy(
         f"--job_name={task}_{policy}" + ("" if seed is None else f"_seed{seed}"),
         *GATED.get(policy, []),
         *([] if seed is None else [f"--seed={seed}"]),
+        *flags,
     ]
     if cfg.toy:
         fresh += ["--batch_size=4", "--num_workers=0", "--log_freq=1"]
@@ -223,7 +239,8 @@ def train_policy(
         f"--dataset.video_backend={resolve_video_backend()}",
         f"--save_freq={2 if cfg.toy else reference['save_freq']}",
     ]
-    out = cfg.output_dir / "train" / task / (policy if seed is None else f"{policy}_seed{seed}")
+    name = policy if configuration is None else f"{policy}~{configuration}"
+    out = cfg.output_dir / "train" / task / (name if seed is None else f"{name}_seed{seed}")
     return run_lerobot_train(out, fresh, steps, common)
 
 
