@@ -151,7 +151,7 @@ def figure(report: dict, path: Path) -> None:
     from lerobot_suture.plotting import save_figure
 
     lines = report["levers"]
-    fig, ax = plt.subplots(figsize=(6, 0.6 + 0.5 * len(lines)))
+    fig, ax = plt.subplots(figsize=(7, 1.2 + 0.5 * len(lines)))
     for i, line in enumerate(lines):
         cell = line["nominal"]
         low, high = cell["success_interval"]
@@ -166,9 +166,8 @@ def figure(report: dict, path: Path) -> None:
     ax.set_yticks(range(len(lines)), [f"{line['lever']} ({line['episodes']} ep.)" for line in lines])
     ax.invert_yaxis()
     ax.set_xlim(0, 1)
-    ax.set_xlabel(
-        f"{report['task']}: nominal success on {lines[0]['nominal']['episodes']} test seeds (Wilson 95%)"
-    )
+    ax.set_xlabel(f"nominal success, {lines[0]['nominal']['episodes']} test seeds, 95% Wilson")
+    ax.set_title(f"{report['task']}: what each lever does ({report['members']} member(s))", fontsize=10)
     ax.grid(axis="x", alpha=0.3)
     fig.tight_layout()
     save_figure(fig, path, dpi=110)
