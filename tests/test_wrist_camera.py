@@ -192,6 +192,10 @@ def test_a_recording_with_the_marks_stores_them_and_a_policy_that_reads_them_get
     )
     env.close()
     assert "--marks=true" in RecordConfig(**cfg, marks=True).command()
+    from lerobot_suture.datasets.card import render_description
+
+    card = render_description(root)
+    assert "wound marks (`observation.environment_state`)" in card and "needle centre, rotation" not in card
     with pytest.raises(ValueError, match="--marks=true"):
         record(RecordConfig(**{**cfg, "num_episodes": 2}, resume=True))
     with pytest.raises(ValueError, match="--obs_type=pixels_agent_pos"):

@@ -31,6 +31,13 @@ TAGS = ["lerobot-suture", "surgical-robotics", "suturing", "needle-insertion", "
 """Hub tags added to LeRobot's own ``LeRobot`` tag."""
 TEMPLATE_NAME = "card_template.md"
 
+
+def _env_state_shape(info: dict) -> tuple | None:
+    """The shape of ``observation.environment_state``: (18,) privileged, (6,) the wound's marks; None if absent."""
+    feature = info["features"].get("observation.environment_state")
+    return None if feature is None else tuple(feature["shape"])
+
+
 _MARKS_DESCRIPTION = (
     "the current throw's entry and exit marks (m), as a registered wound gives them (`--marks=true`)"
 )
@@ -139,7 +146,8 @@ def render_description(root: str | Path, template_path: str | Path | None = None
         "scenario_period_steps": scenario.period_steps,
         "physics_dt_ms": f"{model.opt.timestep * 1e3:g}",
         "endoscope_fovy_deg": f"{model.cam_fovy[endoscope]:g}",
-        "has_environment_state": "observation.environment_state" in info["features"],
+        "has_environment_state": _env_state_shape(info) == (18,),
+        "has_marks": _env_state_shape(info) == (6,),
         "has_needle_keypoints": "observation.needle_keypoints" in info["features"],
         "video": info["features"].get("observation.images.endoscope", {}).get("dtype") == "video",
         "grasp": grasp,
