@@ -158,7 +158,8 @@ def figure(report: dict, path: Path) -> None:
         ax.errorbar(
             cell["success_rate"],
             i,
-            xerr=[[cell["success_rate"] - low], [high - cell["success_rate"]]],
+            # Clipped: at a rate of 0 or 1 the interval's end can miss the rate by a rounding error.
+            xerr=[[max(cell["success_rate"] - low, 0.0)], [max(high - cell["success_rate"], 0.0)]],
             fmt="o",
             color="C0",
             capsize=3,
