@@ -132,29 +132,19 @@ def episode(robot, index: int):
         aware.end_episode()
 
 
-def _record_loop_with_episodes(record_loop):
-    @functools.wraps(record_loop)
+def _with_episodes(loop):
+    """``loop`` (``record_loop``, or the method ``_policy_loop``) told to an episode-aware robot as one episode
+    when it is called with ``robot=`` and ``dataset=`` (both of LeRobot's callers pass them by keyword)."""
+
+    @functools.wraps(loop)
     def wrapper(*args, **kwargs):
         dataset, robot = kwargs.get("dataset"), kwargs.get("robot")
         if dataset is None or robot is None:  # the reset phase, or a call this seam does not know
-            return record_loop(*args, **kwargs)
+            return loop(*args, **kwargs)
         with episode(robot, dataset.num_episodes):
-            return record_loop(*args, **kwargs)
+            return loop(*args, **kwargs)
 
-    setattr(wrapper, _ORIGINAL, record_loop)
-    return wrapper
-
-
-def _policy_loop_with_episodes(policy_loop):
-    @functools.wraps(policy_loop)
-    def wrapper(self, *args, **kwargs):
-        dataset, robot = kwargs.get("dataset"), kwargs.get("robot")
-        if dataset is None or robot is None:
-            return policy_loop(self, *args, **kwargs)
-        with episode(robot, dataset.num_episodes):
-            return policy_loop(self, *args, **kwargs)
-
-    setattr(wrapper, _ORIGINAL, policy_loop)
+    setattr(wrapper, _ORIGINAL, loop)
     return wrapper
 
 
@@ -170,12 +160,12 @@ def install_episode_hooks() -> None:
             continue
         loop = getattr(module, "record_loop", None)
         if loop is not None and not hasattr(loop, _ORIGINAL):
-            module.record_loop = _record_loop_with_episodes(loop)
+            module.record_loop = _with_episodes(loop)
     episodic = sys.modules.get(EPISODIC_STRATEGY)
     if episodic is not None:
         strategy = episodic.EpisodicStrategy
         if not hasattr(strategy._policy_loop, _ORIGINAL):
-            strategy._policy_loop = _policy_loop_with_episodes(strategy._policy_loop)
+            strategy._policy_loop = _with_episodes(strategy._policy_loop)
 
 
 # --------------------------------------------------------------------------------------------------- 3. DAgger

@@ -158,7 +158,7 @@ def test_the_wrapped_episodic_loop_tells_an_episode_aware_robot_and_no_other():
     original = wrapped.lerobot_original
     assert not hasattr(original, "lerobot_original")
     calls = []
-    EpisodicStrategy._policy_loop = lerobot_shim._policy_loop_with_episodes(
+    EpisodicStrategy._policy_loop = lerobot_shim._with_episodes(
         lambda self, **kwargs: calls.append(kwargs["robot"])
     )
     try:

@@ -104,19 +104,49 @@ def _submit_seeded_row(
     )  # fmt: skip
     after = []
     if policy in GATED:
-        after.append(
-            graph.submit(
-                f"{calibrate_stage(task, policy)} seed {seed}",
-                "calibrate",
-                calibrate_policy,
-                policy_dir,
-                dataset_root,
-                cfg.device,
-                cfg.toy,
-                gpus=cfg.cell_gpus,
-            )  # fmt: skip
-        )
+        after.append(_submit_calibration(graph, cfg, task, policy, policy_dir, dataset_root, f" seed {seed}"))
     return submit_row(graph, cfg, task, name, policy_dir, {}, *after, shifts=[])
+
+
+def _submit_calibration(
+    graph: StageGraph,
+    cfg: LeaderboardConfig,
+    task: str,
+    policy: str,
+    policy_dir,
+    dataset_root,
+    suffix: str = "",
+):
+    """The calibration stage of a gated row's ``policy_dir`` on the task's validation data (its key:
+    :func:`calibrate_stage` and ``suffix``)."""
+    return graph.submit(
+        calibrate_stage(task, policy) + suffix, "calibrate", calibrate_policy, policy_dir, dataset_root,
+        cfg.device, cfg.toy, gpus=cfg.cell_gpus,
+    )  # fmt: skip
+
+
+def finished_row(row: dict, outputs: dict) -> dict | None:
+    """A submitted row's cells, each read back or taken from its stage's output; None when a stage failed
+    (the row waits for a rerun)."""
+    done = {c: outputs.get(cell) if isinstance(cell, str) else cell for c, cell in row.items()}
+    return done if all(isinstance(cell, dict) for cell in done.values()) else None
+
+
+def add_stage_times(graph: StageGraph, seconds: dict[str, float], timings: StageTimings) -> None:
+    """Record the wall time of every stage but the cells (a cell's time is its own ``seconds``)."""
+    for key, s in seconds.items():
+        if graph.kinds[key] != "cell":
+            timings.add(key, s)
+
+
+def raise_failures(failures: dict[str, str], output_dir) -> None:
+    """Name every failed stage; what finished stays under ``output_dir`` for a rerun."""
+    if failures:
+        raise RuntimeError(
+            f"{len(failures)} stage(s) failed: "
+            + "; ".join(f"{k}: {v}" for k, v in sorted(failures.items()))
+            + f". Every finished stage is kept under {output_dir}: rerun the same command to finish the rest."
+        )
 
 
 def _rollout_seconds(row: dict) -> float:
@@ -169,18 +199,7 @@ def run_leaderboard(cfg: LeaderboardConfig) -> dict:
                     )  # fmt: skip
                 after = []
                 if policy in GATED and dataset_root is not None:
-                    after.append(
-                        graph.submit(
-                            calibrate_stage(task, policy),
-                            "calibrate",
-                            calibrate_policy,
-                            policy_dir,
-                            dataset_root,
-                            cfg.device,
-                            cfg.toy,
-                            gpus=cfg.cell_gpus,
-                        )  # fmt: skip
-                    )
+                    after.append(_submit_calibration(graph, cfg, task, policy, policy_dir, dataset_root))
                 submitted[task, policy] = submit_row(graph, cfg, task, policy, policy_dir, {}, *after)
             for policy in (p for t, p in seeded if t == task):
                 for seed in cfg.train_seeds:
@@ -188,19 +207,13 @@ def run_leaderboard(cfg: LeaderboardConfig) -> dict:
                         graph, cfg, task, policy, seed, dataset_root
                     )
     outputs, seconds, failures = graph.run("leaderboard")
-    for key, s in seconds.items():
-        if graph.kinds[key] != "cell":
-            timings.add(key, s)
+    add_stage_times(graph, seconds, timings)
     for (task, name), row in submitted.items():
-        done = {c: outputs.get(cell) if isinstance(cell, str) else cell for c, cell in row.items()}
-        if all(
-            isinstance(cell, dict) for cell in done.values()
-        ):  # a row with a failed cell waits for a rerun
+        if (done := finished_row(row, outputs)) is not None:
             board["tasks"].setdefault(task, {})[name] = done
             timings.seconds[f"evaluate {task} {name}"] = _rollout_seconds(done)
     for (task, policy, seed), row in seeded_submitted.items():
-        done = {c: outputs.get(cell) if isinstance(cell, str) else cell for c, cell in row.items()}
-        if all(isinstance(cell, dict) for cell in done.values()):
+        if (done := finished_row(row, outputs)) is not None:
             board.setdefault("seeds", {}).setdefault(task, {}).setdefault(policy, {})[str(seed)] = done
             timings.seconds[f"evaluate {task} {seeded_name(policy, seed)}"] = _rollout_seconds(done)
     if board.get("seeds"):
@@ -217,10 +230,5 @@ def run_leaderboard(cfg: LeaderboardConfig) -> dict:
     board_file.write_text(json.dumps(board, separators=(",", ":")))
     (results / "leaderboard.md").write_text(render(board))
     plot(board, results / "leaderboard.png")
-    if failures:
-        raise RuntimeError(
-            f"{len(failures)} stage(s) failed: "
-            + "; ".join(f"{k}: {v}" for k, v in sorted(failures.items()))
-            + f". Every finished stage is kept under {cfg.output_dir}: rerun the same command to finish the rest."
-        )
+    raise_failures(failures, cfg.output_dir)
     return board

@@ -25,7 +25,7 @@ import numpy as np
 from lerobot_suture.leaderboard import cells
 from lerobot_suture.leaderboard.pipeline import TASK_RECIPES, LeaderboardConfig, train_policy
 from lerobot_suture.leaderboard.ray_stages import StageGraph
-from lerobot_suture.leaderboard.run import submit_row
+from lerobot_suture.leaderboard.run import add_stage_times, finished_row, raise_failures, submit_row
 from lerobot_suture.pipelines.stages import StageTimings, record_recipe
 from lerobot_suture.sim.tasks import TASK_NAMES
 
@@ -120,9 +120,7 @@ def run_tuning(cfg: LeaderboardConfig) -> dict:
                 graph, validation, task, name, policy_dirs[family, configuration], {}, shifts=[]
             )
     outputs, seconds, failures = graph.run("tuning")
-    for key, s in seconds.items():
-        if graph.kinds[key] != "cell":
-            timings.add(key, s)
+    add_stage_times(graph, seconds, timings)
     report: dict = {
         "task": task,
         "validation_seed": validation.seed,
@@ -132,11 +130,8 @@ def run_tuning(cfg: LeaderboardConfig) -> dict:
     for family in families(cfg.policies):
         scores = {}
         for configuration, flags in CONFIGURATIONS[family].items():
-            row = {
-                c: outputs.get(v) if isinstance(v, str) else v
-                for c, v in submitted[family, configuration].items()
-            }
-            if not all(isinstance(cell, dict) for cell in row.values()):
+            row = finished_row(submitted[family, configuration], outputs)
+            if row is None:
                 continue
             rates = {c: cell["success_rate"] for c, cell in row.items()}
             scores[configuration] = {
@@ -158,12 +153,7 @@ def run_tuning(cfg: LeaderboardConfig) -> dict:
     results.mkdir(parents=True, exist_ok=True)
     (results / "tuning.json").write_text(json.dumps(report, indent=1))
     (results / "tuning.md").write_text(render_tuning(report))
-    if failures:
-        raise RuntimeError(
-            f"{len(failures)} stage(s) failed: "
-            + "; ".join(f"{k}: {v}" for k, v in sorted(failures.items()))
-            + f". Every finished stage is kept under {cfg.output_dir}: rerun the same command to finish the rest."
-        )
+    raise_failures(failures, cfg.output_dir)
     return report
 
 
