@@ -22,14 +22,13 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 import numpy as np  # noqa: E402
 from _report import emit  # noqa: E402
-from tqdm import tqdm  # noqa: E402
 
 from lerobot_suture.experiments.metrics import auroc, auroc_interval, wilson_interval  # noqa: E402
+from lerobot_suture.runtime.calibration import stac_maxima  # noqa: E402
+from lerobot_suture.runtime.gates import StacGates  # noqa: E402
 from lerobot_suture.runtime.policy import GateMode, PolicyRunner, env_kwargs_for_policy  # noqa: E402
-from lerobot_suture.runtime.rollout import make_scenario_env  # noqa: E402
 from lerobot_suture.runtime.seeds import fresh_seeds  # noqa: E402
-from lerobot_suture.runtime.stac_calibration import StacScorer  # noqa: E402
-from lerobot_suture.safety.ood.chunk_consistency import StacCalibration  # noqa: E402
+from lerobot_suture.safety.ood.calibration_file import StacCalibration  # noqa: E402
 
 NEEDS = "a chunking policy calibrated by lerobot-suture calibrate-stac (--policy-path)"
 SCENARIOS = ("needle_drop", "phantom_moved_after_insertion")
@@ -47,7 +46,7 @@ def main() -> None:
 
     calibration = StacCalibration.load(args.policy_path)
     runner = PolicyRunner.from_pretrained(args.policy_path, GateMode.REPORT)
-    scorer = StacScorer(runner, calibration.bandwidth)
+    gates = StacGates(runner.policy, calibration)
     env_kwargs = env_kwargs_for_policy(runner.policy.config)
     seeds = fresh_seeds(args.episodes, start=SEED_OFFSET)
     report: dict = {
@@ -61,18 +60,13 @@ def main() -> None:
     maxima: dict[str, list[float]] = {}
     success: dict[str, list[bool]] = {}
     for scenario in ("nominal", *args.scenarios):
-        env = make_scenario_env(env_kwargs, scenario)
         try:
-            episodes = [
-                scorer.episode(env, s) for s in tqdm(seeds, desc=scenario, unit="episode", file=sys.stderr)
-            ]
+            scenario_maxima, logs = stac_maxima(runner, gates, env_kwargs, seeds, scenario, scenario)
         except KeyboardInterrupt:
             print(f"interrupted in {scenario}", file=sys.stderr)
             break
-        finally:
-            env.close()
-        maxima[scenario] = [e.max_score for e in episodes]
-        success[scenario] = [e.success for e in episodes]
+        maxima[scenario] = scenario_maxima.tolist()
+        success[scenario] = [log.success for log in logs]
     nominal = maxima.get("nominal", [])
     alarms = sum(m > calibration.threshold for m in nominal)
     low, high = wilson_interval(alarms, len(nominal)) if nominal else (float("nan"), float("nan"))

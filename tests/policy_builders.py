@@ -147,6 +147,35 @@ def save_untrained_expert_policy(directory: str | Path, seed: int = 0, **config_
     return save_untrained_policy(tiny_config(**config_overrides), stats, directory)
 
 
+def save_untrained_act_policy(directory: str | Path, seed: int = 0) -> Path:
+    """An untrained tiny LeRobot ACT (chunks of 8, 4 executed) with the scripted expert's statistics, saved to
+    `directory` as `lerobot-train` saves one."""
+    from lerobot.policies.act.configuration_act import ACTConfig
+    from lerobot.policies.act.modeling_act import ACTPolicy
+    from lerobot.policies.factory import make_pre_post_processors
+
+    stats = expert_dataset_stats(n_seeds=2)
+    config = ACTConfig(
+        input_features=dict(SUTURE_INPUT_FEATURES),
+        output_features=dict(SUTURE_OUTPUT_FEATURES),
+        chunk_size=8,
+        n_action_steps=4,
+        pretrained_backbone_weights=None,
+        dim_model=32,
+        n_heads=2,
+        dim_feedforward=64,
+        n_encoder_layers=1,
+        n_vae_encoder_layers=1,
+        device="cpu",
+    )
+    torch.manual_seed(seed)
+    directory = Path(directory)
+    ACTPolicy(config).save_pretrained(directory)
+    for pipeline in make_pre_post_processors(config, dataset_stats=stats):
+        pipeline.save_pretrained(directory)
+    return directory
+
+
 def fake_dataset_stats(seed: int = 0) -> dict[str, dict[str, np.ndarray]]:
     """Dataset-like statistics for the suture features (enough for MIN_MAX / MEAN_STD normalization)."""
     rng = np.random.default_rng(seed)

@@ -1,11 +1,11 @@
 """``lerobot-suture calibrate-stac --policy.path=DIR``: fit the STAC gate of a chunking LeRobot policy (ACT,
-diffusion, ...) on nominal rollouts (:mod:`lerobot_suture.runtime.stac_calibration` says how)."""
+diffusion, ...) on nominal rollouts (:mod:`lerobot_suture.runtime.calibration` says how)."""
 
 from __future__ import annotations
 
 import draccus
 
-from lerobot_suture.runtime.stac_calibration import CalibrateStacConfig, run_stac_calibration
+from lerobot_suture.runtime.calibration import CalibrateStacConfig, run_stac_calibration
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -1,6 +1,7 @@
-"""Fitting the O.O.D. gate of a trained ensemble (``lerobot-suture calibrate``).
+"""Fitting a policy's O.O.D. gate on its nominal rollouts: ``lerobot-suture calibrate`` for an ensemble's own
+gate, ``lerobot-suture calibrate-stac`` for STAC on any chunking policy (ACT, diffusion, ...).
 
-Rolls the policy out in the nominal scenario on seeds it was not trained on (the dataset's validation
+``calibrate`` rolls the policy out in the nominal scenario on seeds it was not trained on (the dataset's validation
 seeds when ``dataset_root`` is given, else fresh seeds), records the uncertainty score of every
 prediction, fits the in-distribution model on the first ``calibration_episodes`` episodes, measures
 the false-alarm rate on the remaining held-out episodes, and writes the calibration into the policy
@@ -12,6 +13,12 @@ dataset), so a policy trained on a running suture is calibrated on running sutur
 A dataset recorded with appearance randomization (``--appearance.*``) lends its ranges too, so the gate is
 calibrated on the look the policy was trained on: what the randomization made in-distribution is not
 flagged, and what lies beyond its ranges still is.
+
+``calibrate-stac`` rolls the policy out in the nominal scenario on fresh seeds, scores every chunk it predicts
+against the one before (:class:`~lerobot_suture.runtime.gates.StacGates`), and sets the per-episode threshold at
+the split-conformal quantile of the episodes' maxima. It measures the false-alarm rate on further held-out
+episodes and writes ``stac_calibration.json`` and ``stac_calibration_report.json`` beside the policy, where the
+env path and ``lerobot-rollout --strategy.type=gated_dagger`` read it.
 """
 
 from __future__ import annotations
@@ -20,18 +27,30 @@ import dataclasses
 import functools
 import json
 import logging
+import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
 from lerobot_suture.datasets.metadata import read_episode_log, write_json_atomic
-from lerobot_suture.runtime.config import PolicyPathConfig, RolloutCommandConfig
+from lerobot_suture.runtime.config import PolicyCommandConfig, PolicyPathConfig, RolloutCommandConfig
+from lerobot_suture.runtime.gates import SilentGates, StacGates
 from lerobot_suture.runtime.policy import copy_with_overrides, env_kwargs_for_policy, reporting_runner
-from lerobot_suture.runtime.rollout import make_scenario_env, rollout_seeds
+from lerobot_suture.runtime.rollout import EpisodeLog, make_scenario_env, rollout_seeds
 from lerobot_suture.runtime.seeds import fresh_seeds
-from lerobot_suture.safety.ood.calibration import default_model, fit_calibration, min_calibration_episodes
-from lerobot_suture.safety.ood.calibration_file import CALIBRATION_REPORT_FILENAME, save_calibration
+from lerobot_suture.safety.ood.calibration import (
+    conformal_episode_threshold,
+    default_model,
+    fit_calibration,
+    min_calibration_episodes,
+)
+from lerobot_suture.safety.ood.calibration_file import (
+    CALIBRATION_REPORT_FILENAME,
+    StacCalibration,
+    save_calibration,
+)
 from lerobot_suture.safety.ood.likelihood_ratio import false_alarm_rates
 
 logger = logging.getLogger(__name__)
@@ -41,6 +60,10 @@ LOW_CALIBRATION_SUCCESS = 0.5
 
 SCORE_CHOICE_FIELDS = ("uncertainty_score", "uncertainty_space", "uncertainty_source", "uncertainty_steps")
 """The ensemble's config fields that choose how a prediction is scored (``lerobot-suture score-study``)."""
+
+STAC_REPORT_FILE = "stac_calibration_report.json"
+STAC_SEED_OFFSET = 400_000
+"""STAC's calibration seeds are fresh seeds from this offset on (apart from the env path's other fresh seeds)."""
 
 
 @dataclass
@@ -153,16 +176,25 @@ def dataset_task(dataset_root: Path | None) -> dict:
 
 
 def collect_scores(
-    runner, env_kwargs: dict, seeds: list[int], desc: str, batch_envs: int = 8, workers: int = 1
-) -> tuple[np.ndarray, np.ndarray, list]:
-    """Per-prediction uncertainty scores and their episode ids over nominal episodes of ``runner``."""
+    runner,
+    env_kwargs: dict,
+    seeds: list[int],
+    desc: str,
+    batch_envs: int = 8,
+    workers: int = 1,
+    gates: SilentGates | None = None,
+    scenario: str = "nominal",
+) -> tuple[np.ndarray, np.ndarray, list[EpisodeLog]]:
+    """Per-prediction scores (of ``gates``, by default the policy's own) and their episode ids over episodes of
+    ``runner`` in ``scenario``."""
     logs = rollout_seeds(
-        functools.partial(make_scenario_env, env_kwargs, "nominal"),
+        functools.partial(make_scenario_env, env_kwargs, scenario),
         runner,
         seeds,
         batch_envs,
         desc=desc,
         workers=workers,
+        gates=gates,
     )
     scores, episode_ids = [], []
     for episode, log in enumerate(logs):
@@ -171,6 +203,13 @@ def collect_scores(
                 scores.append(step.score)
                 episode_ids.append(episode)
     return np.asarray(scores), np.asarray(episode_ids), logs
+
+
+def episode_maxima(scores: np.ndarray, episode_ids: np.ndarray, episodes: int) -> np.ndarray:
+    """(episodes,) each episode's largest score (0 for an episode without one: STAC's first chunk scores 0)."""
+    maxima = np.zeros(episodes)
+    np.maximum.at(maxima, episode_ids.astype(int), scores)
+    return maxima
 
 
 def run_calibration(cfg: CalibrateConfig) -> dict:
@@ -239,4 +278,78 @@ def run_calibration(cfg: CalibrateConfig) -> dict:
     (Path(cfg.policy.path) / CALIBRATION_REPORT_FILENAME).write_text(
         json.dumps(report, separators=(",", ":"))
     )
+    return report
+
+
+@dataclass
+class CalibrateStacConfig(PolicyCommandConfig):
+    """``lerobot-suture calibrate-stac`` flags, besides ``--policy.path`` (a chunking policy) and ``--device``.
+
+    Args:
+        calibration_episodes: nominal episodes the threshold is fitted on (>= 20 at alpha 0.05).
+        holdout_episodes: further nominal episodes the false-alarm rate is measured on.
+        alpha: per-episode false-alarm rate the threshold is set for, in (0, 0.5).
+        bandwidth: STAC's kernel bandwidth per dimension (normalized action units, > 0).
+    """
+
+    writes_to_policy: ClassVar[bool] = True
+
+    calibration_episodes: int = 100
+    holdout_episodes: int = 20
+    alpha: float = 0.05
+    bandwidth: float = 0.5
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.calibration_episodes < 1 or self.holdout_episodes < 0:
+            raise ValueError(
+                f"`calibration_episodes` must be >= 1 and `holdout_episodes` >= 0. Got "
+                f"{self.calibration_episodes}, {self.holdout_episodes}."
+            )
+
+
+def stac_maxima(
+    runner, gates: StacGates, env_kwargs: dict, seeds: list[int], desc: str, scenario: str = "nominal"
+):
+    """Each episode's largest STAC score, (E,), and the episodes' logs, one env at a time."""
+    scores, ids, logs = collect_scores(
+        runner, env_kwargs, seeds, desc, batch_envs=1, gates=gates, scenario=scenario
+    )
+    return episode_maxima(scores, ids, len(logs)), logs
+
+
+def run_stac_calibration(cfg: CalibrateStacConfig) -> dict:
+    """Fit the threshold, write the calibration and its report beside the policy; returns the report."""
+    from lerobot_suture.runtime.policy import GateMode, PolicyRunner
+
+    runner = PolicyRunner.from_pretrained(cfg.policy.path, GateMode.REPORT, cfg.device)
+    gates = StacGates(runner.policy, bandwidth=cfg.bandwidth)
+    seeds = fresh_seeds(cfg.calibration_episodes + cfg.holdout_episodes, start=STAC_SEED_OFFSET)
+    try:
+        maxima, logs = stac_maxima(
+            runner, gates, env_kwargs_for_policy(runner.policy.config), seeds, "STAC calibration"
+        )
+    finally:
+        gates.close()
+    fit, held_out = maxima[: cfg.calibration_episodes], maxima[cfg.calibration_episodes :]
+    threshold = conformal_episode_threshold(fit, cfg.alpha)
+    config = runner.policy.config
+    calibration = StacCalibration(
+        threshold=threshold,
+        bandwidth=cfg.bandwidth,
+        alpha=cfg.alpha,
+        episodes=len(fit),
+        policy_type=str(config.type),
+        n_action_steps=int(getattr(config, "n_action_steps", 1)),
+    )
+    path = calibration.save(cfg.policy.path)
+    report = {
+        "calibration": asdict(calibration),
+        "calibration_seeds": seeds[: cfg.calibration_episodes],
+        "holdout_seeds": seeds[cfg.calibration_episodes :],
+        "calibration_success_rate": float(np.mean([log.success for log in logs[: cfg.calibration_episodes]])),
+        "holdout_false_alarm_rate": float(np.mean(held_out > threshold)) if len(held_out) else math.nan,
+        "calibration_file": str(path),
+    }
+    (Path(cfg.policy.path) / STAC_REPORT_FILE).write_text(json.dumps(report, separators=(",", ":")) + "\n")
     return report

@@ -27,8 +27,8 @@ from tqdm import tqdm
 
 from lerobot_suture.expert import ScriptedExpert
 from lerobot_suture.registration import MAX_EPISODE_STEPS
+from lerobot_suture.runtime.gates import PolicyGates, SilentGates
 from lerobot_suture.runtime.workers import rollout_in_workers
-from lerobot_suture.safety.ood.gate import silent_status
 from lerobot_suture.sim.shifts import Shift, ShiftWrapper
 from lerobot_suture.sim.tasks import DEFAULT_TASK, task_spec
 
@@ -119,6 +119,7 @@ def rollout_episode(
     seed: int,
     surgeon: str = "none",
     max_steps: int | None = None,
+    gates: SilentGates | None = None,
 ) -> EpisodeLog:
     """One episode of ``runner`` (a :class:`PolicyRunner`) in ``env`` with the surgeon stand-in.
 
@@ -126,7 +127,7 @@ def rollout_episode(
     records the needle tip's physics-rate trace, ``h_min_physics`` is the smallest barrier of the safe set
     (>= 0 above the tissue or in the wound's ellipsoid) over every physics step while the CBF was on.
     """
-    return rollout_episodes([env], runner, [seed], surgeon, max_steps)[0]
+    return rollout_episodes([env], runner, [seed], surgeon, max_steps, gates)[0]
 
 
 def rollout_episodes(
@@ -135,9 +136,11 @@ def rollout_episodes(
     seeds: Sequence[int],
     surgeon: str = "none",
     max_steps: int | None = None,
+    gates: SilentGates | None = None,
 ) -> list[EpisodeLog]:
     """``len(envs)`` episodes in lockstep, ``envs[i]`` reset with ``seeds[i]``: one batched policy call
-    per control step (much cheaper per episode than one call each), one O.O.D. gate per env.
+    per control step (much cheaper per episode than one call each), one O.O.D. gate per env: ``gates``
+    (:mod:`lerobot_suture.runtime.gates`), by default the policy's own.
 
     An env whose episode has ended is not stepped again; its last observation keeps its row of the
     batch. Each episode's diffusion noise comes from its own seed (:class:`PolicyRunner`), so a seed gives
@@ -155,6 +158,8 @@ def rollout_episodes(
     torch.manual_seed(int(seeds[0]))
     observations = [env.reset(seed=int(seed))[0] for env, seed in zip(envs, seeds, strict=True)]
     runner.reset(seeds=[int(seed) for seed in seeds])
+    gates = PolicyGates(runner.policy) if gates is None else gates
+    gates.reset(len(envs))
     tasks = [env.unwrapped.task_description for env in envs]  # each env's instruction, as lerobot-eval sends
     n = len(envs)
     experts = [ScriptedExpert() for _ in range(n)]
@@ -176,7 +181,7 @@ def rollout_episodes(
                 continue
             if log.handover_step is None:
                 action, controller = actions[i], POLICY
-                statuses[i] = gate_status(runner.policy, i)
+                statuses[i] = gates.status(i)
                 if statuses[i]["released"]:
                     log.handover_step, log.handover_cause = len(log.steps), "gate"
                     held[i] = action  # the policy's hold action at the release
@@ -221,16 +226,19 @@ def rollout_seeds(
     surgeon: str = "none",
     desc: str | None = None,
     workers: int = 1,
+    gates: SilentGates | None = None,
 ) -> list[EpisodeLog]:
     """One episode per seed, ``batch_envs`` at a time (:func:`rollout_episodes`), with a progress bar.
 
     ``make_env()`` builds one env; ``min(batch_envs, len(seeds))`` of them are built and reused. With
     ``workers`` > 1 the batches run in that many processes (:mod:`lerobot_suture.runtime.workers`; the
     runner must come from ``PolicyRunner.from_pretrained`` and ``make_env`` must pickle): the same
-    episodes, sooner on several cores.
+    episodes, sooner on several cores. ``gates``: as in :func:`rollout_episodes` (with one worker only).
     """
     if batch_envs < 1 or workers < 1:
         raise ValueError(f"`batch_envs` and `workers` must be >= 1. Got {batch_envs}, {workers}.")
+    if gates is not None and workers > 1:
+        raise ValueError("`gates` other than the policy's own run in this process only: pass `workers=1`.")
     seeds = [int(s) for s in seeds]
     if workers > 1 and len(seeds) > batch_envs:
         return rollout_in_workers(
@@ -242,18 +250,12 @@ def rollout_seeds(
         with tqdm(total=len(seeds), desc=desc, unit="episode") as progress:
             for start in range(0, len(seeds), len(envs) or 1):
                 chunk = seeds[start : start + len(envs)]
-                logs += rollout_episodes(envs[: len(chunk)], runner, chunk, surgeon)
+                logs += rollout_episodes(envs[: len(chunk)], runner, chunk, surgeon, gates=gates)
                 progress.update(len(chunk))
     finally:
         for env in envs:
             env.close()
     return logs
-
-
-def gate_status(policy, row: int) -> dict:
-    """The O.O.D. gate's status for batch row ``row`` (``ood_status``); a policy without a gate (ACT,
-    LeRobot's diffusion) reports NaN scores and never decides O.O.D. or releases control."""
-    return policy.ood_status(row) if hasattr(policy, "ood_status") else silent_status()
 
 
 def _step_log(status: dict, controller: str, info: dict) -> StepLog:

@@ -113,6 +113,7 @@ def gate_status(gates: list[OODGate], index: int, enforce: bool, new_prediction:
         "threshold": float(gate.threshold),
         "decision": bool(gate.decision),
         "released": bool(gate.released and enforce),
+        "flagged": bool(gate.released),
         "new_prediction": new_prediction,
     }
 
@@ -179,6 +180,7 @@ class GatedPolicyMixin:
 
         Keys: `score` (the last prediction's uncertainty score), `threshold` (NaN without a calibration),
         `decision` (the last test said O.O.D.), `released` (control was released, latched until `reset`),
-        `new_prediction` (this call predicted a new chunk).
+        `flagged` (the gate has said O.O.D. this episode, latched, enforced or not), `new_prediction` (this call
+        predicted a new chunk).
         """
         return gate_status(self._ood_gates, index, self.config.ood.enforce, self._new_prediction)

@@ -10,30 +10,23 @@
   alone sees it.
 
 :class:`RolloutGate` ``.read(observation)``, once the policy has predicted its action and before the action is
-sent, gives a :class:`GateReading`; the decision is latched for the episode, as the ensemble's gate releases
-control once.
+sent, gives a :class:`GateReading`. The score's gate is the env path's (:func:`~lerobot_suture.runtime.gates.policy_gates`:
+the one latched :class:`~lerobot_suture.safety.ood.gate.OODGate`); the camera watchdog latches its own flag.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from lerobot_suture.runtime.gates import GATE_KINDS, policy_gates
 from lerobot_suture.safety.camera_watchdog import CameraWatchdog, CameraWatchdogConfig
-from lerobot_suture.safety.ood.chunk_consistency import (
-    STAC_CALIBRATION_FILE,
-    ChunkCapture,
-    ChunkConsistencyMonitor,
-    StacCalibration,
-    chunk_source,
-)
 
 from .config_suture_sim import CAMERA, POSE_FEATURES
 
-GATE_KINDS = ("auto", "ensemble", "stac", "none")
+__all__ = ["GATE_KINDS", "GateReading", "RolloutGate"]
 
 
 @dataclass(frozen=True)
@@ -77,74 +70,34 @@ class RolloutGate:
         policy_dir: str | Path | None = None,
         camera: CameraWatchdogConfig | None = None,
     ):
-        if kind not in GATE_KINDS:
-            raise ValueError(f"`gate` must be one of {GATE_KINDS}. Got {kind!r}.")
         self.policy = policy
-        ensemble = callable(getattr(policy, "ood_status", None)) and getattr(policy, "ood_calibration", None)
-        if kind == "auto":
-            has_stac = policy_dir is not None and (Path(policy_dir) / STAC_CALIBRATION_FILE).is_file()
-            kind = "ensemble" if ensemble else "stac" if has_stac else "none"
-        if kind == "ensemble" and not ensemble:
-            raise ValueError(
-                "`gate=ensemble` needs an ensemble_diffusion policy with a calibrated gate: run "
-                "`lerobot-suture calibrate --policy.path=DIR` first, or use `gate=stac` for other policies."
-            )
-        self.kind = kind
-        self._capture = self._monitor = self._calibration = None
-        if kind == "stac":
-            if policy_dir is None:
-                raise FileNotFoundError(
-                    f"`gate=stac` needs the policy's directory to read {STAC_CALIBRATION_FILE}."
-                )
-            self._calibration = StacCalibration.load(policy_dir)
-            owner, name, start = chunk_source(policy)
-            self._capture = ChunkCapture(owner, name)
-            shift = int(getattr(policy.config, "n_action_steps", self._calibration.n_action_steps))
-            if shift != self._calibration.n_action_steps:
-                raise ValueError(
-                    f"The STAC calibration in {policy_dir} was fitted with n_action_steps="
-                    f"{self._calibration.n_action_steps}; the policy runs {shift}, so successive chunks overlap "
-                    "differently. Run `lerobot-suture calibrate-stac` again with these settings."
-                )
-            self._monitor = ChunkConsistencyMonitor(shift, start, self._calibration.bandwidth)
+        self._gates = policy_gates(policy, kind, policy_dir)
+        self.kind = self._gates.kind
         self._watchdog = CameraWatchdog(camera) if camera is not None else None
         self.reset()
 
     def reset(self) -> None:
-        """A new episode: the latched decision, the watchdog and STAC's previous chunk are forgotten."""
-        self._latched = False
-        self._score = math.nan
-        self._chunks = self._capture.chunks if self._capture is not None else 0
-        if self._monitor is not None:
-            self._monitor.reset()
+        """A new episode: STAC's gate and previous chunk, and the watchdog, are forgotten (the ensemble's policy
+        resets its own gate)."""
+        self._gates.reset(1)
         if self._watchdog is not None:
             self._watchdog.reset()
 
     def close(self) -> None:
-        if self._capture is not None:
-            self._capture.release()
+        self._gates.close()
 
     def read(self, observation: dict) -> GateReading:
         """The gate once the policy has predicted its action for ``observation`` (the robot's raw observation),
         before that action is sent. STAC assumes one policy call per control step (synchronous inference)."""
-        stale = False
         if self._watchdog is not None and CAMERA in observation:
             pose = np.array([float(observation[k]) for k in POSE_FEATURES])
-            stale = self._watchdog.update(np.asarray(observation[CAMERA]), pose)
-        threshold, flagged, new = math.nan, False, False
-        if self.kind == "ensemble":
-            status = self.policy.ood_status()
-            new = bool(status["new_prediction"])
-            self._score, threshold, flagged = (
-                float(status["score"]),
-                float(status["threshold"]),
-                status["decision"],
-            )
-        elif self.kind == "stac":
-            threshold = self._calibration.threshold
-            if self._capture.chunks > self._chunks:
-                self._chunks, new = self._capture.chunks, True
-                self._score = self._monitor.update(self._capture.last)
-            flagged = self._monitor.episode_max > threshold
-        self._latched = self._latched or bool(flagged) or stale
-        return GateReading(self._score, threshold, self._latched, stale, new)
+            self._watchdog.update(np.asarray(observation[CAMERA]), pose)
+        stale = self._watchdog is not None and self._watchdog.flagged
+        status = self._gates.status(0)
+        return GateReading(
+            float(status["score"]),
+            float(status["threshold"]),
+            bool(status["flagged"]) or stale,
+            stale,
+            bool(status["new_prediction"]),
+        )

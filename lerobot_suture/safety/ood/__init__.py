@@ -11,7 +11,9 @@ module                  what it holds
 ``score``               the uncertainty scores of an ensemble covariance (sigma_hat, trace, logdet)
 ``calibration``         the I.D. score model and the test's threshold, fitted on I.D. scores
 ``likelihood_ratio``    the one-sided likelihood-ratio test (its derivation) and false-alarm rates
-``gate``                :class:`~lerobot_suture.safety.ood.gate.OODGate`, the latched test a policy holds
-``calibration_file``    the calibration's JSON file in a pretrained policy directory
+``gate``                the one gate: :class:`~lerobot_suture.safety.ood.gate.OODGate`, the latched test, and
+                        :class:`~lerobot_suture.safety.ood.gate.ChunkGate`, a chunk detector feeding it
+``calibration_file``    the ensemble's and STAC's calibration files in a pretrained policy directory
+``chunk_consistency``   STAC: the chunk detector for any policy that predicts chunks
 ======================  ==========================================================================
 """

@@ -1,77 +1,20 @@
-"""The gate for any LeRobot policy that predicts action chunks: STAC on the chunks it actually predicts.
+"""The detector for any LeRobot policy that predicts action chunks: STAC on the chunks it actually predicts.
 
 An ensemble's gate reads its members' covariance; ACT, diffusion and other single-model policies have none.
 What every chunking policy has is its chunks. :class:`ChunkCapture` keeps each chunk a policy predicts (it wraps
 the instance's ``predict_action_chunk``, the one method LeRobot's ``select_action`` and ``lerobot-rollout``'s
 inference engines call for a new chunk), and :class:`ChunkConsistencyMonitor` scores it against the previous
 one with STAC (:mod:`lerobot_suture.safety.ood.stac_score`: the squared MMD of the overlapping steps, in the policy's
-normalized action space). The test is the per-episode one of the ensemble's gate: a threshold on the
-episode's running maximum, the split-conformal quantile of nominal episodes' maxima
-(:func:`~lerobot_suture.safety.ood.calibration.conformal_episode_threshold`), stored as
-:class:`StacCalibration` in ``stac_calibration.json`` beside the policy.
+normalized action space). The monitor is a :class:`~lerobot_suture.safety.ood.gate.ChunkDetector`: the one gate
+(:class:`~lerobot_suture.safety.ood.gate.ChunkGate`) tests its scores as it tests the ensemble's, on the episode's
+running maximum against :class:`~lerobot_suture.safety.ood.calibration_file.StacCalibration`.
 """
 
 from __future__ import annotations
 
-import json
-import math
-from dataclasses import asdict, dataclass
-from pathlib import Path
-
 import numpy as np
 
 from lerobot_suture.safety.ood.stac_score import chunk_overlap, mmd_squared
-
-STAC_CALIBRATION_FILE = "stac_calibration.json"
-
-
-@dataclass(frozen=True)
-class StacCalibration:
-    """A STAC gate's calibration.
-
-    Args:
-        threshold: per-episode threshold on the running maximum of the score (squared MMD, >= 0).
-        bandwidth: the kernel's per-dimension bandwidth (normalized action units, > 0).
-        alpha: the per-episode false-alarm rate it was fitted for, in (0, 0.5).
-        episodes: nominal episodes it was fitted on.
-        policy_type: the policy's type (``act``, ``diffusion``, ...), for the error when another loads it.
-        n_action_steps: executed steps per chunk when fitted: the shift between successive chunks.
-    """
-
-    threshold: float
-    bandwidth: float = 0.5
-    alpha: float = 0.05
-    episodes: int = 0
-    policy_type: str = ""
-    n_action_steps: int = 1
-
-    def __post_init__(self):
-        if not (math.isfinite(self.threshold) and self.threshold >= 0):
-            raise ValueError(f"`threshold` must be a finite number >= 0. Got {self.threshold!r}.")
-        if not self.bandwidth > 0:
-            raise ValueError(f"`bandwidth` must be > 0. Got {self.bandwidth!r}.")
-        if not 0 < self.alpha < 0.5:
-            raise ValueError(f"`alpha` must be in (0, 0.5). Got {self.alpha!r}.")
-
-    def save(self, directory: str | Path) -> Path:
-        path = Path(directory) / STAC_CALIBRATION_FILE
-        path.write_text(json.dumps(asdict(self), indent=2) + "\n")
-        return path
-
-    @classmethod
-    def load(cls, directory: str | Path) -> StacCalibration:
-        """Read ``directory/stac_calibration.json``.
-
-        Raises:
-            FileNotFoundError: it is missing; the message says how to make it.
-        """
-        path = Path(directory) / STAC_CALIBRATION_FILE
-        if not path.is_file():
-            raise FileNotFoundError(
-                f"No STAC calibration at {path}. Fit one on nominal rollouts of this policy: "
-                f"`lerobot-suture calibrate-stac --policy.path={directory}`."
-            )
-        return cls(**json.loads(path.read_text()))
 
 
 class ChunkCapture:
@@ -137,10 +80,8 @@ class ChunkConsistencyMonitor:
 
     def reset(self) -> None:
         self._previous: np.ndarray | None = None
-        self.last_score = 0.0
-        self.episode_max = 0.0
 
-    def update(self, chunk: np.ndarray) -> float:
+    def score(self, chunk: np.ndarray) -> float:
         """Score a new chunk (B, T, A) or (T, A) against the previous one; the first of an episode scores 0."""
         current = np.asarray(chunk, dtype=np.float64)
         current = current[:1] if current.ndim == 3 else current[None]
@@ -149,6 +90,4 @@ class ChunkConsistencyMonitor:
             a, b = chunk_overlap(self._previous, current, self.shift, self.start)
             score = mmd_squared(a, b, self.bandwidth)
         self._previous = current
-        self.last_score = score
-        self.episode_max = max(self.episode_max, score)
         return score

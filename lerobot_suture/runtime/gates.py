@@ -1,0 +1,141 @@
+"""Which gate watches a loaded policy, read the same way by every episode loop: the env path's rollouts, the STAC
+calibration and the robot path's ``gated_dagger``.
+
+- ``ensemble`` (:class:`PolicyGates`): an ``ensemble_diffusion`` policy holds the gate itself, one
+  :class:`~lerobot_suture.safety.ood.gate.OODGate` per env of its batch, fed with its members' covariance score
+  (``policy.ood_status(row)``); an enforced gate makes the policy hold its pose.
+- ``stac`` (:class:`StacGates`): any policy that predicts chunks (ACT, diffusion, ...). Each chunk it predicts is
+  captured and scored against the one before, one :class:`~lerobot_suture.safety.ood.gate.ChunkGate` per env.
+  It reports; it does not act on the policy.
+- ``none`` (:class:`SilentGates`): no gate.
+
+Each has ``reset(rows)`` at the start of a batch of episodes, ``status(row)`` once per control step and row after
+the policy has acted (the keys of :func:`~lerobot_suture.safety.ood.gate.silent_status`), and ``close()``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from lerobot_suture.safety.ood.calibration_file import STAC_CALIBRATION_FILE, StacCalibration
+from lerobot_suture.safety.ood.chunk_consistency import ChunkCapture, ChunkConsistencyMonitor, chunk_source
+from lerobot_suture.safety.ood.gate import ChunkGate, silent_status
+
+GATE_KINDS = ("auto", "ensemble", "stac", "none")
+
+
+class SilentGates:
+    """No gate: NaN scores, never O.O.D."""
+
+    kind = "none"
+
+    def reset(self, rows: int) -> None:
+        pass
+
+    def status(self, row: int) -> dict:
+        return silent_status()
+
+    def close(self) -> None:
+        pass
+
+
+class PolicyGates(SilentGates):
+    """The gates a policy holds itself (``ood_status``); silent for a policy without one (ACT, diffusion)."""
+
+    kind = "ensemble"
+
+    def __init__(self, policy):
+        self.policy = policy
+
+    def status(self, row: int) -> dict:
+        ood_status = getattr(self.policy, "ood_status", None)
+        return ood_status(row) if callable(ood_status) else silent_status()
+
+
+class StacGates(SilentGates):
+    """STAC on the chunks ``policy`` predicts, one gate per row of its batch.
+
+    Args:
+        policy: a LeRobot policy that predicts chunks; its chunk method is wrapped until :meth:`close`.
+        calibration: the STAC calibration, or None to record scores only (while calibrating).
+        bandwidth: the kernel's bandwidth without a calibration (normalized action units).
+
+    Raises:
+        ValueError: the calibration was fitted with another ``n_action_steps`` than the policy runs.
+        TypeError: the policy predicts no chunks.
+    """
+
+    kind = "stac"
+
+    def __init__(self, policy, calibration: StacCalibration | None = None, bandwidth: float = 0.5):
+        owner, method, self._start = chunk_source(policy)
+        self._shift = int(getattr(policy.config, "n_action_steps", 1))
+        if calibration is not None and self._shift != calibration.n_action_steps:
+            raise ValueError(
+                f"The STAC calibration was fitted with n_action_steps={calibration.n_action_steps}; the policy runs "
+                f"{self._shift}, so successive chunks overlap differently. Run `lerobot-suture calibrate-stac` "
+                "again with these settings."
+            )
+        self.calibration = calibration
+        self._bandwidth = calibration.bandwidth if calibration is not None else float(bandwidth)
+        self._capture = ChunkCapture(owner, method)
+        self.reset(1)
+
+    def reset(self, rows: int) -> None:
+        monitor = lambda: ChunkConsistencyMonitor(self._shift, self._start, self._bandwidth)  # noqa: E731
+        self.gates = [ChunkGate(monitor(), self.calibration) for _ in range(rows)]
+        self._seen = self._capture.chunks
+        self._fresh = [False] * rows
+
+    def status(self, row: int) -> dict:
+        if self._capture.chunks > self._seen:  # a new chunk since the last status: score it for every row
+            self._seen = self._capture.chunks
+            chunk = np.asarray(self._capture.last)
+            for index, gate in enumerate(self.gates):
+                gate.update(chunk[min(index, len(chunk) - 1)] if chunk.ndim == 3 else chunk)
+            self._fresh = [True] * len(self.gates)
+        gate, new = self.gates[row].gate, self._fresh[row]
+        self._fresh[row] = False
+        return {
+            "score": gate.last_score,
+            "threshold": gate.threshold,
+            "decision": gate.decision,
+            "released": False,
+            "flagged": gate.released,
+            "new_prediction": new,
+        }
+
+    def close(self) -> None:
+        self._capture.release()
+
+
+def policy_gates(policy, kind: str = "auto", policy_dir: str | Path | None = None) -> SilentGates:
+    """The gates for ``policy``: ``auto`` picks ``ensemble`` for a calibrated ensemble, else ``stac`` when a STAC
+    calibration lies in ``policy_dir``, else ``none``.
+
+    Raises:
+        ValueError: an unknown ``kind``, or ``ensemble`` for a policy without a calibrated gate.
+        FileNotFoundError: ``stac`` without a STAC calibration (the message says how to make one).
+    """
+    if kind not in GATE_KINDS:
+        raise ValueError(f"`gate` must be one of {GATE_KINDS}. Got {kind!r}.")
+    ensemble = callable(getattr(policy, "ood_status", None)) and getattr(policy, "ood_calibration", None)
+    if kind == "auto":
+        has_stac = policy_dir is not None and (Path(policy_dir) / STAC_CALIBRATION_FILE).is_file()
+        kind = "ensemble" if ensemble else "stac" if has_stac else "none"
+    if kind == "ensemble":
+        if not ensemble:
+            raise ValueError(
+                "`gate=ensemble` needs an ensemble_diffusion policy with a calibrated gate: run "
+                "`lerobot-suture calibrate --policy.path=DIR` first, or use `gate=stac` for other policies."
+            )
+        return PolicyGates(policy)
+    if kind == "stac":
+        if policy_dir is None:
+            raise FileNotFoundError(
+                f"`gate=stac` needs the policy's directory to read {STAC_CALIBRATION_FILE}."
+            )
+        return StacGates(policy, StacCalibration.load(policy_dir))
+    return SilentGates()
