@@ -1,9 +1,12 @@
-"""Per-episode outcomes of the paper's experiments on a small sample: what a refactor must leave unchanged.
+"""Per-episode outcomes of the paper's experiments and of leaderboard cells on a small sample: what a refactor
+must leave unchanged.
 
 Runs ``lerobot-suture experiments`` on a trained, calibrated ensemble with a few episodes per condition (nominal,
 the four scenarios, the CBF and the enforced gate) and keeps, per episode, its seed, success, first alarm, the
 largest score and the gate's score trace rounded to 6 significant digits; per CBF and enforced-gate condition,
-its metrics. With ``--check FILE`` it compares them with a committed run and exits 1, naming each difference.
+its metrics. Then the same policy's leaderboard cells on insertion (the CBF on and traced, a scenario and a
+shift), two episodes each: success, first alarm, the smallest barrier at the physics rate, the tissue strain.
+With ``--check FILE`` it compares them with a committed run and exits 1, naming each difference.
 
     .venv/bin/python benchmarks/episode_outcomes.py --policy-path DIR [--output FILE] [--check FILE]
 
@@ -24,6 +27,7 @@ from pathlib import Path
 
 from _report import emit, machine
 
+NEEDS = "a trained, calibrated ensemble (--policy-path), e.g. lerobot-suture reproduce's"
 COUNTS = {
     "nominal_episodes": 4,
     "expert_episodes": 2,
@@ -46,6 +50,36 @@ def rounded(value, digits: int = 6):
     if isinstance(value, dict):
         return {k: rounded(v, digits) for k, v in value.items() if not k.endswith("_path")}
     return value
+
+
+LEADERBOARD_CONDITIONS = ("nominal", "needle_drop", "shift:dim_light@0.2")
+LEADERBOARD_EPISODES = 2
+
+
+def leaderboard_outcomes(policy_path: Path) -> dict:
+    """The policy's leaderboard cells on insertion, per episode (the leaderboard's seeds, runner and env)."""
+    from lerobot_suture.leaderboard import cells
+    from lerobot_suture.runtime.policy import GateMode, PolicyRunner, env_kwargs_for_policy
+
+    runner = PolicyRunner.from_pretrained(policy_path, GateMode.REPORT)
+    env_kwargs = env_kwargs_for_policy(runner.policy.config)
+    found = {}
+    for condition in LEADERBOARD_CONDITIONS:
+        seeds = cells.condition_seeds(0, "insertion", condition, LEADERBOARD_EPISODES)
+        logs, _ = cells.cell_episodes(runner, env_kwargs, "insertion", condition, seeds, LEADERBOARD_EPISODES)
+        found[condition] = [
+            {
+                "seed": log.seed,
+                "success": log.success,
+                "first_alarm": log.first_alarm_step,
+                "max_score": max((s.score for s in log.steps if s.new_prediction), default=None),
+                "h_min_physics": log.h_min_physics,
+                "tissue_strain": log.tissue_strain,
+                "steps": len(log.steps),
+            }
+            for log in logs
+        ]
+    return rounded(found)
 
 
 def outcomes(output_dir: Path) -> dict:
@@ -99,6 +133,7 @@ def main() -> None:
     parser.add_argument("--output", type=Path, default=None)
     parser.add_argument("--check", type=Path, default=None, help="a committed run to compare with")
     args = parser.parse_args()
+    os.environ.setdefault("MUJOCO_GL", "egl")
     start = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         flags = [f"--{name}={count}" for name, count in COUNTS.items()]
@@ -114,14 +149,15 @@ def main() -> None:
         ]
         env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
         subprocess.run(command, check=True, env=env, stdout=subprocess.DEVNULL)
-        report = {
-            "benchmark": "episode_outcomes",
-            "policy": str(args.policy_path),
-            "counts": COUNTS,
-            "machine": machine(),
-            "wall_s": round(time.perf_counter() - start, 1),
-            "outcomes": outcomes(Path(tmp)),
-        }
+        found = {**outcomes(Path(tmp)), "leaderboard": leaderboard_outcomes(args.policy_path)}
+    report = {
+        "benchmark": "episode_outcomes",
+        "policy": str(args.policy_path),
+        "counts": {**COUNTS, "leaderboard_episodes": LEADERBOARD_EPISODES},
+        "machine": machine(),
+        "wall_s": round(time.perf_counter() - start, 1),
+        "outcomes": found,
+    }
     if args.check is not None:
         committed = json.loads(args.check.read_text())["outcomes"]
         found = differences(report["outcomes"], committed)

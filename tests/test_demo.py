@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 from PIL import Image
 
 from lerobot_suture.cli import main as cli_main
@@ -53,6 +54,7 @@ def _ctrl_c_as_at_a_terminal() -> None:
     signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
+@pytest.mark.slow  # multi-process or training: make test-slow
 def test_an_interrupted_demo_resumes_and_keeps_what_it_finished(tmp_path, capsys):
     out = tmp_path / "demo"
     last = out / "train" / "checkpoints" / "last"

@@ -46,7 +46,10 @@ def test_forced_ood_hands_over_to_the_expert_which_finishes_the_insertion(tiny_p
     log = rollout_episode(_env(runner), runner, seed=0, surgeon="expert")
     assert log.handover_step == 0
     assert all(step.controller == SURGEON for step in log.steps)
-    assert all(step.released and step.ood for step in log.steps)
+    assert log.steps[0].released and log.steps[0].ood and log.handover_cause == "gate"
+    # The released policy is not asked again: its gate reports nothing after the release.
+    assert not any(step.consulted for step in log.steps[1:]) and np.isnan(log.steps[1].score)
+    assert log.handovers[0][3] == "gate released" and log.stop_reason == "env"
     assert log.success and not log.autonomous_success
 
 
@@ -142,6 +145,7 @@ def test_a_seed_gives_the_same_episode_at_any_batch_size(tiny_policy_dir, tmp_pa
     assert not np.allclose(batched[0].scores, batched[1].scores)
 
 
+@pytest.mark.slow  # multi-process or training: make test-slow
 def test_worker_processes_give_the_same_episodes(tiny_policy_dir, tmp_path):
     import functools
 

@@ -74,6 +74,7 @@ def test_episodic_rollout_records_the_expert_data_s_features(policy_recording):
     assert "episode 1 on the scene of seed 41" in log
 
 
+@pytest.mark.slow  # multi-process or training: make test-slow
 def test_a_robot_recording_trains_with_the_reference_preset(policy_recording, tmp_path):
     """The reference preset's ensemble trains on the policy recording, only its needle target turned off:
     that target is privileged (the needle located in the image by the simulator), which a robot does not

@@ -14,6 +14,7 @@ import lerobot_suture
 from lerobot_suture.datasets.merge import merge_runs
 from lerobot_suture.datasets.video import resolve_video_backend
 from lerobot_suture.runtime.policy import GateMode, PolicyRunner, env_kwargs_for_policy
+from lerobot_suture.runtime.takeover import Actor, Takeover
 from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.safety.ood.calibration import fit_calibration
 from lerobot_suture.safety.ood.calibration_file import save_calibration
@@ -26,7 +27,7 @@ from lerobot_suture.surgeon.record_run import (
     label_demonstrations,
 )
 from lerobot_suture.surgeon.scripted_input import GamepadScript, KeyScript
-from lerobot_suture.surgeon.session import run_surgeon_episode
+from lerobot_suture.surgeon.session import gate_decision, run_surgeon_episode
 from lerobot_suture.surgeon.surgeons import (
     ExpertSurgeon,
     GamepadSurgeon,
@@ -36,7 +37,6 @@ from lerobot_suture.surgeon.surgeons import (
     keyboard_teleop,
     make_surgeon,
 )
-from lerobot_suture.surgeon.takeover import Actor, Takeover
 from lerobot_suture.surgeon.teleop_mapping import TeleopMappingConfig, initial_target, step_target
 
 P, S, H = Actor.POLICY, Actor.SURGEON, Actor.HOLD
@@ -120,8 +120,8 @@ def test_keyboard_takes_over_turns_and_hands_back(tiny_policy_dir, tmp_path):
     assert log.actors == [P, P, S, S, S, P, P, P]
     assert log.stop_reason == "teleop event"  # LeRobot's `s` (success) event ends the episode
     assert [(h[0], h[3]) for h in log.handovers] == [(2, "taken over"), (5, "handed back")]
-    assert all(np.isnan(s.score) and s.decision == -1 for s in log.steps[2:5])  # the policy not asked
-    assert all(s.decision == 0 for s in log.steps[:2] + log.steps[5:])  # re-armed, in distribution
+    assert all(np.isnan(s.score) and gate_decision(s) == -1 for s in log.steps[2:5])  # the policy not asked
+    assert all(gate_decision(s) == 0 for s in log.steps[:2] + log.steps[5:])  # re-armed, in distribution
 
 
 def test_gamepad_moves_the_jaw_through_the_cbf_wrapped_env(tiny_policy_dir, tmp_path):
@@ -141,6 +141,26 @@ def test_gamepad_moves_the_jaw_through_the_cbf_wrapped_env(tiny_policy_dir, tmp_
     end = env.unwrapped.jaw_pose()[0]
     assert 1.0e-3 < end[0] - start[0] < 1.6e-3  # 3 steps of 0.5 mm along world x, through the CBF wrapper
     assert np.all(np.abs(end[1:] - start[1:]) < 2e-4)
+    surgeon.close()
+
+
+def test_without_a_policy_the_surgeon_drives_from_the_first_step():
+    """``lerobot-suture teleop`` is the same episode loop with no policy: the gamepad drives every step, no
+    handover is logged, and the gate is never consulted; nobody at all is refused."""
+    teleop = gamepad_teleop()
+    teleop.connect()
+    surgeon = GamepadSurgeon(teleop)
+    push = {"axes": {1: -1.0}}
+    env = gym.make(lerobot_suture.ENV_ID, disable_env_checker=True, obs_type="state")
+    start = env.reset(seed=3)[0]["agent_pos"][0]
+    log = run_surgeon_episode(
+        env, None, surgeon, 3, 3, script=GamepadScript(teleop, {0: push, 1: push, 2: push})
+    )
+    assert log.actors == [S] * 3 and not log.handovers and log.stop_reason == "max_steps"
+    assert all(gate_decision(s) == -1 for s in log.steps)
+    assert 1.0e-3 < env.unwrapped.jaw_pose()[0][0] - start < 1.6e-3
+    with pytest.raises(ValueError, match="a surgeon must drive"):
+        run_surgeon_episode(env, None, NoSurgeon(), 0, 2)
     surgeon.close()
 
 
@@ -267,3 +287,29 @@ def test_surgeon_run_with_an_uncalibrated_policy_names_the_fix_before_any_view(t
     assert exit_info.value.code == 2
     err = capsys.readouterr().err
     assert "lerobot-suture calibrate --policy.path=" in err and len(err.strip().splitlines()) == 1
+
+
+def test_teleop_command_records_the_surgeon_driving_every_step(tmp_path, monkeypatch):
+    """``lerobot-suture teleop``, as a user runs it, with LeRobot's gamepad on a scripted stick (no device here):
+    one recorded episode whose every frame is the surgeon's, the gate never consulted."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    import lerobot_suture.surgeon.run as run_module
+    from lerobot_suture.cli import main as cli_main
+
+    def scripted_gamepad(name, mapping=None):
+        teleop = gamepad_teleop()
+        teleop.connect()
+        GamepadScript(teleop, {})  # a stick at rest
+        return GamepadSurgeon(teleop, mapping)
+
+    monkeypatch.setattr(run_module, "make_surgeon", scripted_gamepad)
+    root = tmp_path / "teleop"
+    cli_main(
+        ["teleop", "--teleop=gamepad", "--episodes=1", "--max_steps=3", "--display=false"]
+        + [f"--record_root={root}", "--video=false", "--image_size=32"]
+    )
+    frames = LeRobotDataset("local/suture_surgeon_run", root=root)
+    assert len(frames) == 3
+    assert [int(frames[i][ACTOR_KEY]) for i in range(3)] == [1, 1, 1]
+    assert [int(frames[i][GATE_DECISION_KEY]) for i in range(3)] == [-1, -1, -1]

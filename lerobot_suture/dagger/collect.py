@@ -46,6 +46,7 @@ from lerobot_suture.dagger.labelling import StateLabeller
 from lerobot_suture.dagger.watch import WatchConfig, WatchingExpertSurgeon
 from lerobot_suture.expert import ExpertConfig, ScriptedExpert
 from lerobot_suture.runtime.policy import GateMode
+from lerobot_suture.runtime.takeover import Actor
 from lerobot_suture.surgeon.record_run import (
     ACTOR_KEY,
     GATE_DECISION_KEY,
@@ -54,7 +55,6 @@ from lerobot_suture.surgeon.record_run import (
     RunRecorder,
     labels,
 )
-from lerobot_suture.surgeon.takeover import Actor
 
 logger = logging.getLogger(__name__)
 

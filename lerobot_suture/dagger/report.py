@@ -18,7 +18,7 @@ from lerobot_suture.dagger.config import ARMS, GATED, SCENARIOS
 from lerobot_suture.datasets.metadata import read_json, write_json_atomic
 from lerobot_suture.experiments import metrics
 from lerobot_suture.plotting import save_figure
-from lerobot_suture.surgeon.takeover import GATE_RELEASED, TAKEN_OVER
+from lerobot_suture.runtime.takeover import GATE_RELEASED, TAKEN_OVER
 
 SHORT = {
     "nominal": "nominal",

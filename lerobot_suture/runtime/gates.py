@@ -94,7 +94,7 @@ class StacGates(SilentGates):
             self._seen = self._capture.chunks
             chunk = np.asarray(self._capture.last)
             for index, gate in enumerate(self.gates):
-                gate.update(chunk[min(index, len(chunk) - 1)] if chunk.ndim == 3 else chunk)
+                gate.update(chunk[index] if chunk.ndim == 3 else chunk)
             self._fresh = [True] * len(self.gates)
         gate, new = self.gates[row].gate, self._fresh[row]
         self._fresh[row] = False

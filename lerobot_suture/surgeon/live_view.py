@@ -15,7 +15,7 @@ import os
 import sys
 from pathlib import Path
 
-from lerobot_suture.surgeon.takeover import Actor
+from lerobot_suture.runtime.takeover import Actor
 
 logger = logging.getLogger(__name__)
 

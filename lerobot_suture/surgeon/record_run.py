@@ -42,7 +42,7 @@ from lerobot_suture.datasets.features import (
     dataset_features,
 )
 from lerobot_suture.datasets.scheduling import normal_scheduling
-from lerobot_suture.surgeon.takeover import Actor
+from lerobot_suture.runtime.takeover import Actor
 
 IS_INTERVENTION_KEY = "complementary_info.is_intervention"
 ACTOR_KEY = "complementary_info.actor"

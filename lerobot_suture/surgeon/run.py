@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import logging
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -15,7 +14,6 @@ from lerobot_suture.runtime.config import PolicyCommandConfig
 from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.sim.scenarios import SCENARIOS
 from lerobot_suture.surgeon.surgeons import SURGEON_CHOICES, make_surgeon
-from lerobot_suture.surgeon.takeover import Actor
 from lerobot_suture.surgeon.teleop_mapping import TeleopMappingConfig
 
 logger = logging.getLogger(__name__)
@@ -158,6 +156,8 @@ def surgeon_run(cfg: SurgeonRunConfig) -> list:
 
 def teleop(cfg: TeleopConfig) -> list[bool]:
     """Drive the env by hand; returns each episode's success."""
+    from lerobot_suture.surgeon.session import run_surgeon_episode
+
     env_kwargs = {"obs_type": cfg.obs_type, "image_size": cfg.image_size}
     surgeon = make_surgeon(cfg.teleop, cfg.mapping)
     env = _env(cfg, env_kwargs)
@@ -165,32 +165,9 @@ def teleop(cfg: TeleopConfig) -> list[bool]:
     successes = []
     try:
         for k in range(cfg.episodes):
-            observation, info = env.reset(seed=cfg.seed + k)
-            surgeon.take_control(env, observation)
-            for step in range(cfg.max_steps):
-                command = surgeon.poll()
-                action = surgeon.act(env, command)
-                if recorder is not None:
-                    recorder.observe(env)
-                if view is not None:
-                    view.log(step, observation, math.nan, math.nan, Actor.SURGEON)
-                next_observation, reward, terminated, truncated, info = env.step(action)
-                done = terminated or truncated or any(command.events.get(e, False) for e in _end_events())
-                if recorder is not None:
-                    recorder.add(env, observation, action, reward, info, done, Actor.SURGEON, math.nan, -1)
-                observation = next_observation
-                if done:
-                    break
-            successes.append(bool(info["is_success"]))
-            if recorder is not None:
-                recorder.save_episode()
+            log = run_surgeon_episode(env, None, surgeon, cfg.seed + k, cfg.max_steps, recorder, view)
+            successes.append(log.success)
             logger.info("episode %d (seed %d): success %s", k, cfg.seed + k, successes[-1])
     finally:
         _close(recorder, view, surgeon, env)
     return successes
-
-
-def _end_events():
-    from lerobot.teleoperators.utils import TeleopEvents
-
-    return (TeleopEvents.SUCCESS, TeleopEvents.TERMINATE_EPISODE)

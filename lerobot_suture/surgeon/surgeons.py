@@ -38,11 +38,10 @@ from __future__ import annotations
 
 import os
 import sys
-from dataclasses import dataclass, field
 
 import numpy as np
 
-from lerobot_suture.expert import ScriptedExpert
+from lerobot_suture.runtime.takeover import ExpertSurgeon, NoSurgeon, SurgeonInput
 from lerobot_suture.surgeon.teleop_mapping import TeleopMappingConfig, env_action, initial_target, step_target
 
 SURGEON_CHOICES = ("none", "expert", "keyboard", "gamepad")
@@ -54,68 +53,6 @@ ROTATION_KEYS = {"i": (0, 1.0), "k": (0, -1.0), "j": (1, 1.0), "l": (1, -1.0), "
 GAMEPAD_ROTATION_AXIS = 2
 GAMEPAD_HAND_BACK_BUTTON = 4
 GAMEPAD_DEADZONE = 0.1  # LeRobot's GamepadController default
-
-
-@dataclass
-class SurgeonInput:
-    """What the surgeon did since the last poll.
-
-    Args:
-        teleop_action: the teleoperator's action dict (``delta_x/y/z`` in [-1, 1], ``gripper``).
-        rotation: (3,) rotation command in [-1, 1] about the jaw's axes.
-        take_over: asked for control.
-        hand_back: handed control back to the policy.
-        events: LeRobot's teleop events (``TeleopEvents`` -> bool) as the teleoperator reported them.
-    """
-
-    teleop_action: dict = field(default_factory=dict)
-    rotation: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    take_over: bool = False
-    hand_back: bool = False
-    events: dict = field(default_factory=dict)
-
-
-class NoSurgeon:
-    """Nobody takes over: a released arm holds its pose."""
-
-    name = "none"
-    present = False
-
-    def poll(self) -> SurgeonInput:
-        return SurgeonInput()
-
-    def begin_episode(self, env) -> None:
-        """Called once per episode, after the env's reset."""
-
-    def intervenes(self, env, action: np.ndarray) -> bool:
-        """Whether the surgeon, seeing the policy's ``action`` at the env's state, takes over before it runs
-        (a person presses a key instead; only a scripted surgeon judges the action itself)."""
-        return False
-
-    def take_control(self, env, observation: dict) -> None:
-        raise RuntimeError("Nobody is there to take control.")
-
-    def act(self, env, command: SurgeonInput) -> np.ndarray:
-        raise RuntimeError("Nobody is there to act.")
-
-    def close(self) -> None:
-        pass
-
-
-class ExpertSurgeon(NoSurgeon):
-    """The scripted expert as the surgeon: it works out where the task stands and finishes it."""
-
-    name = "expert"
-    present = True
-
-    def __init__(self, expert: ScriptedExpert | None = None):
-        self.expert = expert or ScriptedExpert()
-
-    def take_control(self, env, observation: dict) -> None:
-        self.expert.reset(env)
-
-    def act(self, env, command: SurgeonInput) -> np.ndarray:
-        return self.expert.act(env)
 
 
 class TeleopSurgeon(NoSurgeon):

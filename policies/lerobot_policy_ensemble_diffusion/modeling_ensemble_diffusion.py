@@ -338,9 +338,8 @@ class EnsembleDiffusionPolicy(GatedPolicyMixin, FeatureCaptureMixin, PreTrainedP
             raise ValueError("`uncertainty_source`='aleatoric' needs `samples_per_member` >= 2.")
         model_batch = self._stack_observation(batch)
         check_observation(self.config, model_batch)
-        # Always full precision, also under lerobot-eval's `use_amp` autocast: bf16 sampling moved the
-        # score by up to 10% on the reference checkpoint (no faster on the CPU), and the gate's
-        # calibration is only valid for the numerics it was fitted with.
+        # Always full precision, also under lerobot-eval's `use_amp` autocast: bf16 sampling moves the
+        # score, and the gate's calibration is only valid for the numerics it was fitted with.
         with torch.autocast(model_batch[OBS_STATE].device.type, enabled=False):
             return self._predict(model_batch, k, noise, generator, prefix)
 
