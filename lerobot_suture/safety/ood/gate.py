@@ -11,8 +11,9 @@ actions is executed, so an inference thread that reads it can keep a flagged chu
   like the calibration's rollouts;
 - the calibration: anything with a ``threshold`` and a ``mode`` (:class:`GateCalibration`): the ensemble's
   :class:`~lerobot_suture.safety.ood.calibration.OODCalibration` or STAC's
-  :class:`~lerobot_suture.safety.ood.calibration_file.StacCalibration`, both fitted by the split-conformal
-  quantile of nominal episodes' maxima (:func:`~lerobot_suture.safety.ood.calibration.conformal_episode_threshold`);
+  :class:`~lerobot_suture.safety.ood.calibration_file.StacCalibration`. STAC's, and the ensemble's in its default
+  per-episode mode, are the split-conformal quantile of nominal episodes' maxima
+  (:func:`~lerobot_suture.safety.ood.calibration.conformal_episode_threshold`);
 - the decision: :class:`OODGate`, ``score > threshold`` (on the episode's running maximum per episode), a NaN
   score failing safe, latched from the first O.O.D. decision until ``reset``.
 """
