@@ -1,0 +1,165 @@
+"""A gate for each stage of a long task: the one gate (:class:`~lerobot_suture.safety.ood.gate.OODGate`) per
+segment, with a threshold per subtask.
+
+A running suture is about twelve segments (four throws of insert, extract, lay down, pick up; the high level of
+:mod:`lerobot_suture.subtasks` names them from the measured pose). One threshold for the whole suture would be
+set by its noisiest stage; a threshold per subtask holds each stage to its own nominal spread. Following
+FAIL-Detect, each subtask's threshold is the split-conformal quantile of the largest score of that subtask's
+segments in successful rollouts (:func:`fit_stage_thresholds`), so a policy's failures are never taken for
+normal. A per-suture false-alarm rate of 10% over twelve segments needs about 1% per segment, and the quantile
+at 1% needs at least 99 successful segments of each subtask (:func:`~lerobot_suture.safety.ood.calibration.min_calibration_episodes`).
+
+:class:`StageGate` tests each segment's running maximum against its subtask's threshold and latches the first
+flag with the segment it fell in, so a surgeon can take that segment over and hand back for the next.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from lerobot_suture.safety.ood.calibration import (
+    CalibrationMode,
+    conformal_episode_threshold,
+    min_calibration_episodes,
+)
+from lerobot_suture.safety.ood.gate import OODGate
+
+STAGE_CALIBRATION_FILE = "stage_calibration.json"
+
+
+@dataclass(frozen=True)
+class SegmentThreshold:
+    """One subtask's threshold on its segments' running maximum (a :class:`~.gate.GateCalibration`)."""
+
+    threshold: float
+    mode: str = CalibrationMode.PER_EPISODE.value
+
+
+@dataclass(frozen=True)
+class StageThresholds:
+    """Each subtask's threshold, fitted on successful segments.
+
+    Args:
+        thresholds: subtask -> threshold on a segment's largest score.
+        segments: subtask -> successful segments it was fitted on.
+        alpha: the per-segment false-alarm rate it was fitted for, in (0, 0.5).
+    """
+
+    thresholds: dict[str, float]
+    segments: dict[str, int]
+    alpha: float
+
+    def __post_init__(self):
+        if not 0 < self.alpha < 0.5:
+            raise ValueError(f"`alpha` must be in (0, 0.5). Got {self.alpha!r}.")
+        bad = {s: t for s, t in self.thresholds.items() if not math.isfinite(t)}
+        if bad:
+            raise ValueError(f"Every threshold must be finite. Got {bad}.")
+
+    def save(self, directory: str | os.PathLike) -> Path:
+        path = Path(directory) / STAGE_CALIBRATION_FILE
+        path.write_text(json.dumps(asdict(self), indent=2) + "\n")
+        return path
+
+    @classmethod
+    def load(cls, directory: str | os.PathLike) -> StageThresholds:
+        path = Path(directory) / STAGE_CALIBRATION_FILE
+        if not path.is_file():
+            raise FileNotFoundError(f"No stage calibration at {path}: fit one with `fit_stage_thresholds`.")
+        return cls(**json.loads(path.read_text()))
+
+
+def segment_maxima(
+    scores: Sequence[float], stages: Sequence[str], segments: Sequence[int], successful: Sequence[bool]
+) -> dict[str, np.ndarray]:
+    """Per subtask, the largest score of each successful segment.
+
+    Args:
+        scores: (N,) one score per prediction.
+        stages: (N,) the subtask each prediction was made in.
+        segments: (N,) the segment (an id unique over all rollouts) each prediction belongs to.
+        successful: (N,) whether that prediction's segment succeeded (FAIL-Detect keeps only those).
+    """
+    scores = np.asarray(scores, dtype=np.float64)
+    if not (len(scores) == len(stages) == len(segments) == len(successful)):
+        raise ValueError(
+            "`scores`, `stages`, `segments` and `successful` must have one entry per prediction."
+        )
+    maxima: dict[tuple[str, int], float] = {}
+    for score, stage, segment, ok in zip(scores, stages, segments, successful, strict=True):
+        if ok:
+            key = (str(stage), int(segment))
+            maxima[key] = max(maxima.get(key, -math.inf), float(score))
+    found: dict[str, list[float]] = {}
+    for (stage, _), value in maxima.items():
+        found.setdefault(stage, []).append(value)
+    return {stage: np.asarray(values) for stage, values in found.items()}
+
+
+def fit_stage_thresholds(
+    scores: Sequence[float],
+    stages: Sequence[str],
+    segments: Sequence[int],
+    successful: Sequence[bool],
+    alpha: float = 0.01,
+) -> StageThresholds:
+    """Each subtask's threshold: the split-conformal quantile of its successful segments' maxima at ``alpha``.
+
+    Raises:
+        ValueError: a subtask has fewer successful segments than the quantile at ``alpha`` needs (the message
+            names it and how many it needs).
+    """
+    maxima = segment_maxima(scores, stages, segments, successful)
+    needed = min_calibration_episodes(alpha)
+    short = {stage: len(values) for stage, values in maxima.items() if len(values) < needed}
+    if short or not maxima:
+        raise ValueError(
+            f"A threshold at alpha={alpha} needs at least {needed} successful segments per subtask. Got {short or 'none'}; "
+            "roll out more (successful) episodes or raise alpha."
+        )
+    return StageThresholds(
+        thresholds={stage: conformal_episode_threshold(values, alpha) for stage, values in maxima.items()},
+        segments={stage: len(values) for stage, values in maxima.items()},
+        alpha=float(alpha),
+    )
+
+
+class StageGate:
+    """The one gate per segment: a new segment (subtask or throw changed) starts a fresh running maximum, tested
+    against its subtask's threshold; the first flag is latched with the segment it fell in.
+
+    Args:
+        thresholds: the fitted :class:`StageThresholds`; a subtask without one is never flagged.
+    """
+
+    def __init__(self, thresholds: StageThresholds):
+        self.thresholds = thresholds
+        self.reset()
+
+    def reset(self) -> None:
+        """A new rollout."""
+        self.segment: tuple[str, int] | None = None
+        self.flagged_segment: tuple[str, int] | None = None
+        self._gate = OODGate()
+
+    @property
+    def flagged(self) -> bool:
+        return self.flagged_segment is not None
+
+    def update(self, subtask: str, throw: int, score: float) -> bool:
+        """One prediction's score, made in ``subtask`` of ``throw``; returns whether the rollout is flagged."""
+        segment = (subtask, int(throw))
+        if segment != self.segment:
+            threshold = self.thresholds.thresholds.get(subtask)
+            self._gate = OODGate(calibration=None if threshold is None else SegmentThreshold(threshold))
+            self.segment = segment
+        if self._gate.update(score) and self.flagged_segment is None:
+            self.flagged_segment = segment
+        return self.flagged
