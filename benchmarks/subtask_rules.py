@@ -41,7 +41,7 @@ def labelled_suture(env, seed: int) -> tuple[list[str], list[tuple[str, int]], d
     theirs = []
     while True:
         action = expert.act(env)
-        theirs.append(expert._plan.stage)  # noqa: SLF001  the plan's stage: the benchmark's ground truth
+        theirs.append(expert.stage)  # the expert's own stage: the benchmark's ground truth
         observation, _, terminated, truncated, info = env.step(action)
         if terminated or truncated:
             return theirs, ours, info

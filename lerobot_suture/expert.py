@@ -121,6 +121,12 @@ class ScriptedExpert:
         rng = np.random.default_rng(None if seed is None or seed < 0 else [_SIDE_STREAM, seed])
         self.detour_side = 1.0 if rng.integers(2) else -1.0
 
+    @property
+    def stage(self) -> str | None:
+        """The running suture's stage the expert is executing (``insert``, ``extract``, ``lay_down``, ``pick_up``;
+        set by ``act``), None for the other tasks or before the first ``act``."""
+        return getattr(self._plan, "stage", None)
+
     def act(self, env) -> np.ndarray:
         u = env.unwrapped
         cfg = self.config

@@ -57,7 +57,7 @@ def test_the_rules_follow_the_expert_s_stages_through_a_running_suture():
     ours, theirs = [rules.reset(observation["agent_pos"])], []
     while True:
         action = expert.act(env)
-        theirs.append(expert._plan.stage)
+        theirs.append(expert.stage)
         observation, _, terminated, truncated, info = env.step(action)
         if terminated or truncated:
             break
@@ -93,11 +93,117 @@ def test_a_gate_per_stage_is_fitted_on_successful_segments_and_flags_the_segment
     assert StageThresholds.load(tmp_path) == thresholds
 
     gate = StageGate(thresholds)
-    assert not gate.update("extract", 0, 5.0)  # in extract's spread
-    assert not gate.update("insert", 0, 0.5)  # a new segment: extract's 5.0 does not carry over
-    assert gate.update("insert", 0, 2.0) and gate.flagged_segment == ("insert", 0)
-    assert gate.update("extract", 1, 0.0) and gate.flagged_segment == ("insert", 0)  # latched
+    gate.enter("extract", 0)
+    assert not gate.update(5.0)  # in extract's spread
+    gate.enter("insert", 0)
+    assert not gate.update(0.5)  # a new segment: extract's 5.0 does not carry over
+    assert gate.update(2.0) and gate.update(0.1) and gate.flags == [("insert", 0)]  # latched in its segment
+    gate.enter("extract", 1)
+    assert not gate.update(0.0) and gate.flags == [("insert", 0)]  # the next segment starts afresh
     gate.reset()
-    assert not gate.flagged and not gate.update("lay_down", 0, 1e9)  # a subtask without a threshold
+    gate.enter("lay_down", 0)
+    assert not gate.flags and not gate.update(1e9)  # a subtask without a threshold
     with pytest.raises(ValueError, match="at least 99 successful segments"):
         fit_stage_thresholds(scores, stages, segments, successful, alpha=0.01)
+
+
+class _ExpertAsPolicy:
+    """The scripted expert in a policy's place (the runner's interface), so that a whole running suture runs: the
+    enforcement's control flow is what is tested, not a policy's skill."""
+
+    def __init__(self, env):
+        from lerobot_suture.expert import ScriptedExpert
+
+        self.env, self.policy, self.expert = env, self, ScriptedExpert()
+
+    def reset(self, seeds=None):
+        self.expert.reset(self.env)
+
+    def act_batch(self, observations, tasks=None):
+        return [self.expert.act(self.env)]
+
+
+class _StepScores:
+    """A score every 4 control steps: 10 inside ``[high_from, high_to)``, 0.1 elsewhere."""
+
+    kind = "test"
+
+    def __init__(self, high_from: int, high_to: int):
+        self.high = range(high_from, high_to)
+
+    def reset(self, rows):
+        self.step = -1
+
+    def observe(self, row, observation):
+        self.step += 1
+
+    def status(self, row):
+        score = 10.0 if self.step in self.high else 0.1
+        new = self.step % 4 == 0
+        return {"score": score, "threshold": 1.0, "decision": False, "released": False, "new_prediction": new}
+
+    def rearm(self, row):
+        pass
+
+    def context(self, row):
+        return {}
+
+    def close(self):
+        pass
+
+
+def test_a_flagged_subtask_is_taken_over_by_the_expert_and_handed_back_for_the_next():
+    """The stage gate enforced on a whole running suture: scores jump during the second throw's extraction; the
+    gate flags that segment, the scripted surgeon takes that extraction over and hands back once it is done, and
+    the suture completes with the policy driving the rest."""
+    from lerobot_suture.registration import make_suture_env
+    from lerobot_suture.runtime.gates import StageGates
+    from lerobot_suture.runtime.rollout import rollout_episode
+    from lerobot_suture.safety.ood.stage_gate import StageThresholds
+
+    env = make_suture_env(task="running_suture", obs_type="pixels_agent_pos", image_size=32)
+    subtasks = ("insert", "extract", "lay_down", "pick_up")
+    thresholds = StageThresholds(dict.fromkeys(subtasks, 1.0), dict.fromkeys(subtasks, 100), alpha=0.01)
+    gates = StageGates(_StepScores(340, 344), thresholds)  # throw 2's extraction runs from about step 325
+    log = rollout_episode(env, _ExpertAsPolicy(env), 0, "expert_per_subtask", gates=gates)
+    env.close()
+    assert log.success and log.handover_cause == "gate"
+    (taken, _, _, why), (back, _, _, why_back) = log.handovers
+    assert (why, why_back) == ("gate released", "handed back")
+    assert {s.subtask for s in log.steps[taken - 1 : taken + 1]} == {"extract"}
+    assert all(s.controller == "surgeon" and not s.consulted for s in log.steps[taken + 1 : back])
+    # It hands back as the extraction ends: the high level reads the pull's end a few steps before the expert.
+    laid = next(k for k in range(taken, back + 1) if log.steps[k].subtask == "lay_down")
+    assert 0 <= back - laid <= 5
+    assert log.steps[back].subtask == "lay_down" and log.steps[back].controller == "policy"
+    assert [s.subtask for s in log.steps if s.consulted][-1] == "insert"  # the policy drove to the last throw
+
+
+def test_stage_thresholds_come_from_the_segments_of_successful_sutures(tiny_policy_dir, tmp_path, capsys):
+    """The loop's logs name each step's subtask, and ``stage_thresholds`` cuts them into segments; an insertion
+    policy that never finishes a suture has no successful segment, and ``calibrate --per_stage`` says so."""
+    from lerobot_suture.cli import main as cli_main
+    from lerobot_suture.registration import make_suture_env
+    from lerobot_suture.runtime.calibration import stage_thresholds
+    from lerobot_suture.runtime.gates import StageGates
+    from lerobot_suture.runtime.rollout import rollout_episode
+
+    env = make_suture_env(task="running_suture", obs_type="pixels_agent_pos", image_size=32)
+    logs = [
+        rollout_episode(env, _ExpertAsPolicy(env), seed, gates=StageGates(_StepScores(0, 0), None))
+        for seed in (0, 1)
+    ]
+    env.close()
+    assert all(log.success for log in logs)
+    stages = stage_thresholds(logs, alpha=0.3)
+    assert stages.segments == {"insert": 8, "extract": 6, "lay_down": 6, "pick_up": 6}
+    assert stages.thresholds == dict.fromkeys(stages.thresholds, 0.1)
+    import shutil
+
+    policy = shutil.copytree(tiny_policy_dir, tmp_path / "policy")
+    args = ["calibrate", f"--policy.path={policy}", "--per_stage=true", "--calibration_episodes=2"]
+    with pytest.raises(SystemExit) as exit_info:
+        cli_main([*args, "--mode=per_prediction", "--holdout_episodes=0"])
+    assert exit_info.value.code == 2
+    assert "successful segments per subtask" in capsys.readouterr().err
+    assert sorted(p.name for p in policy.iterdir()) == sorted(p.name for p in tiny_policy_dir.iterdir())

@@ -36,7 +36,7 @@ import numpy as np
 
 from lerobot_suture.datasets.metadata import read_episode_log, write_json_atomic
 from lerobot_suture.runtime.config import PolicyCommandConfig, PolicyPathConfig, RolloutCommandConfig
-from lerobot_suture.runtime.gates import SilentGates, StacGates
+from lerobot_suture.runtime.gates import PolicyGates, SilentGates, StacGates, StageGates
 from lerobot_suture.runtime.policy import copy_with_overrides, env_kwargs_for_policy, reporting_runner
 from lerobot_suture.runtime.rollout import EpisodeLog, make_scenario_env, rollout_seeds
 from lerobot_suture.runtime.seeds import fresh_seeds
@@ -52,6 +52,7 @@ from lerobot_suture.safety.ood.calibration_file import (
     save_calibration,
 )
 from lerobot_suture.safety.ood.likelihood_ratio import false_alarm_rates
+from lerobot_suture.safety.ood.stage_gate import StageThresholds, fit_stage_thresholds
 
 logger = logging.getLogger(__name__)
 
@@ -87,6 +88,11 @@ class CalibrateConfig(RolloutCommandConfig):
     copy_to: calibrate a copy of the policy made there instead (an empty or new directory), with
         ``--policy.num_inference_steps`` / ``--policy.uncertainty_samples_per_member`` written into its
         ``config.json``: the gate of an inference approximation (the original is left as it is).
+    per_stage: also fit a gate per stage of the running suture (``stage_calibration.json``): each subtask's
+        threshold from the largest score of its segments in the calibration episodes that succeeded, at
+        ``stage_alpha`` per segment (FAIL-Detect's convention; needs a running-suture policy and workers=1).
+    stage_alpha: the per-segment false-alarm rate of the stage gate (0.01: about 10% over a suture's twelve
+        segments; the quantile needs at least 99 successful segments of each subtask).
     """
 
     dataset_root: Path | None = None
@@ -101,6 +107,8 @@ class CalibrateConfig(RolloutCommandConfig):
     uncertainty_source: str | None = None
     uncertainty_steps: str | None = None
     copy_to: Path | None = None
+    per_stage: bool = False
+    stage_alpha: float = 0.01
 
     @property
     def writes_to_policy(self) -> bool:
@@ -119,6 +127,12 @@ class CalibrateConfig(RolloutCommandConfig):
                 f"`mode=per_episode` at alpha={self.alpha} needs at least "
                 f"{min_calibration_episodes(self.alpha)} calibration episodes. Got {self.calibration_episodes}; "
                 "raise `--calibration_episodes` or use `--mode=per_prediction`."
+            )
+        if not 0 < self.stage_alpha < 0.5:
+            raise ValueError(f"`stage_alpha` must be in (0, 0.5). Got {self.stage_alpha!r}.")
+        if self.per_stage and self.workers != 1:
+            raise ValueError(
+                f"`per_stage` reads each env's subtask in this process: calibrate at `workers`=1. Got {self.workers}."
             )
 
     def score_choice(self) -> dict[str, str]:
@@ -205,6 +219,24 @@ def collect_scores(
     return np.asarray(scores), np.asarray(episode_ids), logs
 
 
+def stage_thresholds(logs: list[EpisodeLog], alpha: float) -> StageThresholds:
+    """A gate per stage fitted on ``logs`` (rolled out with :class:`StageGates`, so each step names its subtask):
+    each subtask's segments in the episodes that succeeded (FAIL-Detect's convention)."""
+    scores, subtasks, segments, successful = [], [], [], []
+    segment = -1
+    for log in logs:
+        previous = None
+        for step in log.steps:
+            if step.subtask != previous:  # a new segment: the subtask changed
+                segment, previous = segment + 1, step.subtask
+            if step.new_prediction and step.consulted and step.subtask:
+                scores.append(step.score)
+                subtasks.append(step.subtask)
+                segments.append(segment)
+                successful.append(log.success)
+    return fit_stage_thresholds(scores, subtasks, segments, successful, alpha)
+
+
 def episode_maxima(scores: np.ndarray, episode_ids: np.ndarray, episodes: int) -> np.ndarray:
     """(episodes,) each episode's largest score (0 for an episode without one: STAC's first chunk scores 0)."""
     maxima = np.zeros(episodes)
@@ -234,9 +266,12 @@ def run_calibration(cfg: CalibrateConfig) -> dict:
     }
     seeds = calibration_seeds(cfg)
     fit_seeds, holdout_seeds = seeds[: cfg.calibration_episodes], seeds[cfg.calibration_episodes :]
+    stage_gates = StageGates(PolicyGates(runner.policy), None) if cfg.per_stage else None
     scores, ids, fit_logs = collect_scores(
-        runner, env_kwargs, fit_seeds, "calibration episodes", cfg.batch_envs, cfg.workers
+        runner, env_kwargs, fit_seeds, "calibration episodes", cfg.batch_envs, cfg.workers, stage_gates
     )
+    # Fitted before anything is written: a stage gate that cannot be fitted leaves the policy as it was.
+    stages = stage_thresholds(fit_logs, cfg.stage_alpha) if cfg.per_stage else None
     calibration = fit_calibration(
         scores,
         model=cfg.model or default_model(config.uncertainty_score),
@@ -267,6 +302,9 @@ def run_calibration(cfg: CalibrateConfig) -> dict:
             100 * report["calibration_success_rate"],
             len(fit_seeds),
         )
+    if stages is not None:
+        report["stage_calibration_file"] = str(stages.save(cfg.policy.path))
+        report["stage_calibration"] = asdict(stages)
     if holdout_seeds:
         held_scores, held_ids, held_logs = collect_scores(
             runner, env_kwargs, holdout_seeds, "held-out episodes", cfg.batch_envs, cfg.workers

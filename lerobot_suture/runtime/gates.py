@@ -8,9 +8,15 @@ calibration and the robot path's ``gated_dagger``.
   captured and scored against the one before, one :class:`~lerobot_suture.safety.ood.gate.ChunkGate` per env.
   It reports; it does not act on the policy.
 - ``none`` (:class:`SilentGates`): no gate.
+- :class:`StageGates`: a gate per stage of the running suture over either's scores: the high level
+  (:mod:`lerobot_suture.subtasks`) names each env's subtask from its measured pose, and each segment is tested
+  against its subtask's threshold (:mod:`lerobot_suture.safety.ood.stage_gate`). A flag releases control for the
+  rest of its segment.
 
-Each has ``reset(rows)`` at the start of a batch of episodes, ``status(row)`` once per control step and row after
-the policy has acted (the keys of :func:`~lerobot_suture.safety.ood.gate.silent_status`), and ``close()``.
+Each has ``reset(rows)`` at the start of a batch of episodes, ``observe(row, observation)`` once per control step
+and row with the observation the step acts from, ``status(row)`` after the policy has acted (the keys of
+:func:`~lerobot_suture.safety.ood.gate.silent_status`), ``rearm(row)`` when a surgeon hands control back (the
+policy starts afresh), ``context(row)`` for the step's log, and ``close()``.
 """
 
 from __future__ import annotations
@@ -22,6 +28,8 @@ import numpy as np
 from lerobot_suture.safety.ood.calibration_file import STAC_CALIBRATION_FILE, StacCalibration
 from lerobot_suture.safety.ood.chunk_consistency import ChunkCapture, ChunkConsistencyMonitor, chunk_source
 from lerobot_suture.safety.ood.gate import ChunkGate, silent_status
+from lerobot_suture.safety.ood.stage_gate import StageGate, StageThresholds
+from lerobot_suture.subtasks import SubtaskRules, SubtaskRulesConfig
 
 GATE_KINDS = ("auto", "ensemble", "stac", "none")
 
@@ -34,8 +42,18 @@ class SilentGates:
     def reset(self, rows: int) -> None:
         pass
 
+    def observe(self, row: int, observation: dict) -> None:
+        pass
+
     def status(self, row: int) -> dict:
         return silent_status()
+
+    def rearm(self, row: int) -> None:
+        pass
+
+    def context(self, row: int) -> dict:
+        """What the gates know of the task's state, for the step's log (the subtask and throw, for stages)."""
+        return {}
 
     def close(self) -> None:
         pass
@@ -84,10 +102,15 @@ class StacGates(SilentGates):
         self.reset(1)
 
     def reset(self, rows: int) -> None:
-        monitor = lambda: ChunkConsistencyMonitor(self._shift, self._start, self._bandwidth)  # noqa: E731
-        self.gates = [ChunkGate(monitor(), self.calibration) for _ in range(rows)]
+        self.gates = [self._gate() for _ in range(rows)]
         self._seen = self._capture.chunks
         self._fresh = [False] * rows
+
+    def rearm(self, row: int) -> None:
+        self.gates[row] = self._gate()  # the policy starts afresh: no previous chunk to compare with
+
+    def _gate(self) -> ChunkGate:
+        return ChunkGate(ChunkConsistencyMonitor(self._shift, self._start, self._bandwidth), self.calibration)
 
     def status(self, row: int) -> dict:
         if self._capture.chunks > self._seen:  # a new chunk since the last status: score it for every row
@@ -109,6 +132,59 @@ class StacGates(SilentGates):
 
     def close(self) -> None:
         self._capture.release()
+
+
+class StageGates(SilentGates):
+    """A gate per stage over ``base``'s scores (see the module docstring).
+
+    Args:
+        base: the gates whose scores are tested (the policy's own, or STAC), reporting only.
+        thresholds: each subtask's threshold, or None to record scores only (while calibrating).
+        rules: the high level's thresholds.
+    """
+
+    kind = "stage"
+
+    def __init__(
+        self, base: SilentGates, thresholds: StageThresholds | None, rules: SubtaskRulesConfig | None = None
+    ):
+        self.base, self.thresholds, self.rules_config = base, thresholds, rules
+        self.reset(1)
+
+    def reset(self, rows: int) -> None:
+        self.base.reset(rows)
+        self.rules = [SubtaskRules(self.rules_config) for _ in range(rows)]
+        self.gates = [StageGate(self.thresholds) for _ in range(rows)]
+        self._started = [False] * rows
+
+    def observe(self, row: int, observation: dict) -> None:
+        self.base.observe(row, observation)
+        rules, pose = self.rules[row], observation["agent_pos"]
+        subtask, throw = rules.update(pose) if self._started[row] else rules.reset(pose)
+        self._started[row] = True
+        self.gates[row].enter(subtask, throw)
+
+    def status(self, row: int) -> dict:
+        status, gate = self.base.status(row), self.gates[row]
+        if status["new_prediction"]:
+            gate.update(status["score"])
+        return {
+            **status,
+            "threshold": gate.threshold(gate.segment[0]),
+            "decision": gate.gate.decision,
+            "released": gate.flagged_here,
+            "flagged": bool(gate.flags),
+        }
+
+    def rearm(self, row: int) -> None:
+        self.base.rearm(row)
+
+    def context(self, row: int) -> dict:
+        subtask, throw = self.gates[row].segment
+        return {"subtask": subtask, "throw": throw}
+
+    def close(self) -> None:
+        self.base.close()
 
 
 def policy_gates(policy, kind: str = "auto", policy_dir: str | Path | None = None) -> SilentGates:

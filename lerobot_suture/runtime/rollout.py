@@ -12,6 +12,8 @@ out of control (its score is then NaN); a hand-back resets it, re-arming its gat
 
 - ``none``: nobody; the arm holds its pose and waits;
 - ``expert``: the scripted expert, reading privileged state, finishes the task from where it is;
+- ``expert_per_subtask``: the scripted expert takes over the running suture's subtask under way and hands back
+  when it is done (with :class:`~lerobot_suture.runtime.gates.StageGates`: a gate per stage, enforced);
 - any surgeon object (:mod:`lerobot_suture.surgeon.surgeons`: LeRobot's keyboard or gamepad), one per env.
 
 With the gate in reporting mode (``GateMode.REPORT``, the paper's experiments) the policy keeps
@@ -34,7 +36,6 @@ import torch
 from lerobot.teleoperators.utils import TeleopEvents
 from tqdm import tqdm
 
-from lerobot_suture.registration import MAX_EPISODE_STEPS
 from lerobot_suture.runtime.gates import PolicyGates, SilentGates
 from lerobot_suture.runtime.takeover import (
     GATE_RELEASED,
@@ -43,6 +44,7 @@ from lerobot_suture.runtime.takeover import (
     Actor,
     ExpertSurgeon,
     NoSurgeon,
+    SubtaskExpertSurgeon,
     Takeover,
 )
 from lerobot_suture.runtime.workers import rollout_in_workers
@@ -52,7 +54,7 @@ from lerobot_suture.sim.tasks import DEFAULT_TASK, task_spec
 if TYPE_CHECKING:
     from lerobot_suture.safety.cbf_config import CBFConfig
 
-SURGEONS = ("none", "expert")
+SURGEONS = ("none", "expert", "expert_per_subtask")
 POLICY, SURGEON, HOLD = "policy", "surgeon", "hold"
 CONTROLLERS = {Actor.POLICY: POLICY, Actor.SURGEON: SURGEON, Actor.HOLD: HOLD}
 HANDOVER_CAUSES = {GATE_RELEASED: "gate", TISSUE_MOTION: "tissue_motion", TAKEN_OVER: "surgeon"}
@@ -85,6 +87,7 @@ class StepLog:
     throw_index: int = 0  # the running suture's throw under way (0-based); 0 in the one-throw tasks
     # The policy was asked this step: its gate's score, threshold and decision are real.
     consulted: bool = True
+    subtask: str = ""  # the running suture's subtask the high level read (StageGates), else ""
 
     @property
     def actor(self) -> Actor:
@@ -217,15 +220,19 @@ def rollout_episodes(
     surgeons = _surgeons(surgeon, n)
     if runner is None and not all(person.present for person in surgeons):
         raise ValueError("Without a policy a surgeon must drive: pass a teleoperator's surgeon.")
-    if max_steps is None:
+    if max_steps is None:  # the env's own limit, else its task's (an env made without gym.make has no spec)
         spec = envs[0].spec
-        max_steps = spec.max_episode_steps if spec and spec.max_episode_steps else MAX_EPISODE_STEPS
+        task = getattr(envs[0].unwrapped, "task_name", DEFAULT_TASK)
+        max_steps = (
+            spec.max_episode_steps if spec and spec.max_episode_steps else task_spec(task).max_episode_steps
+        )
     hooks = hooks or EpisodeHooks()
     torch.manual_seed(int(seeds[0]))
     observations = [env.reset(seed=int(seed))[0] for env, seed in zip(envs, seeds, strict=True)]
     if runner is not None:
         runner.reset(seeds=[int(seed) for seed in seeds])
     gates = (PolicyGates(runner.policy) if runner is not None else SilentGates()) if gates is None else gates
+    own_gates = isinstance(gates, PolicyGates)  # an enforced gate of the policy's own makes it hold its pose
     gates.reset(n)
     tasks = [env.unwrapped.task_description for env in envs]  # each env's instruction, as lerobot-eval sends
     takeovers = [Takeover(has_surgeon=person.present) for person in surgeons]
@@ -247,6 +254,7 @@ def rollout_episodes(
         commands = {}
         for i in range(n):
             if not done[i]:
+                gates.observe(i, observations[i])
                 hooks.before_poll(i, step)
                 commands[i] = surgeons[i].poll()
                 hooks.after_poll(i, step)
@@ -274,18 +282,19 @@ def rollout_episodes(
                         "A hand-back resets the policy: run episodes with a surgeon one env at a time."
                     )
                 runner.reset(seeds=[int(seeds[i])])  # re-armed: a fresh start from this observation
-                gates.reset(1)
+                gates.rearm(i)
                 action, status = runner.act_batch(observations, tasks)[0], gates.status(0)
             elif actor is Actor.SURGEON:
                 if before is not Actor.SURGEON:
                     person.take_control(env, observations[i])
                 action = person.act(env, command)
             elif actor is Actor.HOLD:
-                if before is not Actor.HOLD:
-                    held[i] = action  # the policy's hold action at the release
+                if before is not Actor.HOLD:  # the policy's own hold action, or the measured pose
+                    held[i] = action if own_gates else np.asarray(observations[i]["agent_pos"], np.float32)
                 action = held[i]
             _note_handover(log, takeover)
             step_log = _step_log(status, CONTROLLERS[actor], status is not NOT_ASKED)
+            step_log.subtask = str(gates.context(i).get("subtask", ""))
             hooks.before_step(i, step, env, observations[i], actor, step_log)
             observation, reward, terminated, truncated, info = env.step(action)
             infos[i] = info
@@ -329,7 +338,10 @@ def _surgeons(surgeon, n: int) -> list:
     if isinstance(surgeon, str):
         if surgeon not in SURGEONS:
             raise ValueError(f"`surgeon` must be one of {SURGEONS}. Got {surgeon!r}.")
-        return [ExpertSurgeon() if surgeon == "expert" else NoSurgeon() for _ in range(n)]
+        stand_in = {"none": NoSurgeon, "expert": ExpertSurgeon, "expert_per_subtask": SubtaskExpertSurgeon}[
+            surgeon
+        ]
+        return [stand_in() for _ in range(n)]
     surgeons = list(surgeon)
     if len(surgeons) != n:
         raise ValueError(f"Need one surgeon per env. Got {len(surgeons)} surgeons for {n} envs.")

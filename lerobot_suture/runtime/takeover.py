@@ -150,3 +150,29 @@ class ExpertSurgeon(NoSurgeon):
 
     def act(self, env, command: SurgeonInput) -> np.ndarray:
         return self.expert.act(env)
+
+
+class SubtaskExpertSurgeon(ExpertSurgeon):
+    """The scripted expert as a surgeon who takes over the running suture's subtask under way and hands control
+    back once the expert has moved on to the next one (a stage gate's enforcement: that subtask, not the rest of
+    the suture). The expert's own stage (privileged) tells it where one subtask ends; it acts one step of the
+    next before handing back."""
+
+    name = "expert_per_subtask"
+
+    def take_control(self, env, observation: dict) -> None:
+        super().take_control(env, observation)
+        self._taken: str | None = None
+
+    def act(self, env, command: SurgeonInput) -> np.ndarray:
+        action = super().act(env, command)
+        if self._taken is None:
+            self._taken = self.expert.stage
+        return action
+
+    def poll(self) -> SurgeonInput:
+        taken = getattr(self, "_taken", None)
+        done = taken is not None and self.expert.stage != taken
+        if done:
+            self._taken = None
+        return SurgeonInput(hand_back=done)

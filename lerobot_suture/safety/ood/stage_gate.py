@@ -133,33 +133,46 @@ def fit_stage_thresholds(
 
 class StageGate:
     """The one gate per segment: a new segment (subtask or throw changed) starts a fresh running maximum, tested
-    against its subtask's threshold; the first flag is latched with the segment it fell in.
+    against its subtask's threshold. Every flagged segment is kept (a surgeon takes it over and hands back for
+    the next, whose gate starts afresh).
 
     Args:
-        thresholds: the fitted :class:`StageThresholds`; a subtask without one is never flagged.
+        thresholds: the fitted :class:`StageThresholds`, or None to record scores only (while calibrating); a
+            subtask without a threshold is never flagged.
     """
 
-    def __init__(self, thresholds: StageThresholds):
+    def __init__(self, thresholds: StageThresholds | None):
         self.thresholds = thresholds
         self.reset()
 
     def reset(self) -> None:
         """A new rollout."""
         self.segment: tuple[str, int] | None = None
-        self.flagged_segment: tuple[str, int] | None = None
-        self._gate = OODGate()
+        self.flags: list[tuple[str, int]] = []
+        self.gate = OODGate()
 
-    @property
-    def flagged(self) -> bool:
-        return self.flagged_segment is not None
+    def threshold(self, subtask: str) -> float:
+        """``subtask``'s threshold (NaN without one)."""
+        found = None if self.thresholds is None else self.thresholds.thresholds.get(subtask)
+        return math.nan if found is None else found
 
-    def update(self, subtask: str, throw: int, score: float) -> bool:
-        """One prediction's score, made in ``subtask`` of ``throw``; returns whether the rollout is flagged."""
+    def enter(self, subtask: str, throw: int) -> None:
+        """The arm is in ``subtask`` of ``throw`` (the high level's reading); a new segment re-arms the gate."""
         segment = (subtask, int(throw))
         if segment != self.segment:
-            threshold = self.thresholds.thresholds.get(subtask)
-            self._gate = OODGate(calibration=None if threshold is None else SegmentThreshold(threshold))
+            threshold = self.threshold(subtask)
+            self.gate = OODGate(calibration=None if math.isnan(threshold) else SegmentThreshold(threshold))
             self.segment = segment
-        if self._gate.update(score) and self.flagged_segment is None:
-            self.flagged_segment = segment
-        return self.flagged
+
+    def update(self, score: float) -> bool:
+        """One prediction's score in the current segment; returns whether this segment is flagged."""
+        if self.segment is None:
+            raise RuntimeError("`enter` a segment before its first score.")
+        if self.gate.update(score) and self.segment not in self.flags:
+            self.flags.append(self.segment)
+        return self.flagged_here
+
+    @property
+    def flagged_here(self) -> bool:
+        """The current segment is flagged."""
+        return self.segment in self.flags
