@@ -252,3 +252,19 @@ def make_synthetic_dataset(
         dataset.save_episode()
     dataset.finalize()
     return dataset
+
+
+class ExpertAsPolicy:
+    """The scripted expert in a policy runner's place (``reset``, ``act_batch``, ``policy``) for one env: episodes
+    whose control flow (handovers, gates, the CBF's premise) is under test, not a policy's skill."""
+
+    def __init__(self, env):
+        from lerobot_suture.expert import ScriptedExpert
+
+        self.env, self.policy, self.expert = env, self, ScriptedExpert()
+
+    def reset(self, seeds=None):
+        self.expert.reset(self.env)
+
+    def act_batch(self, observations, tasks=None):
+        return [self.expert.act(self.env)]

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from policy_builders import ExpertAsPolicy
 
 import lerobot_suture
 from lerobot_suture.experiments.attack_episodes import (
@@ -157,16 +158,6 @@ def test_tissue_moving_beyond_the_declared_bounds_is_flagged_and_handed_over():
     assert episode.moved_while_held and episode.motion_flagged
     assert episode.violation_steps == 0
 
-    class ExpertPolicy:  # a policy whose gate never releases: only the CBF's premise hands over
-        def __init__(self, env):
-            self.env, self.policy, self.expert = env, self, ScriptedExpert()
-
-        def reset(self, seeds=None):
-            self.expert.reset(self.env)
-
-        def act_batch(self, observations, tasks=None):
-            return [self.expert.act(self.env)]
-
     condition = CONDITIONS["beyond_bound_moved"]
     env = gym.make(
         lerobot_suture.ENV_ID,
@@ -176,7 +167,9 @@ def test_tissue_moving_beyond_the_declared_bounds_is_flagged_and_handed_over():
         scenario=condition.scenario,
         scenario_magnitude=condition.scenario_magnitude,
     )
-    log = rollout_episode(env, ExpertPolicy(env), seed=0, surgeon="expert")
+    log = rollout_episode(
+        env, ExpertAsPolicy(env), seed=0, surgeon="expert"
+    )  # no gate: only the premise hands over
     env.close()
     assert log.handover_cause == "tissue_motion" and log.steps[log.handover_step].controller == SURGEON
     assert log.steps[log.handover_step - 1].perturbed

@@ -3,6 +3,7 @@ travel, and against the scripted expert's own stages on a whole suture."""
 
 import numpy as np
 import pytest
+from policy_builders import ExpertAsPolicy
 
 from lerobot_suture.subtasks import SubtaskRules, SubtaskRulesConfig
 
@@ -107,22 +108,6 @@ def test_a_gate_per_stage_is_fitted_on_successful_segments_and_flags_the_segment
         fit_stage_thresholds(scores, stages, segments, successful, alpha=0.01)
 
 
-class _ExpertAsPolicy:
-    """The scripted expert in a policy's place (the runner's interface), so that a whole running suture runs: the
-    enforcement's control flow is what is tested, not a policy's skill."""
-
-    def __init__(self, env):
-        from lerobot_suture.expert import ScriptedExpert
-
-        self.env, self.policy, self.expert = env, self, ScriptedExpert()
-
-    def reset(self, seeds=None):
-        self.expert.reset(self.env)
-
-    def act_batch(self, observations, tasks=None):
-        return [self.expert.act(self.env)]
-
-
 class _StepScores:
     """A score every 4 control steps: 10 inside ``[high_from, high_to)``, 0.1 elsewhere."""
 
@@ -165,7 +150,7 @@ def test_a_flagged_subtask_is_taken_over_by_the_expert_and_handed_back_for_the_n
     subtasks = ("insert", "extract", "lay_down", "pick_up")
     thresholds = StageThresholds(dict.fromkeys(subtasks, 1.0), dict.fromkeys(subtasks, 100), alpha=0.01)
     gates = StageGates(_StepScores(340, 344), thresholds)  # throw 2's extraction runs from about step 325
-    log = rollout_episode(env, _ExpertAsPolicy(env), 0, "expert_per_subtask", gates=gates)
+    log = rollout_episode(env, ExpertAsPolicy(env), 0, "expert_per_subtask", gates=gates)
     env.close()
     assert log.success and log.handover_cause == "gate"
     (taken, _, _, why), (back, _, _, why_back) = log.handovers
@@ -190,7 +175,7 @@ def test_stage_thresholds_come_from_the_segments_of_successful_sutures(tiny_poli
 
     env = make_suture_env(task="running_suture", obs_type="pixels_agent_pos", image_size=32)
     logs = [
-        rollout_episode(env, _ExpertAsPolicy(env), seed, gates=StageGates(_StepScores(0, 0), None))
+        rollout_episode(env, ExpertAsPolicy(env), seed, gates=StageGates(_StepScores(0, 0), None))
         for seed in (0, 1)
     ]
     env.close()
