@@ -147,16 +147,12 @@ def save_untrained_expert_policy(directory: str | Path, seed: int = 0, **config_
     return save_untrained_policy(tiny_config(**config_overrides), stats, directory)
 
 
-def save_untrained_act_policy(directory: str | Path, seed: int = 0) -> Path:
-    """An untrained tiny LeRobot ACT (chunks of 8, 4 executed) with the scripted expert's statistics, saved to
-    `directory` as `lerobot-train` saves one."""
+def tiny_act_config(input_features: dict | None = None):
+    """A tiny CPU LeRobot ACT config (chunks of 8, 4 executed) with the suture features, or ``input_features``."""
     from lerobot.policies.act.configuration_act import ACTConfig
-    from lerobot.policies.act.modeling_act import ACTPolicy
-    from lerobot.policies.factory import make_pre_post_processors
 
-    stats = expert_dataset_stats(n_seeds=2)
-    config = ACTConfig(
-        input_features=dict(SUTURE_INPUT_FEATURES),
+    return ACTConfig(
+        input_features=dict(input_features or SUTURE_INPUT_FEATURES),
         output_features=dict(SUTURE_OUTPUT_FEATURES),
         chunk_size=8,
         n_action_steps=4,
@@ -168,6 +164,16 @@ def save_untrained_act_policy(directory: str | Path, seed: int = 0) -> Path:
         n_vae_encoder_layers=1,
         device="cpu",
     )
+
+
+def save_untrained_act_policy(directory: str | Path, seed: int = 0) -> Path:
+    """An untrained tiny LeRobot ACT (chunks of 8, 4 executed) with the scripted expert's statistics, saved to
+    `directory` as `lerobot-train` saves one."""
+    from lerobot.policies.act.modeling_act import ACTPolicy
+    from lerobot.policies.factory import make_pre_post_processors
+
+    stats = expert_dataset_stats(n_seeds=2)
+    config = tiny_act_config()
     torch.manual_seed(seed)
     directory = Path(directory)
     ACTPolicy(config).save_pretrained(directory)

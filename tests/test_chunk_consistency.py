@@ -14,27 +14,15 @@ from lerobot_suture.safety.ood.gate import ChunkGate, OODGate
 
 def tiny_act():
     from lerobot.configs.types import FeatureType, PolicyFeature
-    from lerobot.policies.act.configuration_act import ACTConfig
     from lerobot.policies.act.modeling_act import ACTPolicy
+    from policy_builders import tiny_act_config
 
     torch.manual_seed(0)
-    config = ACTConfig(
-        input_features={
-            "observation.state": PolicyFeature(type=FeatureType.STATE, shape=(10,)),
-            "observation.images.endoscope": PolicyFeature(type=FeatureType.VISUAL, shape=(3, 32, 32)),
-        },
-        output_features={"action": PolicyFeature(type=FeatureType.ACTION, shape=(10,))},
-        chunk_size=8,
-        n_action_steps=4,
-        pretrained_backbone_weights=None,
-        dim_model=32,
-        n_heads=2,
-        dim_feedforward=64,
-        n_encoder_layers=1,
-        n_vae_encoder_layers=1,
-        device="cpu",
-    )
-    return ACTPolicy(config).eval()
+    features = {
+        "observation.state": PolicyFeature(type=FeatureType.STATE, shape=(10,)),
+        "observation.images.endoscope": PolicyFeature(type=FeatureType.VISUAL, shape=(3, 32, 32)),
+    }
+    return ACTPolicy(tiny_act_config(features)).eval()
 
 
 def batch(step: int) -> dict:

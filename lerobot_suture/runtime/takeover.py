@@ -160,9 +160,13 @@ class SubtaskExpertSurgeon(ExpertSurgeon):
 
     name = "expert_per_subtask"
 
+    def __init__(self, expert: ScriptedExpert | None = None):
+        super().__init__(expert)
+        self._taken: str | None = None  # the stage it took over, once it has acted
+
     def take_control(self, env, observation: dict) -> None:
         super().take_control(env, observation)
-        self._taken: str | None = None
+        self._taken = None
 
     def act(self, env, command: SurgeonInput) -> np.ndarray:
         action = super().act(env, command)
@@ -171,8 +175,7 @@ class SubtaskExpertSurgeon(ExpertSurgeon):
         return action
 
     def poll(self) -> SurgeonInput:
-        taken = getattr(self, "_taken", None)
-        done = taken is not None and self.expert.stage != taken
+        done = self._taken is not None and self.expert.stage != self._taken
         if done:
             self._taken = None
         return SurgeonInput(hand_back=done)
