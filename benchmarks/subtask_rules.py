@@ -1,12 +1,12 @@
 """The running suture's high level (``lerobot_suture.subtasks``) against the scripted expert's own stages.
 
-The expert finishes running sutures on ``--episodes`` seeds; at every control step the rules read only the
-measured pose (jaw position and closure) and name the subtask and the throw, and the expert's plan names the stage
-it is executing. Prints JSON: the share of steps on which they agree, overall and per stage, the confusion
-counts, each boundary's lag (the rules' switch minus the expert's, in control steps), and whether the rules end on
-the throw the env counts.
+The expert finishes running sutures on ``--episodes`` seeds, nominal and in each of ``--scenarios``; at every control
+step the rules read only the measured pose (jaw position and closure) and name the subtask and the throw, and the
+expert's plan names the stage it is executing. Prints JSON, per scenario: the share of steps on which they agree,
+overall and per stage, the confusion counts, each boundary's lag (the rules' switch minus the expert's, in control
+steps), and whether the rules end on the throw the env counts.
 
-    .venv/bin/python benchmarks/subtask_rules.py [--episodes 20] [--output FILE]
+    .venv/bin/python benchmarks/subtask_rules.py [--episodes 20] [--scenarios needle_drop ...] [--output FILE]
 """
 
 from __future__ import annotations
@@ -53,23 +53,20 @@ def switches(labels: list[str]) -> list[tuple[int, str, str]]:
     return [(k, a, b) for k, (a, b) in enumerate(zip(labels, labels[1:], strict=False), start=1) if a != b]
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--episodes", type=int, default=20)
-    parser.add_argument("--output", type=Path, default=None)
-    args = parser.parse_args()
-    env = make_suture_env(task="running_suture", obs_type="pixels_agent_pos", image_size=32)
-    start = time.perf_counter()
+def measure(scenario: str, seeds: list[int]) -> dict:
+    """The rules against the expert on ``seeds`` of ``scenario``."""
+    env = make_suture_env(
+        task="running_suture", obs_type="pixels_agent_pos", image_size=32, scenario=scenario
+    )
     confusion: collections.Counter = collections.Counter()
     lags: dict[str, list[int]] = collections.defaultdict(list)
     throws_match = successes = 0
-    seeds = fresh_seeds(args.episodes, start=SEED_OFFSET)
-    for seed in tqdm(seeds, desc="running sutures", unit="suture", file=sys.stderr):
+    for seed in tqdm(seeds, desc=scenario, unit="suture", file=sys.stderr):
         theirs, ours, info = labelled_suture(env, seed)
         subtasks = [subtask for subtask, _ in ours]
         confusion.update(zip(theirs, subtasks, strict=True))
-        expert_switches, rule_switches = switches(theirs), switches(subtasks)
-        for step, before, after in expert_switches:
+        rule_switches = switches(subtasks)
+        for step, before, after in switches(theirs):
             matching = [s for s, b, a in rule_switches if (b, a) == (before, after)]
             if matching:
                 lags[f"{before}->{after}"].append(min(matching, key=lambda s: abs(s - step)) - step)
@@ -82,26 +79,35 @@ def main() -> None:
         for stage in SUBTASKS
         if (n := sum(v for (a, _), v in confusion.items() if a == stage))
     }
-    emit(
-        {
-            "benchmark": "subtask_rules",
-            "episodes": len(seeds),
-            "seeds": [seeds[0], seeds[-1]],
-            "expert_successes": successes,
-            "steps": total,
-            "agreement": round(sum(confusion[(s, s)] for s in SUBTASKS) / total, 4),
-            "agreement_per_stage": per_stage,
-            "confusion": {f"{a}->{b}": n for (a, b), n in sorted(confusion.items())},
-            "boundary_lag_steps": {
-                k: {"n": len(v), "median": float(np.median(v)), "min": int(min(v)), "max": int(max(v))}
-                for k, v in sorted(lags.items())
-            },
-            "last_throw_matches_env": throws_match,
-            "machine": machine(),
-            "wall_s": round(time.perf_counter() - start, 1),
+    return {
+        "episodes": len(seeds),
+        "expert_successes": successes,
+        "steps": total,
+        "agreement": round(sum(confusion[(s, s)] for s in SUBTASKS) / total, 4),
+        "agreement_per_stage": per_stage,
+        "confusion": {f"{a}->{b}": n for (a, b), n in sorted(confusion.items())},
+        "boundary_lag_steps": {
+            k: {"n": len(v), "median": float(np.median(v)), "min": int(min(v)), "max": int(max(v))}
+            for k, v in sorted(lags.items())
         },
-        args.output,
-    )
+        "last_throw_matches_env": throws_match,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--episodes", type=int, default=20)
+    parser.add_argument("--scenarios", nargs="*", default=[])
+    parser.add_argument("--output", type=Path, default=None)
+    args = parser.parse_args()
+    start = time.perf_counter()
+    seeds = fresh_seeds(args.episodes, start=SEED_OFFSET)
+    report = {"benchmark": "subtask_rules", "seeds": [seeds[0], seeds[-1]]}
+    report.update(measure("nominal", seeds))
+    report["scenarios"] = {scenario: measure(scenario, seeds) for scenario in args.scenarios}
+    report["machine"] = machine()
+    report["wall_s"] = round(time.perf_counter() - start, 1)
+    emit(report, args.output)
 
 
 if __name__ == "__main__":

@@ -18,8 +18,10 @@ never the simulator's contact flags or the needle's pose: the jaw closure is an 
 comes from the arm's kinematics, so a real arm has both. Rules rather than a learned classifier: the order of the
 subtasks is fixed, and each boundary but one is a jaw event that a threshold on one encoder reads without error;
 the one that is not (the end of the pull) is a distance. A learned classifier would need labelled rollouts of
-every policy it serves and could misfire where the rules cannot. ``benchmarks/subtask_rules.py`` measures how
-often the rules agree with the expert's own stage.
+every policy it serves and could misfire where the rules cannot. The order is also their limit: a jaw event the
+plan does not have (the needle dropped and grasped again) reads as the next subtask, and the rules stay out of
+phase from there. ``benchmarks/subtask_rules.py`` measures how often the rules agree with the expert's own stage,
+nominal and under the scenarios.
 """
 
 from __future__ import annotations
