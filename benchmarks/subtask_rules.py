@@ -27,13 +27,15 @@ from tqdm import tqdm  # noqa: E402
 from lerobot_suture.expert import ScriptedExpert  # noqa: E402
 from lerobot_suture.registration import make_suture_env  # noqa: E402
 from lerobot_suture.runtime.seeds import fresh_seeds  # noqa: E402
+from lerobot_suture.sim.wound_marks import MARKS_KEY  # noqa: E402
 from lerobot_suture.subtasks import SUBTASKS, SubtaskRules  # noqa: E402
 
 SEED_OFFSET = 700_000
 
 
-def labelled_suture(env, seed: int) -> tuple[list[str], list[tuple[str, int]], dict]:
-    """The expert's stage and the rules' (subtask, throw) at every control step of one suture, and its last info."""
+def labelled_suture(env, seed: int, marks: bool) -> tuple[list[str], list[tuple[str, int]], dict]:
+    """The expert's stage and the rules' (subtask, throw) at every control step of one suture (``marks``: the rules
+    read the wound's marks too), and its last info."""
     expert, rules = ScriptedExpert(), SubtaskRules()
     observation, info = env.reset(seed=seed)
     expert.reset(env)
@@ -45,7 +47,7 @@ def labelled_suture(env, seed: int) -> tuple[list[str], list[tuple[str, int]], d
         observation, _, terminated, truncated, info = env.step(action)
         if terminated or truncated:
             return theirs, ours, info
-        ours.append(rules.update(observation["agent_pos"]))
+        ours.append(rules.update(observation["agent_pos"], observation.get(MARKS_KEY) if marks else None))
 
 
 def switches(labels: list[str]) -> list[tuple[int, str, str]]:
@@ -53,16 +55,16 @@ def switches(labels: list[str]) -> list[tuple[int, str, str]]:
     return [(k, a, b) for k, (a, b) in enumerate(zip(labels, labels[1:], strict=False), start=1) if a != b]
 
 
-def measure(scenario: str, seeds: list[int]) -> dict:
+def measure(scenario: str, seeds: list[int], marks: bool) -> dict:
     """The rules against the expert on ``seeds`` of ``scenario``."""
     env = make_suture_env(
-        task="running_suture", obs_type="pixels_agent_pos", image_size=32, scenario=scenario
+        task="running_suture", obs_type="pixels_agent_pos", image_size=32, scenario=scenario, marks=True
     )
     confusion: collections.Counter = collections.Counter()
     lags: dict[str, list[int]] = collections.defaultdict(list)
     throws_match = successes = 0
     for seed in tqdm(seeds, desc=scenario, unit="suture", file=sys.stderr):
-        theirs, ours, info = labelled_suture(env, seed)
+        theirs, ours, info = labelled_suture(env, seed, marks)
         subtasks = [subtask for subtask, _ in ours]
         confusion.update(zip(theirs, subtasks, strict=True))
         rule_switches = switches(subtasks)
@@ -98,13 +100,15 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--episodes", type=int, default=20)
     parser.add_argument("--scenarios", nargs="*", default=[])
+    parser.add_argument("--no-marks", action="store_true", help="the rules read the measured pose alone")
     parser.add_argument("--output", type=Path, default=None)
     args = parser.parse_args()
     start = time.perf_counter()
     seeds = fresh_seeds(args.episodes, start=SEED_OFFSET)
-    report = {"benchmark": "subtask_rules", "seeds": [seeds[0], seeds[-1]]}
-    report.update(measure("nominal", seeds))
-    report["scenarios"] = {scenario: measure(scenario, seeds) for scenario in args.scenarios}
+    marks = not args.no_marks
+    report = {"benchmark": "subtask_rules", "marks": marks, "seeds": [seeds[0], seeds[-1]]}
+    report.update(measure("nominal", seeds, marks))
+    report["scenarios"] = {scenario: measure(scenario, seeds, marks) for scenario in args.scenarios}
     report["machine"] = machine()
     report["wall_s"] = round(time.perf_counter() - start, 1)
     emit(report, args.output)

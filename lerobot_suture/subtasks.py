@@ -5,8 +5,11 @@ A throw of a running suture is four subtasks in a fixed order, the scripted expe
 =========== ================================================= ===========================================
 subtask     what the arm does                                 ends when (measured)
 =========== ================================================= ===========================================
-insert      drives the held needle in at the entry mark and    the jaw opens (it lets go of the needle)
-            out at the exit mark
+insert      drives the held needle in at the entry mark and    the jaw opens (it lets go of the needle);
+            out at the exit mark                              with the wound's marks, only within
+                                                              ``release_radius`` of the entry mark:
+                                                              elsewhere the needle was lost (``pick_up``,
+                                                              the same throw)
 extract     reaches the protruding tip, closes on it and       the jaw has travelled ``pulled_out_travel``
             pulls the needle out along its arc                  since it closed on the tip
 lay_down    carries the needle to the phantom and lets go      the jaw opens
@@ -19,9 +22,11 @@ comes from the arm's kinematics, so a real arm has both. Rules rather than a lea
 subtasks is fixed, and each boundary but one is a jaw event that a threshold on one encoder reads without error;
 the one that is not (the end of the pull) is a distance. A learned classifier would need labelled rollouts of
 every policy it serves and could misfire where the rules cannot. The order is also their limit: a jaw event the
-plan does not have (the needle dropped and grasped again) reads as the next subtask, and the rules stay out of
-phase from there. ``benchmarks/subtask_rules.py`` measures how often the rules agree with the expert's own stage,
-nominal and under the scenarios.
+plan does not have (the needle dropped and grasped again) would read as the next subtask. Given the registered
+wound's marks (the current throw's entry and exit points, as the ``marks`` observation and the robot path's
+registration give them), the rules tell a release at the wound from a needle lost on the way. The throw counts
+up when a laid-down needle is let go (the next throw's pick-up). ``benchmarks/subtask_rules.py`` measures how
+often the rules agree with the expert's own stage, nominal and under the scenarios.
 """
 
 from __future__ import annotations
@@ -43,23 +48,27 @@ class SubtaskRulesConfig:
     closed_above: jaw closure (0 open, 1 closed) above which the jaw counts as closed, in (0, 1).
     pulled_out_travel: distance (m) the jaw travels after closing on the needle's tip beyond which the needle
         is out of the tissue, > 0 (the scripted expert pulls 19.5 mm).
+    release_radius: with the wound's marks, the distance (m) from the entry mark within which the jaw lets go
+        of the needle at the end of an insert, > 0 (the expert lets go about 5 mm from it).
     """
 
     closed_above: float = 0.5
     pulled_out_travel: float = 0.019
+    release_radius: float = 0.010
 
     def __post_init__(self):
         if not 0.0 < self.closed_above < 1.0:
             raise ValueError(f"`closed_above` must be in (0, 1). Got {self.closed_above!r}.")
-        if not (math.isfinite(self.pulled_out_travel) and self.pulled_out_travel > 0):
-            raise ValueError(
-                f"`pulled_out_travel` must be a finite distance > 0 (m). Got {self.pulled_out_travel!r}."
-            )
+        for name in ("pulled_out_travel", "release_radius"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"`{name}` must be a finite distance > 0 (m). Got {value!r}.")
 
 
 class SubtaskRules:
     """The high level of one suture at a time: :meth:`reset` with the episode's first measured pose, then
-    :meth:`update` with each control step's measured pose; both return ``(subtask, throw)`` for that step.
+    :meth:`update` with each control step's measured pose (and the wound's marks, when registered); both return
+    ``(subtask, throw)`` for that step.
 
     Args:
         config: the thresholds (:class:`SubtaskRulesConfig`).
@@ -68,25 +77,29 @@ class SubtaskRules:
     def __init__(self, config: SubtaskRulesConfig | None = None):
         self.config = config or SubtaskRulesConfig()
         self.subtask, self.throw = SUBTASKS[0], 0
-        self._closed, self._inserted = True, True
+        self._closed = True
         self._tip_grasped_at: np.ndarray | None = None
 
     def reset(self, pose: np.ndarray) -> tuple[str, int]:
         """A new suture: with the needle held it starts at ``insert``, from a needle on the phantom at ``pick_up``."""
         self._closed = self._is_closed(pose)
         self.subtask, self.throw = ("insert" if self._closed else "pick_up"), 0
-        self._inserted = self._closed
         self._tip_grasped_at = None
         return self.subtask, self.throw
 
-    def update(self, pose: np.ndarray) -> tuple[str, int]:
-        """The subtask and the throw (0-based) at the control step whose measured pose is ``pose``, (10,)."""
+    def update(self, pose: np.ndarray, marks: np.ndarray | None = None) -> tuple[str, int]:
+        """The subtask and the throw (0-based) at the control step whose measured pose is ``pose``, (10,);
+        ``marks``: the current throw's entry and exit points (6,) m, or None without a registered wound."""
         closed = self._is_closed(pose)
         opened, shut = self._closed and not closed, closed and not self._closed
         self._closed = closed
         position = np.asarray(pose[:3], dtype=np.float64)
         if self.subtask == "insert" and opened:
-            self.subtask = "extract"
+            at_wound = (
+                marks is None
+                or np.linalg.norm(position - np.asarray(marks)[:3]) <= self.config.release_radius
+            )
+            self.subtask = "extract" if at_wound else "pick_up"  # elsewhere: the needle was lost
         elif self.subtask == "extract":
             if shut:
                 self._tip_grasped_at = position
@@ -94,11 +107,9 @@ class SubtaskRules:
                 if np.linalg.norm(position - self._tip_grasped_at) >= self.config.pulled_out_travel:
                     self.subtask, self._tip_grasped_at = "lay_down", None
         elif self.subtask == "lay_down" and opened:
-            self.subtask = "pick_up"
+            self.subtask, self.throw = "pick_up", self.throw + 1  # the throw is over: the next one's pick-up
         elif self.subtask == "pick_up" and shut:
-            # A suture from a needle on the phantom: its first pick-up leads into throw 0.
-            self.throw += int(self._inserted)
-            self.subtask, self._inserted = "insert", True
+            self.subtask = "insert"
         return self.subtask, self.throw
 
     def _is_closed(self, pose: np.ndarray) -> bool:

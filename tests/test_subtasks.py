@@ -23,11 +23,23 @@ def test_a_throw_runs_through_its_four_subtasks_and_the_next_throw_counts():
         (pose(0.005, 0.8), ("extract", 0)),  # closes on it
         (pose(0.010, 0.88), ("extract", 0)),  # pulls 5 mm
         (pose(0.016, 0.88), ("lay_down", 0)),  # 11 mm: the needle is out
-        (pose(0.020, 0.1), ("pick_up", 0)),  # lets go on the phantom
-        (pose(0.020, 0.85), ("insert", 1)),  # grasps it again: the next throw
+        (pose(0.020, 0.1), ("pick_up", 1)),  # lets go on the phantom: the next throw's pick-up
+        (pose(0.020, 0.85), ("insert", 1)),  # grasps it again
     ]
     for measured, expected in steps:
         assert rules.update(measured) == expected
+
+
+def test_with_the_wound_s_marks_a_needle_lost_on_the_way_is_picked_up_again_in_the_same_throw():
+    rules = SubtaskRules()
+    marks = np.array([0.0, 0.0, 0.02, 0.016, 0.0, 0.02])  # entry and exit at the poses' height, 16 mm apart
+    rules.reset(pose(0.03, 0.88))
+    assert rules.update(pose(0.03, 0.1), marks) == ("pick_up", 0)  # 30 mm from the entry: dropped
+    assert rules.update(pose(0.03, 0.9), marks) == ("insert", 0)  # grasped again: the same throw
+    assert rules.update(pose(0.005, 0.1), marks) == (
+        "extract",
+        0,
+    )  # let go 5 mm from the entry: the insert is done
 
 
 def test_a_suture_from_a_needle_on_the_phantom_starts_with_its_pick_up():

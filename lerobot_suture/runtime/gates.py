@@ -29,6 +29,7 @@ from lerobot_suture.safety.ood.calibration_file import STAC_CALIBRATION_FILE, St
 from lerobot_suture.safety.ood.chunk_consistency import ChunkCapture, ChunkConsistencyMonitor, chunk_source
 from lerobot_suture.safety.ood.gate import ChunkGate, silent_status
 from lerobot_suture.safety.ood.stage_gate import StageGate, StageThresholds
+from lerobot_suture.sim.wound_marks import MARKS_DIM, MARKS_KEY
 from lerobot_suture.subtasks import SubtaskRules, SubtaskRulesConfig
 
 GATE_KINDS = ("auto", "ensemble", "stac", "none")
@@ -160,7 +161,9 @@ class StageGates(SilentGates):
     def observe(self, row: int, observation: dict) -> None:
         self.base.observe(row, observation)
         rules, pose = self.rules[row], observation["agent_pos"]
-        subtask, throw = rules.update(pose) if self._started[row] else rules.reset(pose)
+        marks = observation.get(MARKS_KEY)  # the registered wound's, when the env gives them
+        marks = marks if marks is not None and np.shape(marks) == (MARKS_DIM,) else None
+        subtask, throw = rules.update(pose, marks) if self._started[row] else rules.reset(pose)
         self._started[row] = True
         self.gates[row].enter(subtask, throw)
 
