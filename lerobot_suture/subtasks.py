@@ -47,9 +47,9 @@ class SubtaskRulesConfig:
     """Args:
     closed_above: jaw closure (0 open, 1 closed) above which the jaw counts as closed, in (0, 1).
     pulled_out_travel: distance (m) the jaw travels after closing on the needle's tip beyond which the needle
-        is out of the tissue, > 0 (the scripted expert pulls 19.5 mm).
+        is out of the tissue, > 0 (the default sits just short of the scripted expert's pull).
     release_radius: with the wound's marks, the distance (m) from the entry mark within which the jaw lets go
-        of the needle at the end of an insert, > 0 (the expert lets go about 5 mm from it).
+        of the needle at the end of an insert, > 0 (the default leaves room around where the expert lets go).
     """
 
     closed_above: float = 0.5
