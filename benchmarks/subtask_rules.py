@@ -1,4 +1,4 @@
-"""The running suture's high level (``lerobot_suture.subtasks``) against the scripted expert's own stages.
+"""The running suture's high level (``lerobot_suture.sim.subtasks``) against the scripted expert's own stages.
 
 The expert finishes running sutures on ``--episodes`` seeds, nominal and in each of ``--scenarios``; at every control
 step the rules read only the measured pose (jaw position and closure) and name the subtask and the throw, and the
@@ -27,8 +27,8 @@ from tqdm import tqdm  # noqa: E402
 from lerobot_suture.expert import ScriptedExpert  # noqa: E402
 from lerobot_suture.registration import make_suture_env  # noqa: E402
 from lerobot_suture.runtime.seeds import fresh_seeds  # noqa: E402
+from lerobot_suture.sim.subtasks import SUBTASKS, SubtaskRules  # noqa: E402
 from lerobot_suture.sim.wound_marks import MARKS_KEY  # noqa: E402
-from lerobot_suture.subtasks import SUBTASKS, SubtaskRules  # noqa: E402
 
 SEED_OFFSET = 700_000
 

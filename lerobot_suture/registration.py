@@ -14,7 +14,9 @@ MAX_EPISODE_STEPS = TASKS[DEFAULT_TASK].max_episode_steps
 _ENTRY_POINT = "lerobot_suture.registration:make_suture_env"
 
 
-def make_suture_env(cbf=None, id_task: str | None = None, marks: bool = False, **kwargs) -> gym.Env:
+def make_suture_env(
+    cbf=None, id_task: str | None = None, marks: bool = False, subtask: bool = False, **kwargs
+) -> gym.Env:
     """A :class:`~lerobot_suture.sim.suture_env.SutureEnv`, behind the CBF safety filter when asked.
 
     Args:
@@ -25,6 +27,8 @@ def make_suture_env(cbf=None, id_task: str | None = None, marks: bool = False, *
             ``max_episode_steps`` is that task's.
         marks: add the current throw's entry and exit marks to the observation as ``environment_state``
             (:class:`~lerobot_suture.sim.wound_marks.WoundMarks`).
+        subtask: add the high level's subtask and throw to ``environment_state``, after the marks
+            (:class:`~lerobot_suture.sim.subtasks.SubtaskObservation`).
         **kwargs: the env's own arguments (see its docstring), ``task`` among them.
 
     Raises:
@@ -46,6 +50,10 @@ def make_suture_env(cbf=None, id_task: str | None = None, marks: bool = False, *
         from lerobot_suture.sim.wound_marks import WoundMarks
 
         env = WoundMarks(env)
+    if subtask:
+        from lerobot_suture.sim.subtasks import SubtaskObservation
+
+        env = SubtaskObservation(env)
     if cbf is None:
         return env
     from lerobot_suture.safety.cbf_config import CBFConfig

@@ -162,3 +162,21 @@ def test_the_marks_flag_adds_the_wound_s_marks_as_environment_state(suture_confi
         vec.close()
     with pytest.raises(ValueError, match="--env.obs_type=pixels_agent_pos"):
         suture_config_cls(obs_type="pixels_agent_pos_state", marks=True)
+
+
+def test_the_subtask_flag_adds_the_high_level_s_reading_after_the_marks(suture_config_cls):
+    """``--env.subtask=true``: the high level's subtask and throw after the marks in
+    ``observation.environment_state`` (11,), through LeRobot's factory and preprocessing."""
+    cfg = _parse_env(
+        "--env.marks=true", "--env.subtask=true", "--env.image_size=32", "--env.episode_length=2"
+    )
+    assert env_to_policy_features(cfg)["observation.environment_state"].shape == (11,)
+    vec = make_env(cfg, n_envs=1, use_async_envs=False)["suture"][0]
+    try:
+        obs, _ = vec.reset(seed=[0])
+        state = preprocess_observation(obs)["observation.environment_state"][0].numpy()
+        np.testing.assert_array_equal(state[6:], [1, 0, 0, 0, 0])  # the insert of throw 0
+    finally:
+        vec.close()
+    with pytest.raises(ValueError, match="--env.obs_type=pixels_agent_pos"):
+        suture_config_cls(obs_type="state", subtask=True)

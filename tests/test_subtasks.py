@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from policy_builders import ExpertAsPolicy
 
-from lerobot_suture.subtasks import SubtaskRules, SubtaskRulesConfig
+from lerobot_suture.sim.subtasks import SubtaskRules, SubtaskRulesConfig
 
 
 def pose(x: float, jaw: float) -> np.ndarray:
@@ -204,3 +204,78 @@ def test_stage_thresholds_come_from_the_segments_of_successful_sutures(tiny_poli
     assert exit_info.value.code == 2
     assert "successful segments per subtask" in capsys.readouterr().err
     assert sorted(p.name for p in policy.iterdir()) == sorted(p.name for p in tiny_policy_dir.iterdir())
+
+
+def test_the_subtask_as_an_observation_follows_the_rules_after_the_marks_and_leaves_the_episode_as_it_was():
+    """``subtask=True`` appends the high level's one-hot subtask and throw to ``environment_state``, after the
+    wound's marks; the physics and ``agent_pos`` are those of the same episode without it."""
+    import gymnasium as gym
+
+    from lerobot_suture.expert import ScriptedExpert
+    from lerobot_suture.sim.subtasks import SUBTASK_NAMES, SubtaskObservation, subtask_vector
+
+    kwargs = dict(obs_type="pixels_agent_pos", image_size=32, disable_env_checker=True, marks=True)
+    plain = gym.make("lerobot_suture/RunningSuture-v0", **kwargs)
+    with_subtask = gym.make("lerobot_suture/RunningSuture-v0", subtask=True, **kwargs)
+    assert with_subtask.observation_space["environment_state"].shape == (6 + len(SUBTASK_NAMES),)
+    expert, rules = ScriptedExpert(), SubtaskRules()
+    a, _ = plain.reset(seed=4)
+    b, _ = with_subtask.reset(seed=4)
+    expert.reset(plain)
+    reading = rules.reset(a["agent_pos"])
+    seen = set()
+    for _ in range(130):  # the first throw's insert and the start of its extraction
+        np.testing.assert_array_equal(a["agent_pos"], b["agent_pos"])
+        np.testing.assert_array_equal(b["environment_state"][:6], a["environment_state"])
+        np.testing.assert_array_equal(b["environment_state"][6:], subtask_vector(*reading))
+        seen.add(reading)
+        action = expert.act(plain)
+        a, *_ = plain.step(action)
+        b, *_ = with_subtask.step(action)
+        reading = rules.update(a["agent_pos"], a["environment_state"])
+    assert seen == {("insert", 0), ("extract", 0)}
+    plain.close()
+    with_subtask.close()
+    with pytest.raises(ValueError, match="privileged"):
+        SubtaskObservation(gym.make("lerobot_suture/NeedleInsertion-v0", obs_type="state"))
+
+
+def test_a_recording_with_the_subtask_stores_it_and_a_policy_that_reads_it_gets_it(tmp_path):
+    from types import SimpleNamespace
+
+    from lerobot.configs import FeatureType, PolicyFeature
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from lerobot_suture.datasets.card import render_description
+    from lerobot_suture.datasets.features import ENV_STATE_KEY
+    from lerobot_suture.datasets.record import record
+    from lerobot_suture.datasets.record_config import RecordConfig
+    from lerobot_suture.runtime.policy import env_kwargs_for_policy
+    from lerobot_suture.sim.subtasks import SUBTASK_NAMES
+    from lerobot_suture.sim.wound_marks import MARKS_NAMES
+
+    root = tmp_path / "data"
+    cfg = dict(
+        repo_id="suture-tests/subtask", root=str(root), image_size=32, num_episodes=1, val_fraction=0.0
+    )
+    record(RecordConfig(**cfg, marks=True, subtask=True))
+    dataset = LeRobotDataset("suture-tests/subtask", root=root)
+    assert dataset.meta.features[ENV_STATE_KEY]["names"] == [*MARKS_NAMES, *SUBTASK_NAMES]
+    np.testing.assert_array_equal(dataset[0][ENV_STATE_KEY].numpy()[6:], [1, 0, 0, 0, 0])  # insert, throw 0
+    assert "--subtask=true" in RecordConfig(**cfg, subtask=True).command()
+    card = render_description(root)
+    assert "subtask (`observation.environment_state`, after the marks)" in card
+    with pytest.raises(ValueError, match="--subtask=false|subtask"):
+        record(RecordConfig(**{**cfg, "num_episodes": 2}, marks=True, resume=True))
+    with pytest.raises(ValueError, match="--obs_type=pixels_agent_pos"):
+        RecordConfig(**cfg, obs_type="state", subtask=True)
+
+    image = PolicyFeature(type=FeatureType.VISUAL, shape=(3, 32, 32))
+    features = {
+        "observation.images.endoscope": image,
+        "observation.state": PolicyFeature(FeatureType.STATE, (10,)),
+    }
+    for size, extra in ((5, {"subtask": True}), (11, {"marks": True, "subtask": True}), (6, {"marks": True})):
+        state = {ENV_STATE_KEY: PolicyFeature(type=FeatureType.ENV, shape=(size,))}
+        kwargs = env_kwargs_for_policy(SimpleNamespace(input_features={**features, **state}))
+        assert kwargs == {"obs_type": "pixels_agent_pos", "image_size": 32, **extra}

@@ -12,6 +12,7 @@ from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.sim.appearance import AppearanceConfig
 from lerobot_suture.sim.scenarios import SCENARIOS
+from lerobot_suture.sim.subtasks import SUBTASK_DIM
 from lerobot_suture.sim.suture_env import OBS_TYPES, check_image_side
 from lerobot_suture.sim.tasks import DEFAULT_TASK, TASKS, check_scenario, task_spec
 from lerobot_suture.sim.wound_marks import MARKS_DIM
@@ -49,6 +50,8 @@ class SutureEnvConfig(EnvConfig):
         marks: add the current throw's entry and exit marks, as a registered wound gives them
             (``observation.environment_state``, (6,) m; ``lerobot_suture.sim.wound_marks``); needs
             ``obs_type=pixels_agent_pos``.
+        subtask: add the high level's subtask and throw (``observation.environment_state``, (5,) after the
+            marks; ``lerobot_suture.sim.subtasks``); needs ``obs_type=pixels_agent_pos``.
     """
 
     task: str | None = DEFAULT_TASK
@@ -64,6 +67,7 @@ class SutureEnvConfig(EnvConfig):
     appearance: AppearanceConfig = field(default_factory=AppearanceConfig)
     wrist_camera: bool = False
     marks: bool = False
+    subtask: bool = False
     features: dict[str, PolicyFeature] = field(
         default_factory=lambda: {
             ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(10,)),
@@ -106,17 +110,19 @@ class SutureEnvConfig(EnvConfig):
             self.features[ENDOSCOPE_KEY] = image
         if self.wrist_camera:
             self.features[WRIST_KEY] = image
-        if self.marks and self.obs_type != "pixels_agent_pos":
-            raise ValueError(
-                f"`marks` adds the wound's marks as observation.environment_state; `obs_type`={self.obs_type!r} "
-                "holds the privileged one there. Pass --env.obs_type=pixels_agent_pos."
-            )
+        for name in ("marks", "subtask"):
+            if getattr(self, name) and self.obs_type != "pixels_agent_pos":
+                raise ValueError(
+                    f"`{name}` adds to observation.environment_state; `obs_type`={self.obs_type!r} holds the "
+                    "privileged state there. Pass --env.obs_type=pixels_agent_pos."
+                )
         if self.obs_type in ("state", "pixels_agent_pos_state"):
             self.features["environment_state"] = PolicyFeature(
                 type=FeatureType.ENV, shape=(ENVIRONMENT_STATE_DIM,)
             )
-        if self.marks:
-            self.features["environment_state"] = PolicyFeature(type=FeatureType.ENV, shape=(MARKS_DIM,))
+        registered = MARKS_DIM * self.marks + SUBTASK_DIM * self.subtask
+        if registered:
+            self.features["environment_state"] = PolicyFeature(type=FeatureType.ENV, shape=(registered,))
 
     @property
     def package_name(self) -> str:
@@ -147,4 +153,6 @@ class SutureEnvConfig(EnvConfig):
             kwargs["wrist_camera"] = True
         if self.marks:
             kwargs["marks"] = True
+        if self.subtask:
+            kwargs["subtask"] = True
         return kwargs

@@ -33,7 +33,7 @@ TEMPLATE_NAME = "card_template.md"
 
 
 def _env_state_shape(info: dict) -> tuple | None:
-    """The shape of ``observation.environment_state``: (18,) privileged, (6,) the wound's marks; None if absent."""
+    """The shape of ``observation.environment_state`` ((18,): the privileged state); None if absent."""
     feature = info["features"].get("observation.environment_state")
     return None if feature is None else tuple(feature["shape"])
 
@@ -41,6 +41,19 @@ def _env_state_shape(info: dict) -> tuple | None:
 _MARKS_DESCRIPTION = (
     "the current throw's entry and exit marks (m), as a registered wound gives them (`--marks=true`)"
 )
+_SUBTASK_DESCRIPTION = (
+    "the high level's subtask (one-hot: insert, extract, lay down, pick up) and throw, from the measured pose "
+    "(`--subtask=true`)"
+)
+
+
+def _env_state_parts(info: dict) -> tuple[bool, bool]:
+    """Whether ``observation.environment_state`` holds the wound's marks, and the high level's subtask."""
+    feature = info["features"].get("observation.environment_state") or {}
+    names = list(feature.get("names") or [])
+    return "entry_x" in names, "subtask_insert" in names
+
+
 _DESCRIPTIONS = {
     "observation.images.endoscope": "endoscope RGB image",
     "observation.state": "measured jaw-tip pose (pose layout below)",
@@ -110,8 +123,14 @@ def render_description(root: str | Path, template_path: str | Path | None = None
             "key": key,
             "dtype": ft["dtype"],
             "shape": str(tuple(ft["shape"])),
-            "description": _MARKS_DESCRIPTION
-            if key == "observation.environment_state" and tuple(ft["shape"]) == (6,)
+            "description": "; ".join(
+                text
+                for text, on in zip(
+                    (_MARKS_DESCRIPTION, _SUBTASK_DESCRIPTION), _env_state_parts(info), strict=True
+                )
+                if on
+            )
+            if key == "observation.environment_state" and any(_env_state_parts(info))
             else _DESCRIPTIONS.get(key, ""),
         }
         for key, ft in info["features"].items()
@@ -147,7 +166,8 @@ def render_description(root: str | Path, template_path: str | Path | None = None
         "physics_dt_ms": f"{model.opt.timestep * 1e3:g}",
         "endoscope_fovy_deg": f"{model.cam_fovy[endoscope]:g}",
         "has_environment_state": _env_state_shape(info) == (18,),
-        "has_marks": _env_state_shape(info) == (6,),
+        "has_marks": _env_state_parts(info)[0],
+        "has_subtask": _env_state_parts(info)[1],
         "has_needle_keypoints": "observation.needle_keypoints" in info["features"],
         "video": info["features"].get("observation.images.endoscope", {}).get("dtype") == "video",
         "grasp": grasp,

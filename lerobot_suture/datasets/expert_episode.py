@@ -115,6 +115,7 @@ def make_env(
     task: str = DEFAULT_TASK,
     wrist_camera: bool = False,
     marks: bool = False,
+    subtask: bool = False,
 ):
     """The env the dataset is recorded in (``gym.make`` of the task's gym id); ``appearance`` the fields of
     an :class:`~lerobot_suture.sim.appearance.AppearanceConfig` (None: all off)."""
@@ -128,6 +129,7 @@ def make_env(
         disable_env_checker=True,
         **({"wrist_camera": True} if wrist_camera else {}),
         **({"marks": True} if marks else {}),
+        **({"subtask": True} if subtask else {}),
     )
 
 

@@ -7,7 +7,8 @@
 from __future__ import annotations
 
 from lerobot_suture.sim import task
-from lerobot_suture.sim.wound_marks import MARKS_DIM, MARKS_NAMES
+from lerobot_suture.sim.subtasks import SUBTASK_NAMES
+from lerobot_suture.sim.wound_marks import MARKS_NAMES
 
 TASK = task.TASK
 """The task string of every frame (LeRobot's ``task``)."""
@@ -43,10 +44,16 @@ NEEDLE_KEYPOINT_NAMES = [f"{point}_{axis}" for point in ("tip", "middle", "tail"
 
 
 def dataset_features(
-    obs_type: str, image_size: int, video: bool, wrist_camera: bool = False, marks: bool = False
+    obs_type: str,
+    image_size: int,
+    video: bool,
+    wrist_camera: bool = False,
+    marks: bool = False,
+    subtask: bool = False,
 ) -> dict[str, dict]:
     """LeRobot feature specification of the dataset (``LeRobotDataset.create(features=...)``); ``marks``: the
-    wound's marks as ``observation.environment_state`` (6,), in place of the privileged one."""
+    wound's marks as ``observation.environment_state`` (6,), in place of the privileged one; ``subtask``: the
+    high level's subtask and throw (5,) there too, after the marks."""
     features: dict[str, dict] = {}
     if "pixels" in obs_type:
         image = {
@@ -65,8 +72,9 @@ def dataset_features(
     features[STATE_KEY] = {"dtype": "float32", "shape": (10,), "names": list(POSE_NAMES)}
     if obs_type in ("state", "pixels_agent_pos_state"):
         features[ENV_STATE_KEY] = {"dtype": "float32", "shape": (18,), "names": list(ENV_STATE_NAMES)}
-    if marks:
-        features[ENV_STATE_KEY] = {"dtype": "float32", "shape": (MARKS_DIM,), "names": list(MARKS_NAMES)}
+    registered = (list(MARKS_NAMES) if marks else []) + (list(SUBTASK_NAMES) if subtask else [])
+    if registered:
+        features[ENV_STATE_KEY] = {"dtype": "float32", "shape": (len(registered),), "names": registered}
     features[ACTION_KEY] = {"dtype": "float32", "shape": (10,), "names": list(POSE_NAMES)}
     features[REWARD_KEY] = {"dtype": "float32", "shape": (1,), "names": None}
     features[SUCCESS_KEY] = {"dtype": "bool", "shape": (1,), "names": None}

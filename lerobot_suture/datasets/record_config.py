@@ -44,6 +44,8 @@ class RecordConfig:
             (``observation.images.wrist``, ``image_size`` too); needs an ``obs_type`` with pixels.
         marks: also record the current throw's entry and exit marks, as a registered wound gives them
             (``observation.environment_state``, (6,) m); needs ``obs_type=pixels_agent_pos``.
+        subtask: also record the high level's subtask and throw (``lerobot_suture.sim.subtasks``: one-hot and
+            throw, (5,), after the marks in ``observation.environment_state``); needs ``obs_type=pixels_agent_pos``.
         scenario: perturbation scenario (``lerobot_suture.sim.scenarios.SCENARIOS``); the expert fails
             under some of them and those episodes are discarded.
         seed: env seed of the first attempt; attempt ``k`` uses ``seed + k``.
@@ -89,6 +91,7 @@ class RecordConfig:
     image_size: int = 96  # endoscope image side (px)
     wrist_camera: bool = False  # also record the wrist camera (observation.images.wrist, image_size too)
     marks: bool = False  # also record the wound's marks (observation.environment_state, (6,) m)
+    subtask: bool = False  # also record the high level's subtask and throw (observation.environment_state)
     scenario: str = "nominal"  # perturbation scenario the expert is recorded in
     grasp: str = "narrow"  # grasp randomization: narrow (the test scenes) | wide
     grasp_blind_expert: bool = False  # the expert plans with the nominal grasp, not the true one
@@ -120,11 +123,12 @@ class RecordConfig:
                 f"`wrist_camera` records an image; `obs_type`={self.obs_type!r} has none. Pass "
                 "--obs_type=pixels_agent_pos."
             )
-        if self.marks and self.obs_type != "pixels_agent_pos":
-            raise ValueError(
-                f"`marks` records the wound's marks as observation.environment_state; `obs_type`={self.obs_type!r} "
-                "holds the privileged one there. Pass --obs_type=pixels_agent_pos."
-            )
+        for name in ("marks", "subtask"):
+            if getattr(self, name) and self.obs_type != "pixels_agent_pos":
+                raise ValueError(
+                    f"`{name}` records into observation.environment_state; `obs_type`={self.obs_type!r} "
+                    "holds the privileged state there. Pass --obs_type=pixels_agent_pos."
+                )
         if self.scenario not in SCENARIOS:
             raise ValueError(f"`scenario` must be one of {SCENARIOS}. Got {self.scenario!r}.")
         check_scenario(self.task, self.scenario)  # also names the tasks when `task` is none of them
@@ -173,6 +177,8 @@ class RecordConfig:
             flags.append("--wrist_camera=true")
         if self.marks:
             flags.append("--marks=true")
+        if self.subtask:
+            flags.append("--subtask=true")
         if self.grasp_blind_expert:
             flags.append("--grasp_blind_expert=true")
         if self.approach_detour:

@@ -44,6 +44,8 @@ def new_episode_log(cfg: RecordConfig) -> dict:
         env_kwargs["wrist_camera"] = True  # absent when off, as in the logs recorded before it existed
     if cfg.marks:
         env_kwargs["marks"] = True  # absent when off
+    if cfg.subtask:
+        env_kwargs["subtask"] = True  # absent when off
     if cfg.appearance.enabled:
         # Absent when off: the logs of datasets recorded without it read the same as before it existed.
         env_kwargs["appearance"] = dataclasses.asdict(cfg.appearance)
@@ -75,7 +77,7 @@ def new_episode_log(cfg: RecordConfig) -> dict:
     }
 
 
-_RESUME_FIELDS = ("task", "obs_type", "image_size", "scenario", "grasp", "wrist_camera", "marks")
+_RESUME_FIELDS = ("task", "obs_type", "image_size", "scenario", "grasp", "wrist_camera", "marks", "subtask")
 
 
 def _check_resumable(cfg: RecordConfig, log: dict, root: Path) -> None:
@@ -84,6 +86,7 @@ def _check_resumable(cfg: RecordConfig, log: dict, root: Path) -> None:
         "task": "insertion",  # absent in insertion logs
         "wrist_camera": False,  # absent when off
         "marks": False,  # absent when off
+        "subtask": False,  # absent when off
         **{k: v for k, v in log["env_kwargs"].items() if k != "appearance"},
         "video": log["video"],
         "seed": log["seed"],

@@ -9,7 +9,7 @@ calibration and the robot path's ``gated_dagger``.
   It reports; it does not act on the policy.
 - ``none`` (:class:`SilentGates`): no gate.
 - :class:`StageGates`: a gate per stage of the running suture over either's scores: the high level
-  (:mod:`lerobot_suture.subtasks`) names each env's subtask from its measured pose, and each segment is tested
+  (:mod:`lerobot_suture.sim.subtasks`) names each env's subtask from its measured pose, and each segment is tested
   against its subtask's threshold (:mod:`lerobot_suture.safety.ood.stage_gate`). A flag releases control for the
   rest of its segment.
 
@@ -29,8 +29,8 @@ from lerobot_suture.safety.ood.calibration_file import STAC_CALIBRATION_FILE, St
 from lerobot_suture.safety.ood.chunk_consistency import ChunkCapture, ChunkConsistencyMonitor, chunk_source
 from lerobot_suture.safety.ood.gate import ChunkGate, silent_status
 from lerobot_suture.safety.ood.stage_gate import StageGate, StageThresholds
+from lerobot_suture.sim.subtasks import SubtaskRules, SubtaskRulesConfig
 from lerobot_suture.sim.wound_marks import MARKS_DIM, MARKS_KEY
-from lerobot_suture.subtasks import SubtaskRules, SubtaskRulesConfig
 
 GATE_KINDS = ("auto", "ensemble", "stac", "none")
 

@@ -21,6 +21,7 @@ import torch
 
 from lerobot_suture.datasets.features import PRIVILEGED_FEATURES
 from lerobot_suture.safety.ood.calibration_file import CALIBRATION_FILENAME, CALIBRATION_REPORT_FILENAME
+from lerobot_suture.sim.subtasks import SUBTASK_DIM
 from lerobot_suture.sim.task import TASK
 from lerobot_suture.sim.wound_marks import MARKS_DIM
 
@@ -157,7 +158,11 @@ def env_kwargs_for_policy(config) -> dict:
             f"{WRIST_IMAGE} with wrist_camera=True)."
         )
     env_state = "observation.environment_state" in features
-    marks = env_state and tuple(features["observation.environment_state"].shape) == (MARKS_DIM,)
+    # What the environment state holds, by its size: the marks (6), the subtask (5), both (11), else privileged.
+    size = int(np.prod(features["observation.environment_state"].shape)) if env_state else 0
+    marks = size in (MARKS_DIM, MARKS_DIM + SUBTASK_DIM)
+    subtask = size in (SUBTASK_DIM, MARKS_DIM + SUBTASK_DIM)
+    registered = marks or subtask
     if images:
         sizes = {tuple(features[k].shape[-2:]) for k in images}
         height, width = sizes.pop()
@@ -167,17 +172,19 @@ def env_kwargs_for_policy(config) -> dict:
                 f"{sorted({tuple(features[k].shape[-2:]) for k in images})}."
             )
         kwargs = {
-            "obs_type": "pixels_agent_pos_state" if env_state and not marks else "pixels_agent_pos",
+            "obs_type": "pixels_agent_pos_state" if env_state and not registered else "pixels_agent_pos",
             "image_size": int(height),
         }
         if WRIST_IMAGE in features:
             kwargs["wrist_camera"] = True
         if marks:
             kwargs["marks"] = True  # the wound's marks (6,), not the privileged state (18,)
+        if subtask:
+            kwargs["subtask"] = True  # the high level's subtask and throw (5,), after any marks
         return kwargs
-    if marks:
+    if registered:
         raise ValueError(
-            "The policy reads the wound's marks without an image: the suture env gives them beside one."
+            "The policy reads the wound's marks or the subtask without an image: the suture env gives them beside one."
         )
     return {"obs_type": "state"}
 

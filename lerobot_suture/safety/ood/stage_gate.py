@@ -2,7 +2,7 @@
 segment, with a threshold per subtask.
 
 A running suture is about twelve segments (four throws of insert, extract, lay down, pick up; the high level of
-:mod:`lerobot_suture.subtasks` names them from the measured pose). One threshold for the whole suture would be
+:mod:`lerobot_suture.sim.subtasks` names them from the measured pose). One threshold for the whole suture would be
 set by its noisiest stage; a threshold per subtask holds each stage to its own nominal spread. Following
 FAIL-Detect, each subtask's threshold is the split-conformal quantile of the largest score of that subtask's
 segments in successful rollouts (:func:`fit_stage_thresholds`), so a policy's failures are never taken for

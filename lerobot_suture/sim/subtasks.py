@@ -34,12 +34,18 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import gymnasium as gym
 import numpy as np
+from gymnasium import spaces
 
 SUBTASKS = ("insert", "extract", "lay_down", "pick_up")
 """A throw's subtasks in their order; ``pick_up`` leads into the next throw's ``insert``."""
 JAW_INDEX = 9
 """Index of the jaw's closure (0 open, 1 closed) in the measured pose."""
+SUBTASK_KEY = "environment_state"
+SUBTASK_DIM = len(SUBTASKS) + 1
+SUBTASK_NAMES = tuple(f"subtask_{name}" for name in SUBTASKS) + ("throw",)
+"""The subtask as an observation: one-hot over :data:`SUBTASKS`, then the throw (0-based)."""
 
 
 @dataclass(frozen=True)
@@ -117,3 +123,58 @@ class SubtaskRules:
         if pose.shape != (10,) or not np.all(np.isfinite(pose)):
             raise ValueError(f"`pose` must be the (10,) finite measured pose. Got shape {pose.shape}.")
         return bool(pose[JAW_INDEX] > self.config.closed_above)
+
+
+def subtask_vector(subtask: str, throw: int) -> np.ndarray:
+    """(5,) float32: ``subtask`` one-hot over :data:`SUBTASKS`, then ``throw``."""
+    vector = np.zeros(SUBTASK_DIM, dtype=np.float32)
+    vector[SUBTASKS.index(subtask)] = 1.0
+    vector[-1] = float(throw)
+    return vector
+
+
+class SubtaskObservation(gym.Wrapper):
+    """``env``'s observation plus the high level's subtask and throw (:func:`subtask_vector`), appended to
+    ``environment_state``: after the wound's marks when the env gives them (11,), else alone (5,). The rules read
+    each step's measured pose (and the marks), as a policy conditioned on the subtask would receive it from the
+    high level; the physics, the images and ``agent_pos`` are unchanged.
+
+    Raises:
+        ValueError: ``environment_state`` holds something other than the marks (the privileged ``obs_type``\\ s).
+    """
+
+    def __init__(self, env: gym.Env, config: SubtaskRulesConfig | None = None):
+        super().__init__(env)
+        spaces_ = dict(env.observation_space.spaces)
+        before = spaces_.get(SUBTASK_KEY)
+        self._marks = before is not None
+        if before is not None and before.shape != (6,):
+            raise ValueError(
+                "`subtask` adds the subtask to environment_state, which holds the privileged state with obs_type="
+                f"{env.unwrapped.obs_type!r}. Pass obs_type='pixels_agent_pos' (the wound's marks may stay)."
+            )
+        size = SUBTASK_DIM + (6 if self._marks else 0)
+        spaces_[SUBTASK_KEY] = spaces.Box(-np.inf, np.inf, (size,), dtype=np.float32)
+        self.observation_space = spaces.Dict(spaces_)
+        self.rules = SubtaskRules(config)
+
+    def reset(self, **kwargs):
+        observation, info = self.env.reset(**kwargs)
+        return self._with(observation, self.rules.reset(observation["agent_pos"])), info
+
+    def step(self, action):
+        observation, reward, terminated, truncated, info = self.env.step(action)
+        marks = observation[SUBTASK_KEY] if self._marks else None
+        return (
+            self._with(observation, self.rules.update(observation["agent_pos"], marks)),
+            reward,
+            terminated,
+            truncated,
+            info,
+        )
+
+    def _with(self, observation: dict, reading: tuple[str, int]) -> dict:
+        vector = subtask_vector(*reading)
+        if self._marks:
+            vector = np.concatenate([np.asarray(observation[SUBTASK_KEY], dtype=np.float32), vector])
+        return {**observation, SUBTASK_KEY: vector}
