@@ -1,5 +1,5 @@
 # lerobot-suture: `make demo` runs the main job on a small default; `make test` runs the tests.
-# Both set up first (`make install`): a .venv with Python >= 3.12, the five distributions in
+# Both set up first (`make install`): a .venv with Python >= 3.12, the seven distributions in
 # editable mode with the test, viz (rerun) and teleop (keyboard, gamepad) extras, and the system libraries headless rendering needs.
 
 SHELL := /bin/bash
@@ -17,7 +17,7 @@ export PYOPENGL_PLATFORM ?= egl
 
 install: $(STAMP)
 
-$(STAMP): pyproject.toml envs/pyproject.toml policies/pyproject.toml robots/pyproject.toml teleoperators/pyproject.toml studies/pyproject.toml
+$(STAMP): pyproject.toml envs/pyproject.toml policies/pyproject.toml robots/pyproject.toml teleoperators/pyproject.toml chain/pyproject.toml studies/pyproject.toml
 	@missing=""; for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
 	if [ -n "$$missing" ]; then \
 	  echo "installing system packages:$$missing"; \
@@ -33,7 +33,7 @@ $(STAMP): pyproject.toml envs/pyproject.toml policies/pyproject.toml robots/pypr
 	  echo "warning: $${free:-?} GiB free here; the install needs about $(INSTALL_GIB) GiB (torch's CUDA build and its libraries). Free some space if pip fails with 'No space left on device'."; \
 	fi
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e ".[test,viz,teleop]" -e ./envs -e ./policies -e ./robots -e ./teleoperators -e ./studies
+	$(BIN)/python -m pip install -q -e ".[test,viz,teleop]" -e ./envs -e ./policies -e ./robots -e ./teleoperators -e ./chain -e ./studies
 	@touch $(STAMP)
 
 test: install
@@ -59,8 +59,8 @@ bench: install
 	  echo "== $$b"; $(BIN)/python $$b; done
 
 lint: install
-	$(BIN)/ruff check lerobot_suture envs policies robots teleoperators studies tests benchmarks
-	$(BIN)/ruff format --check lerobot_suture envs policies robots teleoperators studies tests benchmarks
+	$(BIN)/ruff check lerobot_suture envs policies robots teleoperators chain studies tests benchmarks
+	$(BIN)/ruff format --check lerobot_suture envs policies robots teleoperators chain studies tests benchmarks
 
 clean:
 	rm -rf $(VENV) outputs .pytest_cache

@@ -2,7 +2,8 @@
 
 A lever line records its dataset with the scripted expert (``lerobot-suture record``, the task's recipe),
 trains the task's preset with the real ``lerobot-train`` for the preset's steps on the recording's training
-episodes, and evaluates the checkpoint on the leaderboard's nominal test seeds of the task (the same scenes
+episodes, and evaluates the checkpoint (a subtask-conditioned one inside a ``suture_chain``, whose high level
+gives it the subtask) on the leaderboard's nominal test seeds of the task (the same scenes
 as the board's nominal cell; the CBF on, the gate only reporting). One thing changes from one line to the
 next, so that data scale and an added camera are told apart; the training steps stay the preset's.
 
@@ -31,13 +32,14 @@ NEEDS = "a task to run (--task); records, trains and evaluates each lever (about
 
 @dataclass(frozen=True)
 class Lever:
-    """One line of the table: the episodes recorded, and whether the wrist camera and the wound's marks are
-    recorded (a policy trained on them reads them)."""
+    """One line of the table: the episodes recorded, and whether the wrist camera, the wound's marks and the
+    high level's subtask and throw are recorded (a policy trained on them reads them)."""
 
     name: str
     episodes: int | None  # None: the task recipe's own count
     wrist_camera: bool = False
     marks: bool = False
+    subtask: bool = False
 
 
 LEVERS = (
@@ -45,6 +47,7 @@ LEVERS = (
     Lever("data x500", 500),
     Lever("data x500 + wrist camera", 500, wrist_camera=True),
     Lever("data x500 + marks", 500, marks=True),
+    Lever("marks + subtask", None, marks=True, subtask=True),
 )
 
 
@@ -75,6 +78,7 @@ def record(task: str, lever: Lever, root: Path, log: Path) -> dict:
         f"--repo_id=local/levers_{task}_{root.name}",
         f"--wrist_camera={str(lever.wrist_camera).lower()}",
         f"--marks={str(lever.marks).lower()}",
+        f"--subtask={str(lever.subtask).lower()}",
         f"--resume={str(info.is_file()).lower()}",
     ]
     if lever.episodes is not None:
@@ -115,6 +119,16 @@ def train(task: str, root: Path, out: Path, members: int) -> tuple[Path, float]:
     spent += time.perf_counter() - start
     timing.write_text(json.dumps({"train_s": spent}))
     return pretrained, spent
+
+
+def chained(pretrained: Path, chain_dir: Path) -> Path:
+    """A ``suture_chain`` around a subtask-conditioned checkpoint (``lerobot-suture chain --policy``): the high
+    level inside the policy reads each step's subtask from the measured pose and the marks, as on a robot."""
+    from lerobot_policy_suture_chain.assemble import ChainCommandConfig, write_chain
+
+    if not (chain_dir / "config.json").is_file():
+        write_chain(ChainCommandConfig(output_dir=chain_dir, policy=pretrained))
+    return chain_dir
 
 
 def evaluate(task: str, pretrained: Path, episodes: int, seed: int, batch_envs: int) -> dict:
@@ -179,7 +193,7 @@ def main() -> None:
     from lerobot_suture.sim.tasks import TASK_NAMES
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--task", required=True, choices=[t for t in TASK_NAMES if t != "running_suture"])
+    parser.add_argument("--task", required=True, choices=TASK_NAMES)
     parser.add_argument("--members", type=int, default=1, help="ensemble members (1: the member recipe)")
     parser.add_argument("--levers", nargs="*", default=[lever.name for lever in LEVERS])
     parser.add_argument("--episodes", type=int, default=50, help="test episodes a line")
@@ -196,13 +210,16 @@ def main() -> None:
     work = args.work_dir / args.task
     work.mkdir(parents=True, exist_ok=True)
     lines = []
-    for lever in (lever for lever in LEVERS if lever.name in args.levers):
+    by_name = {lever.name: lever for lever in LEVERS}
+    for lever in (by_name[name] for name in dict.fromkeys(args.levers)):  # in the order asked
         slug = lever.name.replace(" + ", "_").replace(" ", "_")
         root, log = work / "data" / slug, work / f"{slug}.log"
         print(f"[{lever.name}] recording ...", flush=True)
         recorded = record(args.task, lever, root, log)
         print(f"[{lever.name}] training {args.members} member(s) ...", flush=True)
         pretrained, train_s = train(args.task, root, work / "train" / f"{slug}_n{args.members}", args.members)
+        if lever.subtask:  # the subtask comes from the chain's high level, as lerobot-eval runs it
+            pretrained = chained(pretrained, work / "chains" / f"{slug}_n{args.members}")
         cell_path = work / "cells" / f"{slug}_n{args.members}.json"
         if cell_path.is_file():
             cell = json.loads(cell_path.read_text())
@@ -217,6 +234,7 @@ def main() -> None:
                 "episodes": recorded["episodes"],
                 "wrist_camera": lever.wrist_camera,
                 "marks": lever.marks,
+                "subtask": lever.subtask,
                 "record_s": recorded["record_s"],
                 "train_s": round(train_s, 1),
                 "nominal": {
@@ -229,7 +247,9 @@ def main() -> None:
                         "mean_steps",
                         "seconds",
                         "per_episode",
+                        "per_throw",
                     )
+                    if k in cell
                 },
             }
         )

@@ -34,6 +34,10 @@ SUBCOMMANDS = {
         "lerobot_policy_ensemble_diffusion.assemble",
         "assemble separately trained diffusion policies into one ensemble",
     ),
+    "chain": (
+        "lerobot_policy_suture_chain.assemble",
+        "chain trained policies under the running suture's high level (policy type suture_chain)",
+    ),
     "experiments": (
         "lerobot_suture.commands.experiments",
         "run the paper's experiments: figures, metrics, report",

@@ -15,6 +15,7 @@ PACKAGES = [
     ROOT / "envs",
     ROOT / "robots",
     ROOT / "teleoperators",
+    ROOT / "chain",
     ROOT / "studies",
 ]
 SOURCES = sorted(p for package in PACKAGES for p in package.rglob("*.py") if ".venv" not in p.parts)
@@ -23,7 +24,7 @@ MAX_MODULE_LINES = 500
 
 def _module(path: Path) -> str:
     parts = path.relative_to(ROOT).with_suffix("").parts
-    if parts[0] in ("policies", "envs", "robots", "teleoperators", "studies"):
+    if parts[0] in ("policies", "envs", "robots", "teleoperators", "chain", "studies"):
         parts = parts[1:]
     return ".".join(p for p in parts if p != "__init__")
 

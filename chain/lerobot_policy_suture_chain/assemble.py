@@ -1,0 +1,149 @@
+"""``lerobot-suture chain``: write a ``suture_chain`` policy directory around trained LeRobot policies.
+
+    lerobot-suture chain --policy=DIR --output_dir=outputs/chain            # one subtask-conditioned policy
+    lerobot-suture chain --policy=DIR --extract=DIR2 --output_dir=...       # DIR2 for the extraction alone
+
+Each policy's ``pretrained_model`` directory is copied under ``policies/`` in the chain's directory, so the chain
+is one self-contained directory (``lerobot-eval --policy.path``, a Hub repository).
+"""
+
+from __future__ import annotations
+
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import draccus
+import numpy as np
+from lerobot.configs.policies import PreTrainedConfig
+from lerobot.configs.types import FeatureType, PolicyFeature
+from lerobot.utils.constants import ACTION, OBS_ENV_STATE
+from lerobot.utils.import_utils import register_third_party_plugins
+
+from lerobot_suture.datasets.features import PRIVILEGED_FEATURES
+from lerobot_suture.sim.subtasks import SUBTASKS
+from lerobot_suture.sim.wound_marks import MARKS_DIM
+
+from .configuration_suture_chain import POLICIES_DIR, SutureChainConfig
+from .processor_suture_chain import make_suture_chain_pre_post_processors
+
+
+@dataclass
+class ChainCommandConfig:
+    """Args:
+    output_dir: the chain's directory to write (new, or empty).
+    policy: a trained policy's ``pretrained_model`` directory, for every subtask not given its own below.
+    insert: the policy of the insert subtask alone (drive the needle from the entry to the exit mark).
+    extract: the policy of the extract subtask alone (regrasp the tip, pull the needle out along its arc).
+    lay_down: the policy of the lay-down subtask alone (carry the needle to the phantom, let go).
+    pick_up: the policy of the pick-up subtask alone (grasp the needle for the next throw).
+    closed_above: the high level's jaw threshold (``SubtaskRulesConfig``).
+    pulled_out_travel: the high level's pull (m) that ends an extract.
+    release_radius: the high level's radius (m) around the entry mark that ends an insert.
+    device: the device the chain runs its policies on.
+    """
+
+    output_dir: Path | None = None
+    policy: Path | None = None
+    insert: Path | None = None
+    extract: Path | None = None
+    lay_down: Path | None = None
+    pick_up: Path | None = None
+    closed_above: float = 0.5
+    pulled_out_travel: float = 0.019
+    release_radius: float = 0.010
+    device: str = "cpu"
+
+    def __post_init__(self):
+        if self.output_dir is None:
+            raise ValueError("Pass --output_dir=DIR: where to write the chain.")
+        if self.output_dir.exists() and any(self.output_dir.iterdir()):
+            raise ValueError(f"{self.output_dir} is not empty: pass a new --output_dir, or remove it first.")
+        missing = [s for s in SUBTASKS if self.policy_of(s) is None]
+        if missing:
+            raise ValueError(
+                f"No policy for the subtasks {missing}: pass --policy=DIR for every subtask, or --{missing[0]}=DIR."
+            )
+        for subtask in SUBTASKS:
+            if not (self.policy_of(subtask) / "config.json").is_file():
+                raise FileNotFoundError(
+                    f"No trained policy at {self.policy_of(subtask)} (no config.json), given for {subtask!r}: pass "
+                    "the `pretrained_model` directory of a lerobot-train checkpoint."
+                )
+
+    def policy_of(self, subtask: str) -> Path | None:
+        return getattr(self, subtask) or self.policy
+
+
+def chain_input_features(configs: list[PreTrainedConfig]) -> dict[str, PolicyFeature]:
+    """What the chain reads: every subtask policy's inputs but the privileged ones, and the wound's marks as
+    the environment state (the high level reads them; each policy gets its own environment state from them).
+
+    Raises:
+        ValueError: two policies read one key at different shapes, or their actions differ.
+    """
+    features: dict[str, PolicyFeature] = {}
+    for config in configs:
+        for key, feature in (config.input_features or {}).items():
+            if key in PRIVILEGED_FEATURES or key == OBS_ENV_STATE:
+                continue
+            if key in features and tuple(features[key].shape) != tuple(feature.shape):
+                raise ValueError(
+                    f"The subtask policies read {key} at different shapes ({tuple(features[key].shape)} and "
+                    f"{tuple(feature.shape)}): train them on observations of one size."
+                )
+            features[key] = feature
+    features[OBS_ENV_STATE] = PolicyFeature(type=FeatureType.ENV, shape=(MARKS_DIM,))
+    actions = {tuple(c.output_features[ACTION].shape) for c in configs}
+    if len(actions) != 1:
+        raise ValueError(
+            f"The subtask policies act in different spaces {sorted(actions)}: one action for all."
+        )
+    return features
+
+
+def write_chain(cfg: ChainCommandConfig) -> Path:
+    """The chain's directory, written from ``cfg``; its subtask policies copied under ``policies/``."""
+    register_third_party_plugins()
+    sources = {subtask: cfg.policy_of(subtask).resolve() for subtask in SUBTASKS}
+    names: dict[Path, str] = {}
+    for subtask, source in sources.items():  # a policy is named after the first subtask it serves
+        names.setdefault(source, "all" if len(set(sources.values())) == 1 else subtask)
+    configs = {source: PreTrainedConfig.from_pretrained(source) for source in names}
+    for source, config in configs.items():
+        size = config.input_features.get(OBS_ENV_STATE)
+        if size is not None and int(np.prod(size.shape)) not in (MARKS_DIM, 5, MARKS_DIM + 5):
+            raise ValueError(
+                f"The policy at {source} reads a privileged environment state ({tuple(size.shape)}): a chain runs "
+                "on what a robot measures. Train it with obs_type=pixels_agent_pos."
+            )
+    first = next(iter(configs.values()))
+    config = SutureChainConfig(
+        subtask_policies={subtask: names[source] for subtask, source in sources.items()},
+        closed_above=cfg.closed_above,
+        pulled_out_travel=cfg.pulled_out_travel,
+        release_radius=cfg.release_radius,
+        input_features=chain_input_features(list(configs.values())),
+        output_features={ACTION: first.output_features[ACTION]},
+        device=cfg.device,
+    )
+    config.validate_features()
+    out = cfg.output_dir
+    out.mkdir(parents=True, exist_ok=True)
+    for source, name in names.items():
+        shutil.copytree(source, out / POLICIES_DIR / name)
+    config._save_pretrained(out)
+    for processor in make_suture_chain_pre_post_processors(config):
+        processor.save_pretrained(out)
+    return out
+
+
+def main(argv: list[str] | None = None) -> None:
+    cfg = draccus.parse(config_class=ChainCommandConfig, args=argv, exit_on_error=False)
+    out = write_chain(cfg)
+    config = PreTrainedConfig.from_pretrained(out)
+    served = ", ".join(f"{subtask}: {name}" for subtask, name in config.subtask_policies.items())
+    print(f"Chain written to {out} ({served}).")
+    print(
+        f"Run it: lerobot-eval --policy.path={out} --env.type=suture --env.task=running_suture --env.marks=true"
+    )

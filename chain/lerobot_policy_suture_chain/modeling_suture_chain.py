@@ -1,0 +1,169 @@
+"""``SutureChainPolicy``: the running suture's high level above one LeRobot policy per subtask.
+
+Each control step the rules of ``lerobot_suture.sim.subtasks`` read every environment's measured pose
+(``observation.state``) and the registered wound's marks (``observation.environment_state``, (6,) m) and say
+which subtask its arm is in and which throw; the policy serving that subtask gives the action. A subtask policy
+sees the environment state it was trained on: the marks (6,), the subtask and throw (5,), both (11,) or none.
+
+Subtask policies keep their own observation and action queues, one row per environment. A policy that an
+environment enters is reset first, so its first action is predicted from the new subtask's observation and not
+taken from a chunk queued before the switch; the other environments it serves then predict afresh too (a
+replanning, no stale action). Every step each needed policy runs on the whole batch, and each environment takes
+the row of its own subtask's policy.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from lerobot.policies.pretrained import PreTrainedPolicy
+from lerobot.utils.constants import OBS_ENV_STATE, OBS_STATE
+from torch import Tensor, nn
+
+from lerobot_suture.sim.subtasks import SUBTASK_DIM, SubtaskRules, subtask_vector
+from lerobot_suture.sim.wound_marks import MARKS_DIM
+
+from .configuration_suture_chain import POLICIES_DIR, SutureChainConfig
+
+
+def environment_state_for(size: int, marks: Tensor | None, subtasks: Tensor) -> Tensor | None:
+    """What a subtask policy whose environment state has ``size`` entries reads (0: none): the marks
+    (``MARKS_DIM``), the subtask and throw (``SUBTASK_DIM``) or both, marks first.
+
+    Raises:
+        ValueError: a size the chain cannot produce, or the marks are needed and absent.
+    """
+    if size == 0:
+        return None
+    if size == SUBTASK_DIM:
+        return subtasks
+    if size not in (MARKS_DIM, MARKS_DIM + SUBTASK_DIM):
+        raise ValueError(
+            f"A subtask policy reads an environment state of {size} entries; the chain gives the marks "
+            f"({MARKS_DIM}), the subtask ({SUBTASK_DIM}) or both ({MARKS_DIM + SUBTASK_DIM})."
+        )
+    if marks is None:
+        raise ValueError(
+            "A subtask policy reads the wound's marks, and the observation has none: run the env with "
+            "`--env.marks=true`."
+        )
+    return marks if size == MARKS_DIM else torch.cat([marks, subtasks.to(marks)], dim=-1)
+
+
+class SutureChainPolicy(PreTrainedPolicy):
+    """The chain of ``SutureChainConfig``: load it with :meth:`from_pretrained` from a directory that
+    ``lerobot-suture chain`` wrote (its subtask policies in ``policies/<name>/``)."""
+
+    config_class = SutureChainConfig
+    name = "suture_chain"
+
+    def __init__(self, config: SutureChainConfig, subtask_policies: dict | None = None, **kwargs):
+        """``subtask_policies``: name -> (policy, preprocessor, postprocessor), one per name of
+        ``config.subtask_policies``."""
+        super().__init__(config)
+        subtask_policies = subtask_policies or {}
+        missing = sorted(set(config.policy_names) - set(subtask_policies))
+        if missing:
+            raise ValueError(
+                f"The chain needs its subtask policies {missing}: load it with SutureChainPolicy.from_pretrained "
+                "from a directory that `lerobot-suture chain` wrote."
+            )
+        self.policies = nn.ModuleDict({name: subtask_policies[name][0] for name in config.policy_names})
+        self._processors = {name: subtask_policies[name][1:] for name in config.policy_names}
+        self._rules: list[SubtaskRules] = []
+        self.readings: list[tuple[str, int]] = []
+        """Each environment's (subtask, throw) at the last step."""
+
+    @classmethod
+    def from_pretrained(cls, pretrained_name_or_path, *, config: SutureChainConfig | None = None, **kwargs):
+        from lerobot.configs.policies import PreTrainedConfig
+
+        from lerobot_suture.runtime.policy import load_policy
+
+        path = Path(pretrained_name_or_path)
+        if not path.is_dir():
+            from huggingface_hub import snapshot_download
+
+            path = Path(snapshot_download(str(pretrained_name_or_path), revision=kwargs.get("revision")))
+        config = config or PreTrainedConfig.from_pretrained(path)
+        device = config.device or "cpu"
+        loaded = {}
+        for name in config.policy_names:
+            sub_path = path / POLICIES_DIR / name
+            if not (sub_path / "config.json").is_file():
+                raise FileNotFoundError(
+                    f"The chain at {path} names the subtask policy {name!r}, and {sub_path} holds none. Write the "
+                    "chain again with `lerobot-suture chain`."
+                )
+            loaded[name] = load_policy(sub_path, device)
+        return cls(config, loaded)
+
+    def _save_pretrained(self, save_directory: Path, state_dict=None) -> None:
+        self.config._save_pretrained(save_directory)
+        for name, policy in self.policies.items():
+            target = Path(save_directory) / POLICIES_DIR / name
+            policy.save_pretrained(target)
+            for processor in self._processors[name]:
+                processor.save_pretrained(target)
+
+    def get_optim_params(self) -> dict:
+        raise NotImplementedError(self.config._not_trained())
+
+    def forward(self, batch: dict[str, Tensor]):
+        raise NotImplementedError(self.config._not_trained())
+
+    def reset(self):
+        self._rules, self.readings = [], []
+        for policy in self.policies.values():
+            policy.reset()
+
+    def predict_action_chunk(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
+        raise NotImplementedError(
+            "A `suture_chain` acts one step at a time (its subtask can change at any step): run it with "
+            "select_action, as lerobot-eval and lerobot-rollout's sync engine do."
+        )
+
+    def _read_subtasks(self, batch: dict[str, Tensor]) -> tuple[set[str], Tensor | None]:
+        """Update each environment's subtask; the policies some environment entered, and the marks."""
+        poses = batch[OBS_STATE].detach().float().cpu().numpy().reshape(len(batch[OBS_STATE]), -1)
+        env_state = batch.get(OBS_ENV_STATE)
+        marks = env_state[..., :MARKS_DIM] if env_state is not None else None
+        marks_np = marks.detach().float().cpu().numpy() if marks is not None else [None] * len(poses)
+        if len(self._rules) != len(poses):  # the episode's first step (lerobot-eval resets before it)
+            self._rules = [SubtaskRules(self.config.rules) for _ in poses]
+            self.readings = [rules.reset(pose) for rules, pose in zip(self._rules, poses, strict=True)]
+            return set(), marks
+        before = self.readings
+        self.readings = [r.update(p, m) for r, p, m in zip(self._rules, poses, marks_np, strict=True)]
+        entered = {
+            self.config.subtask_policies[new[0]]
+            for old, new in zip(before, self.readings, strict=True)
+            if new != old
+        }
+        return entered, marks
+
+    @torch.no_grad()
+    def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
+        entered, marks = self._read_subtasks(batch)
+        for name in entered:
+            self.policies[name].reset()
+        subtasks = torch.from_numpy(np.stack([subtask_vector(*reading) for reading in self.readings]))
+        serving = [self.config.subtask_policies[subtask] for subtask, _ in self.readings]
+        actions = None
+        for name in dict.fromkeys(serving):
+            policy = self.policies[name]
+            preprocessor, postprocessor = self._processors[name]
+            feature = policy.config.input_features.get(OBS_ENV_STATE)
+            size = int(np.prod(feature.shape)) if feature is not None else 0
+            sub_batch = {k: v for k, v in batch.items() if k != OBS_ENV_STATE}
+            env_state = environment_state_for(size, marks, subtasks)
+            if env_state is not None:
+                sub_batch[OBS_ENV_STATE] = env_state
+            action = postprocessor(policy.select_action(preprocessor(sub_batch)))
+            if actions is None:
+                actions = torch.empty_like(action)
+            rows = torch.tensor([s == name for s in serving])
+            actions[rows] = action[rows.to(action.device)]
+        return actions

@@ -1,0 +1,204 @@
+"""The `suture_chain` policy type: the running suture's high level above one LeRobot policy per subtask, written
+by `lerobot-suture chain` and loaded as LeRobot loads any policy."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from lerobot.configs import FeatureType, PolicyFeature
+from lerobot.utils.constants import OBS_ENV_STATE, OBS_STATE
+from lerobot_policy_suture_chain.assemble import ChainCommandConfig, main, write_chain
+from lerobot_policy_suture_chain.configuration_suture_chain import SutureChainConfig
+from lerobot_policy_suture_chain.modeling_suture_chain import environment_state_for
+from policy_builders import (
+    IMAGE_KEY,
+    SUTURE_INPUT_FEATURES,
+    expert_dataset_stats,
+    tiny_act_config,
+)
+
+from lerobot_suture.runtime.policy import env_kwargs_for_policy, load_policy
+from lerobot_suture.sim.subtasks import SUBTASK_DIM, subtask_vector
+from lerobot_suture.sim.wound_marks import MARKS_DIM
+
+CONDITIONED_FEATURES = {
+    **SUTURE_INPUT_FEATURES,
+    OBS_ENV_STATE: PolicyFeature(type=FeatureType.ENV, shape=(MARKS_DIM + SUBTASK_DIM,)),
+}
+
+
+def _save_act(directory: Path, seed: int, input_features: dict | None = None) -> Path:
+    from lerobot.policies.act.modeling_act import ACTPolicy
+    from lerobot.policies.factory import make_pre_post_processors
+
+    config = tiny_act_config(input_features)
+    torch.manual_seed(seed)
+    ACTPolicy(config).save_pretrained(directory)
+    for pipeline in make_pre_post_processors(config, dataset_stats=expert_dataset_stats(n_seeds=2)):
+        pipeline.save_pretrained(directory)
+    return directory
+
+
+@pytest.fixture(scope="module")
+def subtask_policies(tmp_path_factory) -> tuple[Path, Path]:
+    """A subtask-conditioned tiny ACT (it reads the marks, the subtask and the throw) and a plain one."""
+    root = tmp_path_factory.mktemp("subtask_policies")
+    return _save_act(root / "conditioned", 0, CONDITIONED_FEATURES), _save_act(root / "plain", 1)
+
+
+def _batch(jaw: list[float], entry: np.ndarray, rng: np.random.Generator) -> dict:
+    poses = np.tile(np.array([0.0, 0.0, 0.01, 1, 0, 0, 0, 1, 0, 0.0], dtype=np.float32), (len(jaw), 1))
+    poses[:, :3] = entry  # at the entry mark, where a release ends an insert
+    poses[:, 9] = jaw
+    marks = np.tile(np.concatenate([entry, entry + [0.016, 0, 0]]).astype(np.float32), (len(jaw), 1))
+    return {
+        OBS_STATE: torch.from_numpy(poses),
+        OBS_ENV_STATE: torch.from_numpy(marks),
+        IMAGE_KEY: torch.from_numpy(rng.random((len(jaw), 3, 96, 96), dtype=np.float32)),
+    }
+
+
+def test_the_config_names_a_policy_for_every_subtask_and_nothing_else():
+    with pytest.raises(ValueError, match=r"Missing \['extract', 'lay_down', 'pick_up'\]"):
+        SutureChainConfig(subtask_policies={"insert": "all"}, device="cpu")
+    with pytest.raises(ValueError, match="unknown \\['throw'\\]"):
+        SutureChainConfig(
+            subtask_policies=dict.fromkeys(("insert", "extract", "lay_down", "pick_up", "throw"), "all"),
+            device="cpu",
+        )
+    with pytest.raises(ValueError, match="folder name"):
+        SutureChainConfig(
+            subtask_policies=dict.fromkeys(("insert", "extract", "lay_down", "pick_up"), "../up"),
+            device="cpu",
+        )
+    with pytest.raises(ValueError, match="release_radius"):
+        SutureChainConfig(
+            subtask_policies=dict.fromkeys(("insert", "extract", "lay_down", "pick_up"), "all"),
+            release_radius=0.0,
+            device="cpu",
+        )
+
+
+def test_each_policy_reads_the_environment_state_it_was_trained_on():
+    marks, subtasks = torch.ones(2, MARKS_DIM), torch.zeros(2, SUBTASK_DIM)
+    assert environment_state_for(0, marks, subtasks) is None
+    assert environment_state_for(MARKS_DIM, marks, subtasks) is marks
+    assert environment_state_for(SUBTASK_DIM, None, subtasks) is subtasks
+    both = environment_state_for(MARKS_DIM + SUBTASK_DIM, marks, subtasks)
+    assert both.shape == (2, MARKS_DIM + SUBTASK_DIM) and torch.equal(both[:, :MARKS_DIM], marks)
+    with pytest.raises(ValueError, match="--env.marks=true"):
+        environment_state_for(MARKS_DIM, None, subtasks)
+    with pytest.raises(ValueError, match="7 entries"):
+        environment_state_for(7, marks, subtasks)
+
+
+def test_the_command_refuses_a_subtask_without_a_policy_and_a_used_directory(tmp_path, subtask_policies):
+    conditioned, _ = subtask_policies
+    with pytest.raises(ValueError, match="--output_dir"):
+        ChainCommandConfig(policy=conditioned)
+    with pytest.raises(ValueError, match=r"No policy for the subtasks \['insert', 'lay_down', 'pick_up'\]"):
+        ChainCommandConfig(output_dir=tmp_path / "chain", extract=conditioned)
+    with pytest.raises(FileNotFoundError, match="no config.json"):
+        ChainCommandConfig(output_dir=tmp_path / "chain", policy=tmp_path)
+    (tmp_path / "used").mkdir()
+    (tmp_path / "used" / "x").write_text("")
+    with pytest.raises(ValueError, match="not empty"):
+        ChainCommandConfig(output_dir=tmp_path / "used", policy=conditioned)
+
+
+def test_the_chain_is_one_directory_that_lerobot_loads_and_the_env_serves(tmp_path, subtask_policies, capsys):
+    conditioned, plain = subtask_policies
+    out = tmp_path / "chain"
+    main([f"--policy={conditioned}", f"--extract={plain}", f"--output_dir={out}"])
+    assert "lerobot-eval --policy.path=" in capsys.readouterr().out
+    config = json.loads((out / "config.json").read_text())
+    assert config["type"] == "suture_chain"
+    assert config["subtask_policies"] == {
+        "insert": "insert",
+        "extract": "extract",
+        "lay_down": "insert",
+        "pick_up": "insert",
+    }
+    assert (out / "policies" / "insert" / "model.safetensors").is_file()
+    assert (out / "policy_preprocessor.json").is_file()
+    chain, _, _ = load_policy(out)
+    assert chain.config.input_features[OBS_ENV_STATE].shape == (MARKS_DIM,)
+    kwargs = env_kwargs_for_policy(chain.config)
+    assert kwargs.get("marks") is True and not kwargs.get("subtask")
+
+
+def test_each_env_takes_the_action_of_its_own_subtasks_policy(tmp_path, subtask_policies):
+    """Two envs hold the needle at the entry mark; the first lets go (its insert ends: extract). From that step
+    its action is the plain policy's, predicted afresh, while the second env's stays the conditioned policy's,
+    from the chunk it queued, and the conditioned policy reads the subtask after the marks."""
+    conditioned, plain = subtask_policies
+    out = write_chain(ChainCommandConfig(output_dir=tmp_path / "chain", policy=conditioned, extract=plain))
+    chain, pre, post = load_policy(out)
+    refs = {name: load_policy(out / "policies" / name) for name in ("insert", "extract")}
+    rng = np.random.default_rng(0)
+    entry = np.array([-0.008, -0.009, 0.0], dtype=np.float32)
+    chain.reset()
+    for ref, _, _ in refs.values():
+        ref.reset()
+
+    def reference(name: str, batch: dict, readings: list[tuple[str, int]]) -> torch.Tensor:
+        ref, ref_pre, ref_post = refs[name]
+        sub = dict(batch)
+        if name == "insert":  # the conditioned policy: marks, then subtask and throw
+            vectors = torch.from_numpy(np.stack([subtask_vector(*r) for r in readings]))
+            sub[OBS_ENV_STATE] = torch.cat([batch[OBS_ENV_STATE], vectors], dim=-1)
+        else:
+            sub.pop(OBS_ENV_STATE)
+        return ref_post(ref.select_action(ref_pre(sub)))
+
+    first = _batch([1.0, 1.0], entry, rng)
+    action = post(chain.select_action(pre(dict(first))))
+    assert chain.readings == [("insert", 0), ("insert", 0)]
+    assert torch.allclose(action, reference("insert", first, chain.readings), atol=1e-6)
+
+    second = _batch([0.0, 1.0], entry, rng)  # env 0 lets go at the entry mark
+    action = post(chain.select_action(pre(dict(second))))
+    assert chain.readings == [("extract", 0), ("insert", 0)]
+    refs["extract"][0].reset()  # the chain starts the policy an env enters afresh
+    expected_extract = reference("extract", second, chain.readings)
+    expected_insert = reference("insert", second, chain.readings)
+    assert torch.allclose(action[0], expected_extract[0], atol=1e-6)
+    assert torch.allclose(action[1], expected_insert[1], atol=1e-6)
+    assert not torch.allclose(action[0], expected_insert[0], atol=1e-4)
+
+    chain.reset()  # a new episode: the rules start over from the first measured pose
+    post(chain.select_action(pre(_batch([0.0, 1.0], entry, rng))))
+    assert chain.readings == [("pick_up", 0), ("insert", 0)]
+
+
+def test_a_chain_is_not_trained(tmp_path, subtask_policies):
+    conditioned, _ = subtask_policies
+    chain, _, _ = load_policy(write_chain(ChainCommandConfig(output_dir=tmp_path / "c", policy=conditioned)))
+    with pytest.raises(NotImplementedError, match="lerobot-suture chain"):
+        chain.get_optim_params()
+    with pytest.raises(NotImplementedError, match="select_action"):
+        chain.predict_action_chunk({})
+
+
+@pytest.mark.slow
+def test_lerobot_eval_runs_the_chain_on_the_running_suture(tmp_path, subtask_policies):
+    from test_ensemble_eval import check_eval_info, run_lerobot_eval
+
+    conditioned, plain = subtask_policies
+    chain = write_chain(ChainCommandConfig(output_dir=tmp_path / "chain", policy=conditioned, extract=plain))
+    info, _ = run_lerobot_eval(
+        [
+            f"--policy.path={chain}",
+            "--env.task=running_suture",
+            "--env.marks=true",
+            "--env.episode_length=8",
+            "--eval.n_episodes=2",
+            "--eval.batch_size=2",
+        ],
+        tmp_path / "eval",
+    )
+    assert check_eval_info(info, n_episodes=2, batch_size=2) == [False, False]
