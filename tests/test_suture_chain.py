@@ -202,3 +202,65 @@ def test_lerobot_eval_runs_the_chain_on_the_running_suture(tmp_path, subtask_pol
         tmp_path / "eval",
     )
     assert check_eval_info(info, n_episodes=2, batch_size=2) == [False, False]
+
+
+def test_the_robot_reports_the_marks_after_the_pose_and_the_chain_splits_them(tmp_path, subtask_policies):
+    """``--robot.marks=true``: the env's marks as ``*.pos`` scalars after the pose, which LeRobot stacks into
+    ``observation.state`` (16,); the chain reads the same subtasks and acts the same as from the env path's split."""
+    from lerobot_policy_suture_chain.modeling_suture_chain import marks_apart
+    from lerobot_robot_suture.config_suture_sim import MARK_FEATURES, POSE_FEATURES, SutureSimConfig
+    from lerobot_robot_suture.suture_sim import SutureSim
+
+    robot = SutureSim(SutureSimConfig(task="running_suture", marks=True, clock="fast", seed=3))
+    assert list(robot.observation_features)[:16] == [*POSE_FEATURES, *MARK_FEATURES]
+    robot.connect()
+    try:
+        observation = robot.get_observation()
+        marks = robot.env.unwrapped.entry_point.tolist() + robot.env.unwrapped.exit_point.tolist()
+        assert [observation[key] for key in MARK_FEATURES] == pytest.approx(marks, abs=1e-6)
+    finally:
+        robot.disconnect()
+
+    conditioned, plain = subtask_policies
+    out = write_chain(ChainCommandConfig(output_dir=tmp_path / "chain", policy=conditioned, extract=plain))
+    rng = np.random.default_rng(1)
+    entry = np.array([-0.008, 0.003, 0.0], dtype=np.float32)
+    split = [_batch([1.0], entry, rng), _batch([0.0], entry, rng)]
+    stacked = [{**b, OBS_STATE: torch.cat([b[OBS_STATE], b[OBS_ENV_STATE]], dim=-1)} for b in split]
+    for b in stacked:
+        b.pop(OBS_ENV_STATE)
+    assert torch.equal(marks_apart(stacked[0])[OBS_ENV_STATE], split[0][OBS_ENV_STATE])
+    actions = {}
+    for name, batches in (("split", split), ("stacked", stacked)):
+        torch.manual_seed(0)
+        chain, pre, post = load_policy(out)
+        chain.reset()
+        actions[name] = [post(chain.select_action(pre(dict(b)))) for b in batches]
+        assert chain.readings == [("extract", 0)]
+    for a, b in zip(actions["split"], actions["stacked"], strict=True):
+        assert torch.allclose(a, b, atol=1e-6)
+
+
+@pytest.mark.slow
+def test_lerobot_rollout_runs_the_chain_on_the_arm_with_its_marks(tmp_path, subtask_policies):
+    from robot_commands import read_trace, robot_args, run_command
+
+    conditioned, plain = subtask_policies
+    chain = write_chain(ChainCommandConfig(output_dir=tmp_path / "chain", policy=conditioned, extract=plain))
+    trace = tmp_path / "trace.jsonl"
+    run_command(
+        "lerobot-rollout",
+        [
+            "--strategy.type=base",
+            f"--policy.path={chain}",
+            "--device=cpu",
+            "--fps=10",
+            "--duration=1.5",
+            "--return_to_initial_position=false",
+            "--play_sounds=false",
+            "--task=running suture",
+            *robot_args(trace, "--robot.task=running_suture", "--robot.marks=true", "--robot.seed=5"),
+        ],
+    )
+    steps = read_trace(trace)
+    assert len(steps) >= 5 and {line["seed"] for line in steps} == {5}

@@ -1,7 +1,8 @@
 """``SutureChainPolicy``: the running suture's high level above one LeRobot policy per subtask.
 
 Each control step the rules of ``lerobot_suture.sim.subtasks`` read every environment's measured pose
-(``observation.state``) and the registered wound's marks (``observation.environment_state``, (6,) m) and say
+(``observation.state``) and the registered wound's marks (``observation.environment_state``, (6,) m; on the robot
+path, after the pose in ``observation.state``: :func:`marks_apart`) and say
 which subtask its arm is in and which throw; the policy serving that subtask gives the action. A subtask policy
 sees the environment state it was trained on: the marks (6,), the subtask and throw (5,), both (11,) or none.
 
@@ -26,6 +27,19 @@ from lerobot_suture.sim.subtasks import SUBTASK_DIM, SubtaskRules, subtask_vecto
 from lerobot_suture.sim.wound_marks import MARKS_DIM
 
 from .configuration_suture_chain import POLICIES_DIR, SutureChainConfig
+
+POSE_DIM = 10
+"""Entries of the measured pose (``observation.state`` on the env path)."""
+
+
+def marks_apart(batch: dict[str, Tensor]) -> dict[str, Tensor]:
+    """``batch`` with the wound's marks as ``observation.environment_state``: on the robot path LeRobot stacks
+    every scalar the robot reports into ``observation.state``, so ``--robot.marks=true`` gives the pose and then
+    the marks, (16,); the env path gives them apart already."""
+    state = batch[OBS_STATE]
+    if OBS_ENV_STATE in batch or state.shape[-1] != POSE_DIM + MARKS_DIM:
+        return batch
+    return {**batch, OBS_STATE: state[..., :POSE_DIM], OBS_ENV_STATE: state[..., POSE_DIM:]}
 
 
 def environment_state_for(size: int, marks: Tensor | None, subtasks: Tensor) -> Tensor | None:
@@ -146,6 +160,7 @@ class SutureChainPolicy(PreTrainedPolicy):
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
+        batch = marks_apart(batch)
         entered, marks = self._read_subtasks(batch)
         for name in entered:
             self.policies[name].reset()

@@ -14,6 +14,7 @@ from lerobot_suture.sim.scenarios import SAFETY_SCENARIOS, SCENARIOS
 from lerobot_suture.sim.suture_env import check_image_side
 from lerobot_suture.sim.task import GRASP_RANGES
 from lerobot_suture.sim.tasks import check_scenario, task_spec
+from lerobot_suture.sim.wound_marks import MARKS_NAMES
 
 from .faults import FaultConfig
 
@@ -26,6 +27,10 @@ POSE_FEATURES = [f"{name}.pos" for name in POSE_NAMES]
 jaw). LeRobot stacks them into ``observation.state`` (10,) and ``action`` (10,); the ``.pos`` suffix is
 LeRobot's for a position feature, and ``lerobot-rollout`` keeps only scalar features named ``*.pos`` or
 ``*.vel`` (``lerobot/rollout/context.py``)."""
+MARK_FEATURES = [f"{name}.pos" for name in MARKS_NAMES]
+"""The wound's marks as scalar features (``--robot.marks=true``; entry x, y, z, exit x, y, z, m, the arm's base
+frame). Named ``*.pos`` so that LeRobot routes them to the policy: ``lerobot-rollout`` and ``lerobot-record`` stack
+them into ``observation.state`` after the pose, (16,), which the ``suture_chain`` policy splits again."""
 CLOCKS = ("realtime", "fast")
 EPISODE_ENDS = ("continue", "hold")
 
@@ -44,6 +49,8 @@ class SutureSimConfig(RobotConfig):
         image_size: endoscope image side (px).
         wrist_camera: add the image of a camera on the instrument's shaft (``wrist``, ``image_size`` too), as
             a surgical robot with a wrist camera on each instrument reports it.
+        marks: report the current throw's entry and exit marks (:data:`MARK_FEATURES`), as a registered wound
+            gives them (the env's ``marks=True``): the policy's input, where ``registration`` is the CBF's.
         scenario: perturbation scenario, one of ``lerobot_suture.sim.scenarios.SCENARIOS`` (or, in a task with a
             throw, ``SAFETY_SCENARIOS``: tissue that breathes).
         scenario_onset_step: onset (control steps); None takes the scenario's default.
@@ -79,6 +86,7 @@ class SutureSimConfig(RobotConfig):
     seed: int = 0
     image_size: int = 96
     wrist_camera: bool = False
+    marks: bool = False
     scenario: str = "nominal"
     scenario_onset_step: int | None = None
     scenario_magnitude: float | None = None
@@ -130,4 +138,5 @@ class SutureSimConfig(RobotConfig):
             "tip_tracking": self.tip_tracking,
             "record_tip_trace": self.tip_trace,
             **({"wrist_camera": True} if self.wrist_camera else {}),
+            **({"marks": True} if self.marks else {}),
         }
