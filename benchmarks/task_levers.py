@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import subprocess
 import sys
 import time
@@ -83,11 +84,24 @@ def record(task: str, lever: Lever, root: Path, log: Path) -> dict:
     ]
     if lever.episodes is not None:
         command.append(f"--num_episodes={lever.episodes}")
-    seconds = _run(command, log)
+    seconds = _timed(root.parent / f"{root.name}.record_s.json", "record_s", lambda: _run(command, log))
     episodes = json.loads(info.read_text())["total_episodes"]
     result = {"episodes": episodes, "record_s": round(seconds, 1)}
     done.write_text(json.dumps(result))
     return result
+
+
+def _timed(path: Path, key: str, run) -> float:
+    """``run()``'s wall time (s) plus that of the earlier runs it resumes, kept in ``path`` even when it is
+    interrupted (SIGTERM included: :func:`main` turns it into an exit), so a resumed stage reports its whole cost."""
+    spent = json.loads(path.read_text())[key] if path.is_file() else 0.0
+    start = time.perf_counter()
+    try:
+        run()
+    finally:
+        spent += time.perf_counter() - start
+        path.write_text(json.dumps({key: spent}))
+    return spent
 
 
 def train(task: str, root: Path, out: Path, members: int) -> tuple[Path, float]:
@@ -113,12 +127,11 @@ def train(task: str, root: Path, out: Path, members: int) -> tuple[Path, float]:
         f"--save_freq={reference['save_freq']}",
     ]
     timing = out.parent / f"{out.name}.train_s.json"  # beside the run: lerobot-train owns its output_dir
-    spent = json.loads(timing.read_text())["train_s"] if timing.is_file() else 0.0
-    start = time.perf_counter()
-    pretrained = run_lerobot_train(out, fresh, int(reference["steps"]), common)
-    spent += time.perf_counter() - start
-    timing.write_text(json.dumps({"train_s": spent}))
-    return pretrained, spent
+    done: list[Path] = []
+    spent = _timed(
+        timing, "train_s", lambda: done.append(run_lerobot_train(out, fresh, int(reference["steps"]), common))
+    )
+    return done[0], spent
 
 
 def chained(pretrained: Path, chain_dir: Path) -> Path:
@@ -203,6 +216,7 @@ def main() -> None:
     parser.add_argument("--output", type=Path)
     parser.add_argument("--figure", type=Path)
     args = parser.parse_args()
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # a stage's time is kept when the run is stopped
     unknown = sorted(set(args.levers) - {lever.name for lever in LEVERS})
     if unknown:
         parser.error(f"unknown levers {unknown}; choose among {[lever.name for lever in LEVERS]}")
