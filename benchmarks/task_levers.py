@@ -179,14 +179,20 @@ def figure(report: dict, path: Path) -> None:
 
     lines = report["levers"]
     fig, ax = plt.subplots(figsize=(7, 1.2 + 0.5 * len(lines)))
+    throws = all(
+        "per_throw" in line["nominal"] for line in lines
+    )  # a long task: its first throw on the marks
     for i, line in enumerate(lines):
         cell = line["nominal"]
-        low, high = cell["success_interval"]
+        rate, (low, high) = cell["success_rate"], cell["success_interval"]
+        if throws:
+            first = cell["per_throw"]["throws"][0]["on_marks"]
+            rate, (low, high) = first["rate"], first["wilson_95"]
         ax.errorbar(
-            cell["success_rate"],
+            rate,
             i,
             # Clipped: at a rate of 0 or 1 the interval's end can miss the rate by a rounding error.
-            xerr=[[max(cell["success_rate"] - low, 0.0)], [max(high - cell["success_rate"], 0.0)]],
+            xerr=[[max(rate - low, 0.0)], [max(high - rate, 0.0)]],
             fmt="o",
             color="C0",
             capsize=3,
@@ -194,7 +200,8 @@ def figure(report: dict, path: Path) -> None:
     ax.set_yticks(range(len(lines)), [f"{line['lever']} ({line['episodes']} ep.)" for line in lines])
     ax.invert_yaxis()
     ax.set_xlim(0, 1)
-    ax.set_xlabel(f"nominal success, {lines[0]['nominal']['episodes']} test seeds, 95% Wilson")
+    what = "first throws on the marks" if throws else "success"
+    ax.set_xlabel(f"nominal {what}, {lines[0]['nominal']['episodes']} test seeds, 95% Wilson")
     ax.set_title(f"{report['task']}: what each lever does ({report['members']} member(s))", fontsize=10)
     ax.grid(axis="x", alpha=0.3)
     fig.tight_layout()
