@@ -3,7 +3,6 @@ subtask above a LeRobot policy for each subtask."""
 
 from __future__ import annotations
 
-import math
 import re
 from dataclasses import dataclass, field
 
@@ -56,12 +55,7 @@ class SutureChainConfig(PreTrainedConfig):
                     f"`subtask_policies[{subtask!r}]` must be a folder name under {POLICIES_DIR}/ (letters, digits, "
                     f"'_', '.', '-'). Got {name!r}."
                 )
-        if not math.isfinite(self.closed_above) or not 0.0 < self.closed_above < 1.0:
-            raise ValueError(f"`closed_above` must be in (0, 1). Got {self.closed_above!r}.")
-        for name in ("pulled_out_travel", "release_radius"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"`{name}` must be a finite distance > 0 (m). Got {value!r}.")
+        _ = self.rules  # SubtaskRulesConfig checks the thresholds
         if self.n_obs_steps != 1:
             raise ValueError(
                 f"`n_obs_steps` must be 1 (each subtask policy keeps its own). Got {self.n_obs_steps}."
