@@ -33,14 +33,16 @@ NEEDS = "a task to run (--task); records, trains and evaluates each lever (about
 
 @dataclass(frozen=True)
 class Lever:
-    """One line of the table: the episodes recorded, and whether the wrist camera, the wound's marks and the
-    high level's subtask and throw are recorded (a policy trained on them reads them)."""
+    """One line of the table: the episodes recorded; whether the wrist camera, the wound's marks and the
+    high level's subtask and throw are recorded (a policy trained on them reads them); and whether the actions
+    are relative to the jaw's measured pose (the policy then runs in an env that takes them)."""
 
     name: str
     episodes: int | None  # None: the task recipe's own count
     wrist_camera: bool = False
     marks: bool = False
     subtask: bool = False
+    relative_actions: bool = False
 
 
 LEVERS = (
@@ -49,6 +51,7 @@ LEVERS = (
     Lever("data x500 + wrist camera", 500, wrist_camera=True),
     Lever("data x500 + marks", 500, marks=True),
     Lever("marks + subtask", None, marks=True, subtask=True),
+    Lever("relative actions", None, relative_actions=True),
 )
 
 
@@ -80,6 +83,7 @@ def record(task: str, lever: Lever, root: Path, log: Path) -> dict:
         f"--wrist_camera={str(lever.wrist_camera).lower()}",
         f"--marks={str(lever.marks).lower()}",
         f"--subtask={str(lever.subtask).lower()}",
+        f"--relative_actions={str(lever.relative_actions).lower()}",
         f"--resume={str(info.is_file()).lower()}",
     ]
     if lever.episodes is not None:
@@ -144,15 +148,20 @@ def chained(pretrained: Path, chain_dir: Path) -> Path:
     return chain_dir
 
 
-def evaluate(task: str, pretrained: Path, episodes: int, seed: int, batch_envs: int) -> dict:
-    """The checkpoint on the board's nominal test seeds of ``task``: the leaderboard's cell."""
+def evaluate(
+    task: str, pretrained: Path, episodes: int, seed: int, batch_envs: int, relative_actions: bool = False
+) -> dict:
+    """The checkpoint on the board's nominal test seeds of ``task``: the leaderboard's cell; with
+    ``relative_actions`` in an env that takes the actions relative to the jaw's measured pose."""
     from lerobot_suture.leaderboard import cells
     from lerobot_suture.runtime.policy import GateMode, PolicyRunner, env_kwargs_for_policy
     from lerobot_suture.sim.tasks import task_spec
 
     runner = PolicyRunner.from_pretrained(pretrained, GateMode.REPORT, "cpu", {})
     seeds = cells.condition_seeds(seed, task, "nominal", episodes)
-    env_kwargs = env_kwargs_for_policy(runner.policy.config)
+    env_kwargs = env_kwargs_for_policy(runner.policy.config) | (
+        {"relative_actions": True} if relative_actions else {}
+    )
     logs, seconds = cells.cell_episodes(runner, env_kwargs, task, "nominal", seeds, batch_envs)
     return cells.summarize_cell(logs, seconds, throws=task_spec(task).throws)
 
@@ -246,7 +255,9 @@ def main() -> None:
             cell = json.loads(cell_path.read_text())
         else:
             print(f"[{lever.name}] evaluating {args.episodes} test episodes ...", flush=True)
-            cell = evaluate(args.task, pretrained, args.episodes, args.seed, args.batch_envs)
+            cell = evaluate(
+                args.task, pretrained, args.episodes, args.seed, args.batch_envs, lever.relative_actions
+            )
             cell_path.parent.mkdir(parents=True, exist_ok=True)
             cell_path.write_text(json.dumps(cell))
         lines.append(
@@ -256,6 +267,7 @@ def main() -> None:
                 "wrist_camera": lever.wrist_camera,
                 "marks": lever.marks,
                 "subtask": lever.subtask,
+                "relative_actions": lever.relative_actions,
                 "record_s": recorded["record_s"],
                 "train_s": round(train_s, 1),
                 "nominal": {

@@ -40,6 +40,7 @@ from lerobot_suture.sim.geometry import (
     rotvec_from_matrix,
     step_towards,
 )
+from lerobot_suture.sim.relative_actions import env_action
 
 PHASES = ("detour", "approach", "descend", "drive", "hold")
 _SIDE_STREAM = 0x51DE  # mixed with the env's seed: the detour side's own stream, apart from the env's draws
@@ -251,7 +252,7 @@ def iter_expert_steps(
     remaining = None  # control steps left once the insertion has succeeded
     while True:
         keypoints = env.unwrapped.needle_keypoints_in_image() if needle_keypoints else None
-        action = expert.act(env)
+        action = env_action(env, expert.act(env))  # relative when the env takes relative actions
         next_obs, reward, terminated, truncated, info = env.step(action)
         if remaining is not None:
             remaining -= 1

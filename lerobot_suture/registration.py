@@ -15,7 +15,12 @@ _ENTRY_POINT = "lerobot_suture.registration:make_suture_env"
 
 
 def make_suture_env(
-    cbf=None, id_task: str | None = None, marks: bool = False, subtask: bool = False, **kwargs
+    cbf=None,
+    id_task: str | None = None,
+    marks: bool = False,
+    subtask: bool = False,
+    relative_actions: bool = False,
+    **kwargs,
 ) -> gym.Env:
     """A :class:`~lerobot_suture.sim.suture_env.SutureEnv`, behind the CBF safety filter when asked.
 
@@ -29,6 +34,8 @@ def make_suture_env(
             (:class:`~lerobot_suture.sim.wound_marks.WoundMarks`).
         subtask: add the high level's subtask and throw to ``environment_state``, after the marks
             (:class:`~lerobot_suture.sim.subtasks.SubtaskObservation`).
+        relative_actions: take actions relative to the jaw's measured pose, in the jaw frame
+            (:class:`~lerobot_suture.sim.relative_actions.RelativeActions`).
         **kwargs: the env's own arguments (see its docstring), ``task`` among them.
 
     Raises:
@@ -46,6 +53,10 @@ def make_suture_env(
         )
 
     env = SutureEnv(**kwargs)
+    if relative_actions:
+        from lerobot_suture.sim.relative_actions import RelativeActions
+
+        env = RelativeActions(env)
     if marks:
         from lerobot_suture.sim.wound_marks import WoundMarks
 

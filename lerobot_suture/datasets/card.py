@@ -54,6 +54,17 @@ def _env_state_parts(info: dict) -> tuple[bool, bool]:
     return "entry_x" in names, "subtask_insert" in names
 
 
+_RELATIVE_ACTION_DESCRIPTION = (
+    "the motion from the measured jaw-tip pose to the target at the end of the control step, in the jaw frame "
+    "(`--relative_actions=true`)"
+)
+
+
+def _relative_actions(info: dict) -> bool:
+    """Whether the dataset's actions are relative to the measured jaw pose (named ``dx`` ...)."""
+    return "dx" in (info["features"].get("action", {}).get("names") or [])
+
+
 _DESCRIPTIONS = {
     "observation.images.endoscope": "endoscope RGB image",
     "observation.state": "measured jaw-tip pose (pose layout below)",
@@ -131,6 +142,8 @@ def render_description(root: str | Path, template_path: str | Path | None = None
                 if on
             )
             if key == "observation.environment_state" and any(_env_state_parts(info))
+            else _RELATIVE_ACTION_DESCRIPTION
+            if key == "action" and _relative_actions(info)
             else _DESCRIPTIONS.get(key, ""),
         }
         for key, ft in info["features"].items()
@@ -168,6 +181,7 @@ def render_description(root: str | Path, template_path: str | Path | None = None
         "has_environment_state": _env_state_shape(info) == (18,),
         "has_marks": _env_state_parts(info)[0],
         "has_subtask": _env_state_parts(info)[1],
+        "has_relative_actions": _relative_actions(info),
         "has_needle_keypoints": "observation.needle_keypoints" in info["features"],
         "video": info["features"].get("observation.images.endoscope", {}).get("dtype") == "video",
         "grasp": grasp,

@@ -116,6 +116,7 @@ def make_env(
     wrist_camera: bool = False,
     marks: bool = False,
     subtask: bool = False,
+    relative_actions: bool = False,
 ):
     """The env the dataset is recorded in (``gym.make`` of the task's gym id); ``appearance`` the fields of
     an :class:`~lerobot_suture.sim.appearance.AppearanceConfig` (None: all off)."""
@@ -130,6 +131,7 @@ def make_env(
         **({"wrist_camera": True} if wrist_camera else {}),
         **({"marks": True} if marks else {}),
         **({"subtask": True} if subtask else {}),
+        **({"relative_actions": True} if relative_actions else {}),
     )
 
 

@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 from lerobot_suture.sim import task
+from lerobot_suture.sim.relative_actions import RELATIVE_ACTION_NAMES
 from lerobot_suture.sim.subtasks import SUBTASK_NAMES
 from lerobot_suture.sim.wound_marks import MARKS_NAMES
 
@@ -50,10 +51,12 @@ def dataset_features(
     wrist_camera: bool = False,
     marks: bool = False,
     subtask: bool = False,
+    relative_actions: bool = False,
 ) -> dict[str, dict]:
     """LeRobot feature specification of the dataset (``LeRobotDataset.create(features=...)``); ``marks``: the
     wound's marks as ``observation.environment_state`` (6,), in place of the privileged one; ``subtask``: the
-    high level's subtask and throw (5,) there too, after the marks."""
+    high level's subtask and throw (5,) there too, after the marks; ``relative_actions``: the action as the
+    motion from the jaw's measured pose, named by :data:`RELATIVE_ACTION_NAMES`."""
     features: dict[str, dict] = {}
     if "pixels" in obs_type:
         image = {
@@ -75,7 +78,8 @@ def dataset_features(
     registered = (list(MARKS_NAMES) if marks else []) + (list(SUBTASK_NAMES) if subtask else [])
     if registered:
         features[ENV_STATE_KEY] = {"dtype": "float32", "shape": (len(registered),), "names": registered}
-    features[ACTION_KEY] = {"dtype": "float32", "shape": (10,), "names": list(POSE_NAMES)}
+    action_names = RELATIVE_ACTION_NAMES if relative_actions else POSE_NAMES
+    features[ACTION_KEY] = {"dtype": "float32", "shape": (10,), "names": list(action_names)}
     features[REWARD_KEY] = {"dtype": "float32", "shape": (1,), "names": None}
     features[SUCCESS_KEY] = {"dtype": "bool", "shape": (1,), "names": None}
     features[DONE_KEY] = {"dtype": "bool", "shape": (1,), "names": None}

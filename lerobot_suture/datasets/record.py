@@ -180,7 +180,13 @@ def record(cfg: RecordConfig) -> RecordSummary:
     os.environ.setdefault("SVT_LOG", "1")  # the AV1 encoder's banner, per episode, otherwise
     backend = resolve_video_backend() if cfg.video and cfg.has_images else None
     features = dataset_features(
-        cfg.obs_type, cfg.image_size, cfg.video, cfg.wrist_camera, cfg.marks, cfg.subtask
+        cfg.obs_type,
+        cfg.image_size,
+        cfg.video,
+        cfg.wrist_camera,
+        cfg.marks,
+        cfg.subtask,
+        cfg.relative_actions,
     )
     expert = ScriptedExpert(ExpertConfig(**log["expert"]["config"]))
     env = make_env(
@@ -193,6 +199,7 @@ def record(cfg: RecordConfig) -> RecordSummary:
         log["env_kwargs"].get("wrist_camera", False),
         log["env_kwargs"].get("marks", False),
         log["env_kwargs"].get("subtask", False),
+        log["env_kwargs"].get("relative_actions", False),
     )
     bars_were_enabled = hf_datasets.is_progress_bar_enabled()
     hf_datasets.disable_progress_bars()  # a "Map" bar per saved episode otherwise

@@ -46,6 +46,9 @@ class RecordConfig:
             (``observation.environment_state``, (6,) m); needs ``obs_type=pixels_agent_pos``.
         subtask: also record the high level's subtask and throw (``lerobot_suture.sim.subtasks``: one-hot and
             throw, (5,), after the marks in ``observation.environment_state``); needs ``obs_type=pixels_agent_pos``.
+        relative_actions: record each action as the motion from the jaw's measured pose, in the jaw frame
+            (``lerobot_suture.sim.relative_actions``): a policy trained on it runs in an env made with
+            ``relative_actions=True`` (``--env.relative_actions=true``).
         scenario: perturbation scenario (``lerobot_suture.sim.scenarios.SCENARIOS``); the expert fails
             under some of them and those episodes are discarded.
         seed: env seed of the first attempt; attempt ``k`` uses ``seed + k``.
@@ -92,6 +95,7 @@ class RecordConfig:
     wrist_camera: bool = False  # also record the wrist camera (observation.images.wrist, image_size too)
     marks: bool = False  # also record the wound's marks (observation.environment_state, (6,) m)
     subtask: bool = False  # also record the high level's subtask and throw (observation.environment_state)
+    relative_actions: bool = False  # actions as the motion from the jaw's measured pose, in the jaw frame
     scenario: str = "nominal"  # perturbation scenario the expert is recorded in
     grasp: str = "narrow"  # grasp randomization: narrow (the test scenes) | wide
     grasp_blind_expert: bool = False  # the expert plans with the nominal grasp, not the true one
@@ -179,6 +183,8 @@ class RecordConfig:
             flags.append("--marks=true")
         if self.subtask:
             flags.append("--subtask=true")
+        if self.relative_actions:
+            flags.append("--relative_actions=true")
         if self.grasp_blind_expert:
             flags.append("--grasp_blind_expert=true")
         if self.approach_detour:

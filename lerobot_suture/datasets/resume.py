@@ -46,6 +46,8 @@ def new_episode_log(cfg: RecordConfig) -> dict:
         env_kwargs["marks"] = True  # absent when off
     if cfg.subtask:
         env_kwargs["subtask"] = True  # absent when off
+    if cfg.relative_actions:
+        env_kwargs["relative_actions"] = True  # absent when off
     if cfg.appearance.enabled:
         # Absent when off: the logs of datasets recorded without it read the same as before it existed.
         env_kwargs["appearance"] = dataclasses.asdict(cfg.appearance)
@@ -77,7 +79,17 @@ def new_episode_log(cfg: RecordConfig) -> dict:
     }
 
 
-_RESUME_FIELDS = ("task", "obs_type", "image_size", "scenario", "grasp", "wrist_camera", "marks", "subtask")
+_RESUME_FIELDS = (
+    "task",
+    "obs_type",
+    "image_size",
+    "scenario",
+    "grasp",
+    "wrist_camera",
+    "marks",
+    "subtask",
+    "relative_actions",
+)
 
 
 def _check_resumable(cfg: RecordConfig, log: dict, root: Path) -> None:
@@ -87,6 +99,7 @@ def _check_resumable(cfg: RecordConfig, log: dict, root: Path) -> None:
         "wrist_camera": False,  # absent when off
         "marks": False,  # absent when off
         "subtask": False,  # absent when off
+        "relative_actions": False,  # absent when off
         **{k: v for k, v in log["env_kwargs"].items() if k != "appearance"},
         "video": log["video"],
         "seed": log["seed"],

@@ -48,6 +48,7 @@ from lerobot_suture.runtime.takeover import (
     Takeover,
 )
 from lerobot_suture.runtime.workers import rollout_in_workers
+from lerobot_suture.sim.relative_actions import env_action, find_relative_actions
 from lerobot_suture.sim.shifts import Shift, ShiftWrapper
 from lerobot_suture.sim.tasks import DEFAULT_TASK, task_spec
 
@@ -287,10 +288,16 @@ def rollout_episodes(
             elif actor is Actor.SURGEON:
                 if before is not Actor.SURGEON:
                     person.take_control(env, observations[i])
-                action = person.act(env, command)
+                action = env_action(env, person.act(env, command))  # a surgeon acts in absolute poses
             elif actor is Actor.HOLD:
                 if before is not Actor.HOLD:  # the policy's own hold action, or the measured pose
-                    held[i] = action if own_gates else np.asarray(observations[i]["agent_pos"], np.float32)
+                    # A relative action repeated keeps moving: with relative actions the hold is the measured pose's.
+                    relative = find_relative_actions(env) is not None
+                    held[i] = (
+                        action
+                        if own_gates and not relative
+                        else env_action(env, observations[i]["agent_pos"])
+                    )
                 action = held[i]
             _note_handover(log, takeover)
             step_log = _step_log(status, CONTROLLERS[actor], status is not NOT_ASKED)

@@ -1,0 +1,112 @@
+"""Actions relative to the jaw's measured pose (opt-in, ``relative_actions=True``): each step's motion in the jaw frame.
+
+The env's own action is the target jaw pose in the arm's base frame. A policy that outputs it must place the
+jaw to a fraction of a millimetre across a workspace of centimetres, and LeRobot normalizes each action
+dimension over its range in the dataset: an error of 1% of the normalized position is about 0.5 mm, and a
+pull whose target jitters by that much drags the needle off its arc at every step (the extraction's tissue
+strain sums that motion, ``studies/benchmarks/strain_tolerance.py``). Here the action is the motion from the
+jaw's measured pose to the target, in the jaw's own frame: the position change (3, m), the first two columns
+of the rotation change (6) and the jaw command (1, absolute: 1 = closed). A step moves at most a few
+millimetres, so the same normalized error is some hundred times smaller; and a pull about the needle's
+centre, constant in the jaw frame, is the same action at every step. The surgical robot transformer work on
+the dVRK chose relative actions for the same reason (the arm's absolute pose is not consistent).
+
+:class:`RelativeActions` turns such an action into the env's absolute target (``absolute_action``) before the
+env steps it, so the controller, the CBF at the needle tip and every safety check see what they see for an
+absolute action; :func:`relative_action` is the inverse, for whoever computes an absolute target (the
+scripted expert while recording, the scripted surgeon). Composition then inversion is exact to float
+precision, so a recorded episode replays to the same targets.
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from lerobot_suture.sim.geometry import POSE_DIM, matrix_from_rot6, rot6_from_matrix
+
+MAX_RELATIVE_STEP = 0.01
+"""The largest position change a relative action may ask for (m, per axis of the jaw frame): twice what
+the arm moves in one control step at its speed limit; larger requests are clipped to it."""
+RELATIVE_ACTION_NAMES = ("dx", "dy", "dz", "dr11", "dr21", "dr31", "dr12", "dr22", "dr32", "jaw")
+"""A relative action's components: position change in the jaw frame (m), first two columns of the rotation
+change, jaw closure (1 = closed): the dataset feature's names."""
+
+
+def absolute_action(jaw_pos: np.ndarray, jaw_rot: np.ndarray, relative: np.ndarray) -> np.ndarray:
+    """The absolute target (10,) float64 that ``relative`` asks for from the jaw pose ``jaw_pos`` (3,) m,
+    ``jaw_rot`` (3, 3).
+
+    Raises:
+        ValueError: the rotation change's two columns are zero or parallel (as for an absolute action).
+    """
+    relative = np.asarray(relative, dtype=np.float64)
+    out = np.empty(POSE_DIM)
+    out[:3] = jaw_pos + jaw_rot @ relative[:3]
+    out[3:9] = rot6_from_matrix(jaw_rot @ matrix_from_rot6(relative[3:9]))
+    out[9] = relative[9]
+    return out
+
+
+def relative_action(jaw_pos: np.ndarray, jaw_rot: np.ndarray, absolute: np.ndarray) -> np.ndarray:
+    """The relative action (10,) float64 that reaches the absolute target ``absolute`` from the jaw pose
+    ``jaw_pos`` (3,) m, ``jaw_rot`` (3, 3): the inverse of :func:`absolute_action`."""
+    absolute = np.asarray(absolute, dtype=np.float64)
+    out = np.empty(POSE_DIM)
+    out[:3] = jaw_rot.T @ (absolute[:3] - jaw_pos)
+    out[3:9] = rot6_from_matrix(jaw_rot.T @ matrix_from_rot6(absolute[3:9]))
+    out[9] = absolute[9]
+    return out
+
+
+def find_relative_actions(env: gym.Env) -> RelativeActions | None:
+    """The :class:`RelativeActions` wrapper in ``env``'s chain of wrappers, or None."""
+    while isinstance(env, gym.Wrapper):
+        if isinstance(env, RelativeActions):
+            return env
+        env = env.env
+    return None
+
+
+def env_action(env: gym.Env, absolute: np.ndarray) -> np.ndarray:
+    """What ``env.step`` must receive to reach the absolute target ``absolute``: the relative action when
+    ``env`` has relative actions, else ``absolute`` itself (float32)."""
+    wrapper = find_relative_actions(env)
+    if wrapper is None:
+        return np.asarray(absolute, dtype=np.float32)
+    return wrapper.relative(absolute)
+
+
+class RelativeActions(gym.ActionWrapper):
+    """``env`` driven by actions relative to the jaw's measured pose (see the module docstring).
+
+    The action space bounds the position change to :data:`MAX_RELATIVE_STEP` per axis; the rotation columns to
+    [-1, 1] and the jaw to [0, 1], as the absolute action's. Non-finite actions pass through to the env, whose
+    check names them.
+    """
+
+    def __init__(self, env: gym.Env):
+        super().__init__(env)
+        step = np.full(3, MAX_RELATIVE_STEP)
+        self.action_space = spaces.Box(
+            low=np.concatenate([-step, -np.ones(6), [0.0]]).astype(np.float32),
+            high=np.concatenate([step, np.ones(6), [1.0]]).astype(np.float32),
+            dtype=np.float32,
+        )
+
+    def action(self, action) -> np.ndarray:
+        a = np.asarray(action, dtype=np.float64)
+        if a.shape != (POSE_DIM,):
+            raise ValueError(
+                f"a relative action must have shape ({POSE_DIM},) (position change 3, rotation change columns 6, "
+                f"jaw 1). Got shape {a.shape}."
+            )
+        if not np.all(np.isfinite(a)):
+            return a  # the env's own check names the bad entries
+        a = np.clip(a, self.action_space.low, self.action_space.high)
+        return absolute_action(*self.env.unwrapped.jaw_pose(), a)
+
+    def relative(self, absolute: np.ndarray) -> np.ndarray:
+        """The action (10,) float32 that asks for the absolute target ``absolute`` from the jaw's pose now."""
+        return relative_action(*self.env.unwrapped.jaw_pose(), absolute).astype(np.float32)
