@@ -21,10 +21,10 @@ from lerobot.utils.constants import ACTION, OBS_ENV_STATE
 from lerobot.utils.import_utils import register_third_party_plugins
 
 from lerobot_suture.datasets.features import PRIVILEGED_FEATURES
-from lerobot_suture.sim.subtasks import SUBTASK_DIM, SUBTASKS
+from lerobot_suture.sim.subtasks import SUBTASKS
 from lerobot_suture.sim.wound_marks import MARKS_DIM
 
-from .configuration_suture_chain import POLICIES_DIR, SutureChainConfig
+from .configuration_suture_chain import ENV_STATE_SIZES, POLICIES_DIR, SutureChainConfig
 from .processor_suture_chain import make_suture_chain_pre_post_processors
 
 
@@ -112,11 +112,7 @@ def write_chain(cfg: ChainCommandConfig) -> Path:
     configs = {source: PreTrainedConfig.from_pretrained(source) for source in names}
     for source, config in configs.items():
         size = config.input_features.get(OBS_ENV_STATE)
-        if size is not None and int(np.prod(size.shape)) not in (
-            MARKS_DIM,
-            SUBTASK_DIM,
-            MARKS_DIM + SUBTASK_DIM,
-        ):
+        if size is not None and int(np.prod(size.shape)) not in ENV_STATE_SIZES:
             raise ValueError(
                 f"The policy at {source} reads a privileged environment state ({tuple(size.shape)}): a chain runs "
                 "on what a robot measures. Train it with obs_type=pixels_agent_pos."

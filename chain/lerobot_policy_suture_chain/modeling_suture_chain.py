@@ -26,7 +26,7 @@ from torch import Tensor, nn
 from lerobot_suture.sim.subtasks import SUBTASK_DIM, SubtaskRules, subtask_vector
 from lerobot_suture.sim.wound_marks import MARKS_DIM
 
-from .configuration_suture_chain import POLICIES_DIR, SutureChainConfig
+from .configuration_suture_chain import ENV_STATE_SIZES, POLICIES_DIR, SutureChainConfig
 
 POSE_DIM = 10
 """Entries of the measured pose (``observation.state`` on the env path)."""
@@ -53,7 +53,7 @@ def environment_state_for(size: int, marks: Tensor | None, subtasks: Tensor) -> 
         return None
     if size == SUBTASK_DIM:
         return subtasks
-    if size not in (MARKS_DIM, MARKS_DIM + SUBTASK_DIM):
+    if size not in ENV_STATE_SIZES:
         raise ValueError(
             f"A subtask policy reads an environment state of {size} entries; the chain gives the marks "
             f"({MARKS_DIM}), the subtask ({SUBTASK_DIM}) or both ({MARKS_DIM + SUBTASK_DIM})."
