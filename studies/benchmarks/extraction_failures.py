@@ -9,7 +9,10 @@ stayed within 2 mm (``lerobot_suture.sim.extraction``). The scripted expert lets
 from the tip and pulls along the arc. Prints one JSON object: how many episodes let go of the tail,
 regrasped, pulled the needle out, and out through the exit hole within the strain bound; where the regrasps
 sat (arc angle from the tip, degrees); and, for the episodes that let go and never caught the needle again,
-the closest the jaw came to the expert's regrasp pose (mm and degrees).
+the closest the jaw came to the expert's regrasp pose (mm and degrees); and where the strain accumulated:
+before the first regrasp and during the pull, split into the needle centre's path (translation) and its
+off-axis turn, beside the pull's drift (how far the centre ended from where the pull began). A pull whose
+path is many times its drift strains the tissue by jitter, not by a straight pull.
 
     .venv/bin/python studies/benchmarks/extraction_failures.py --policy-path DIR [--episodes 50] [--output F.json]
 """
@@ -28,7 +31,8 @@ from _lockstep import jaw_pose_error, roll_out_lockstep, run_nominal_seeds  # no
 import lerobot_suture  # noqa: E402,F401
 from lerobot_suture.experiments.metrics import wilson_interval  # noqa: E402
 from lerobot_suture.sim.extraction import REGRASP_ANGLE, STRAIN_BOUND, TAIL_EXIT_TOLERANCE  # noqa: E402
-from lerobot_suture.sim.geometry import grasp_transform  # noqa: E402
+from lerobot_suture.sim.geometry import NEEDLE_RADIUS, grasp_transform  # noqa: E402
+from lerobot_suture.sim.tissue import off_arc_motion  # noqa: E402
 
 NEEDS = "a trained extraction policy (--policy-path)"
 TASK = "extraction"
@@ -50,6 +54,10 @@ def roll_out(runner, env_kwargs: dict, seeds: list[int]) -> list[dict]:
             "closest_mm": math.inf,
             "closest_rotation_deg": None,
             "was_held": True,  # every episode starts with the needle held at its tail
+            "strain_parts_mm": {"before_regrasp": [0.0, 0.0], "pull": [0.0, 0.0]},  # [path, turn]
+            "pull_drift_mm": None,
+            "_pose": None,
+            "_pull_start": None,
         }
         for s in seeds
     ]
@@ -66,6 +74,17 @@ def roll_out(runner, env_kwargs: dict, seeds: list[int]) -> list[dict]:
         if held and not ep["was_held"]:  # a new grasp: where along the needle it sits
             ep["regrasp_angles_deg"].append(math.degrees(u.grasp_parameters[0]))
         ep["was_held"] = held
+        centre, rotation = u.needle_pose()  # world; the nominal phantom does not move
+        if ep["_pose"] is not None and (u.needle_in_tissue or not ep["extracted"]):
+            path, turn = off_arc_motion(*ep["_pose"], centre, rotation, NEEDLE_RADIUS)
+            part = ep["strain_parts_mm"]["pull" if ep["regrasp_angles_deg"] else "before_regrasp"]
+            part[0] += 1e3 * path
+            part[1] += 1e3 * turn
+        if ep["regrasp_angles_deg"] and not ep["extracted"]:
+            if ep["_pull_start"] is None:
+                ep["_pull_start"] = centre.copy()
+            ep["pull_drift_mm"] = 1e3 * float(np.linalg.norm(centre - ep["_pull_start"]))
+        ep["_pose"] = (centre.copy(), rotation.copy())
         ep["extracted"] = ep["extracted"] or not u.needle_in_tissue
         tail = u.tail_exit_error
         ep["tail_exit_error_mm"] = None if math.isinf(tail) else 1e3 * tail
@@ -75,7 +94,7 @@ def roll_out(runner, env_kwargs: dict, seeds: list[int]) -> list[dict]:
 
     roll_out_lockstep(runner, env_kwargs, TASK, seeds, on_step)
     for ep in out:
-        del ep["was_held"]
+        del ep["was_held"], ep["_pose"], ep["_pull_start"]
         if math.isinf(ep["closest_mm"]):
             ep["closest_mm"] = None
     return out
@@ -110,6 +129,19 @@ def summarize(episodes: list[dict]) -> dict:
     pulled = [ep["strain_mm"] for ep in episodes if ep["extracted"]]
     if pulled:  # how far off its arc the needle went in the episodes that pulled it out
         summary["median_strain_mm_extracted"] = float(np.median(pulled))
+    pulls = [ep for ep in episodes if ep["extracted"] and ep["regrasp_angles_deg"]]
+    if pulls:  # where the strain of a pull came from: jitter (path much longer than drift) or a straight pull
+        summary["pull_strain_median_mm"] = {
+            "before_regrasp_path": float(
+                np.median([ep["strain_parts_mm"]["before_regrasp"][0] for ep in pulls])
+            ),
+            "before_regrasp_turn": float(
+                np.median([ep["strain_parts_mm"]["before_regrasp"][1] for ep in pulls])
+            ),
+            "pull_path": float(np.median([ep["strain_parts_mm"]["pull"][0] for ep in pulls])),
+            "pull_turn": float(np.median([ep["strain_parts_mm"]["pull"][1] for ep in pulls])),
+            "pull_drift": float(np.median([ep["pull_drift_mm"] for ep in pulls])),
+        }
     first = [ep["regrasp_angles_deg"][0] for ep in episodes if ep["regrasp_angles_deg"]]
     if first:
         summary["median_first_regrasp_deg"] = float(np.median(first))
