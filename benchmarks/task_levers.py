@@ -52,6 +52,8 @@ LEVERS = (
     Lever("data x500 + marks", 500, marks=True),
     Lever("marks + subtask", None, marks=True, subtask=True),
     Lever("relative actions", None, relative_actions=True),
+    Lever("relative actions + wrist camera", None, wrist_camera=True, relative_actions=True),
+    Lever("marks + subtask + relative actions", None, marks=True, subtask=True, relative_actions=True),
 )
 
 

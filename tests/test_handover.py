@@ -41,9 +41,13 @@ def _env(runner, **kwargs):
     )
 
 
-def test_forced_ood_hands_over_to_the_expert_which_finishes_the_insertion(tiny_policy_dir, tmp_path):
+@pytest.mark.parametrize("relative_actions", [False, True])
+def test_forced_ood_hands_over_to_the_expert_which_finishes_the_insertion(
+    tiny_policy_dir, tmp_path, relative_actions
+):
     runner = _runner(tiny_policy_dir, tmp_path, threshold=1e-12, enforce=True)
-    log = rollout_episode(_env(runner), runner, seed=0, surgeon="expert")
+    env = _env(runner, relative_actions=relative_actions)  # the surgeon's absolute targets reach either
+    log = rollout_episode(env, runner, seed=0, surgeon="expert")
     assert log.handover_step == 0
     assert all(step.controller == SURGEON for step in log.steps)
     assert log.steps[0].released and log.steps[0].ood and log.handover_cause == "gate"
@@ -67,9 +71,10 @@ class _JawPoses(gym.Wrapper):
         return out
 
 
-def test_with_no_surgeon_the_released_arm_holds_still(tiny_policy_dir, tmp_path):
+@pytest.mark.parametrize("relative_actions", [False, True])
+def test_with_no_surgeon_the_released_arm_holds_still(tiny_policy_dir, tmp_path, relative_actions):
     runner = _runner(tiny_policy_dir, tmp_path, threshold=1e-12, enforce=True)
-    env = _JawPoses(_env(runner))
+    env = _JawPoses(_env(runner, relative_actions=relative_actions))
     log = rollout_episode(env, runner, seed=1, surgeon="none", max_steps=12)
     assert [step.controller for step in log.steps] == [HOLD] * 12
     # The hold action is the pose measured at the release, so the jaw stays there: micrometres, not the

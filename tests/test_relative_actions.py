@@ -28,7 +28,9 @@ _vector = st.lists(st.floats(-1.0, 1.0, allow_nan=False), min_size=3, max_size=3
 
 @settings(max_examples=200, deadline=None)
 @given(_vector, _vector, _vector, _vector, st.floats(0.0, 1.0))
-def test_a_relative_action_composes_back_to_its_absolute_target(jaw_pos, jaw_turn, target_pos, target_turn, jaw):
+def test_a_relative_action_composes_back_to_its_absolute_target(
+    jaw_pos, jaw_turn, target_pos, target_turn, jaw
+):
     jaw_rot = matrix_from_rotvec(3.0 * jaw_turn)
     target = pose_vector(0.05 * target_pos, matrix_from_rotvec(3.0 * target_turn), jaw)
     relative = relative_action(0.05 * jaw_pos, jaw_rot, target)

@@ -8,6 +8,7 @@ callback after every env step, and the command line that runs them on the leader
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import platform
 import sys
@@ -79,6 +80,16 @@ def run_nominal_seeds(
     parser.add_argument("--seed", type=int, default=7_000_000, help="the leaderboard's base test seed")
     parser.add_argument("--batch-envs", type=int, default=10)
     parser.add_argument("--output", type=Path, help="write the JSON here too")
+    parser.add_argument(
+        "--relative-actions", action="store_true", help="the policy was trained on relative actions"
+    )
+    parser.add_argument(
+        "--override",
+        nargs="*",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="policy config fields at load, e.g. n_action_steps=8 uncertainty_samples_per_member=32",
+    )
     args = parser.parse_args()
     if args.episodes < 1 or args.batch_envs < 1:
         parser.error(f"--episodes and --batch-envs must be >= 1. Got {args.episodes}, {args.batch_envs}.")
@@ -86,8 +97,16 @@ def run_nominal_seeds(
         sys.exit(
             f"No trained policy at {args.policy_path} (no config.json): pass a pretrained_model directory."
         )
-    runner = reporting_runner(args.policy_path)
-    env_kwargs = env_kwargs_for_policy(runner.policy.config)
+    overrides = {}
+    for item in args.override:
+        field, sep, value = item.partition("=")
+        if not sep:
+            parser.error(f"--override takes FIELD=VALUE pairs. Got {item!r}.")
+        overrides[field] = json.loads(value)
+    runner = reporting_runner(args.policy_path, overrides=overrides)
+    env_kwargs = env_kwargs_for_policy(runner.policy.config) | (
+        {"relative_actions": True} if args.relative_actions else {}
+    )
     seeds = condition_seeds(args.seed, task, "nominal", args.episodes)
     start = time.perf_counter()
     episodes = []

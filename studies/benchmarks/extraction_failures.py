@@ -11,8 +11,9 @@ regrasped, pulled the needle out, and out through the exit hole within the strai
 sat (arc angle from the tip, degrees); and, for the episodes that let go and never caught the needle again,
 the closest the jaw came to the expert's regrasp pose (mm and degrees); and where the strain accumulated:
 before the first regrasp and during the pull, split into the needle centre's path (translation) and its
-off-axis turn, beside the pull's drift (how far the centre ended from where the pull began). A pull whose
-path is many times its drift strains the tissue by jitter, not by a straight pull.
+off-axis turn, beside the pull's drift (how far the centre ended from where the pull began), and the strain
+when the needle came out (the bound is judged then; a needle turned on afterwards goes back in and strains
+more). A pull whose path is many times its drift strains the tissue by jitter, not by a straight pull.
 
     .venv/bin/python studies/benchmarks/extraction_failures.py --policy-path DIR [--episodes 50] [--output F.json]
 """
@@ -56,6 +57,7 @@ def roll_out(runner, env_kwargs: dict, seeds: list[int]) -> list[dict]:
             "was_held": True,  # every episode starts with the needle held at its tail
             "strain_parts_mm": {"before_regrasp": [0.0, 0.0], "pull": [0.0, 0.0]},  # [path, turn]
             "pull_drift_mm": None,
+            "strain_at_extraction_mm": None,
             "_pose": None,
             "_pull_start": None,
         }
@@ -85,6 +87,8 @@ def roll_out(runner, env_kwargs: dict, seeds: list[int]) -> list[dict]:
                 ep["_pull_start"] = centre.copy()
             ep["pull_drift_mm"] = 1e3 * float(np.linalg.norm(centre - ep["_pull_start"]))
         ep["_pose"] = (centre.copy(), rotation.copy())
+        if not ep["extracted"] and not u.needle_in_tissue:  # out: what the bound is judged on
+            ep["strain_at_extraction_mm"] = 1e3 * float(info["tissue_strain"])
         ep["extracted"] = ep["extracted"] or not u.needle_in_tissue
         tail = u.tail_exit_error
         ep["tail_exit_error_mm"] = None if math.isinf(tail) else 1e3 * tail
@@ -141,6 +145,7 @@ def summarize(episodes: list[dict]) -> dict:
             "pull_path": float(np.median([ep["strain_parts_mm"]["pull"][0] for ep in pulls])),
             "pull_turn": float(np.median([ep["strain_parts_mm"]["pull"][1] for ep in pulls])),
             "pull_drift": float(np.median([ep["pull_drift_mm"] for ep in pulls])),
+            "at_extraction": float(np.median([ep["strain_at_extraction_mm"] for ep in pulls])),
         }
     first = [ep["regrasp_angles_deg"][0] for ep in episodes if ep["regrasp_angles_deg"]]
     if first:
