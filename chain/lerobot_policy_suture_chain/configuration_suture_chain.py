@@ -13,10 +13,10 @@ from lerobot_suture.sim.subtasks import SUBTASK_DIM, SUBTASKS, SubtaskRulesConfi
 from lerobot_suture.sim.wound_marks import MARKS_DIM
 
 POLICIES_DIR = "policies"
+"""The folder of a chain's directory that holds its subtask policies, one ``pretrained_model`` folder each."""
 ENV_STATE_SIZES = (MARKS_DIM, SUBTASK_DIM, MARKS_DIM + SUBTASK_DIM)
 """The environment states the chain gives a subtask policy: the marks, the subtask and throw, or both (marks
 first); a policy that reads any other (the privileged state) cannot run on what a robot measures."""
-"""The folder of a chain's directory that holds its subtask policies, one ``pretrained_model`` folder each."""
 _NAME = re.compile(r"^[A-Za-z0-9_.-]+$")
 
 

@@ -6,10 +6,10 @@ dimension over its range in the dataset: an error of 1% of the normalized positi
 pull whose target jitters by that much drags the needle off its arc at every step (the extraction's tissue
 strain sums that motion, ``studies/benchmarks/strain_tolerance.py``). Here the action is the motion from the
 jaw's measured pose to the target, in the jaw's own frame: the position change (3, m), the first two columns
-of the rotation change (6) and the jaw command (1, absolute: 1 = closed). A step moves at most a few
-millimetres, so the same normalized error is some hundred times smaller; and a pull about the needle's
-centre, constant in the jaw frame, is the same action at every step. The surgical robot transformer work on
-the dVRK chose relative actions for the same reason (the arm's absolute pose is not consistent).
+of the rotation change (6) and the jaw command (1, absolute: 1 = closed). A step moves at most 5 mm (the
+arm's speed limit), so the same normalized error is at least ten times smaller; and a pull about the needle's
+centre, constant in the jaw frame, is the same action at every step. The surgical robot transformer (SRT) on
+the dVRK learns relative motions too, there because the arm's absolute kinematics are inconsistent.
 
 :class:`RelativeActions` turns such an action into the env's absolute target (``absolute_action``) before the
 env steps it, so the controller, the CBF at the needle tip and every safety check see what they see for an
