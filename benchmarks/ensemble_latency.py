@@ -37,6 +37,8 @@ from _report import emit, machine
 from lerobot.utils.constants import OBS_IMAGES
 from lerobot_policy_ensemble_diffusion.modeling_ensemble_diffusion import EnsembleDiffusionPolicy
 
+from lerobot_suture.runtime.policy import parse_overrides
+
 PRESETS_DIR = Path(__file__).resolve().parents[1] / "policies" / "presets"
 
 
@@ -112,11 +114,7 @@ def main() -> None:
         torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     device = torch.device(args.device)
-    overrides = {}
-    for item in args.set:
-        key, _, value = item.partition("=")
-        value = json.loads(value)
-        overrides[key] = tuple(value) if isinstance(value, list) else value
+    overrides = {k: tuple(v) if isinstance(v, list) else v for k, v in parse_overrides(args.set).items()}
     config = load_preset_config(args.preset, n_members=args.n_members, device=args.device, **overrides)
     policy = EnsembleDiffusionPolicy(config, dataset_stats=fake_dataset_stats()).to(device).eval()
 

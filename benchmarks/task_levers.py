@@ -53,6 +53,7 @@ LEVERS = (
     Lever("marks + subtask", None, marks=True, subtask=True),
     Lever("relative actions", None, relative_actions=True),
     Lever("relative actions + wrist camera", None, wrist_camera=True, relative_actions=True),
+    Lever("data x500 + relative actions", 500, relative_actions=True),
     Lever("marks + subtask + relative actions", None, marks=True, subtask=True, relative_actions=True),
 )
 
@@ -150,20 +151,17 @@ def chained(pretrained: Path, chain_dir: Path) -> Path:
     return chain_dir
 
 
-def evaluate(
-    task: str, pretrained: Path, episodes: int, seed: int, batch_envs: int, relative_actions: bool = False
-) -> dict:
-    """The checkpoint on the board's nominal test seeds of ``task``: the leaderboard's cell; with
-    ``relative_actions`` in an env that takes the actions relative to the jaw's measured pose."""
+def evaluate(task: str, pretrained: Path, episodes: int, seed: int, batch_envs: int) -> dict:
+    """The checkpoint on the board's nominal test seeds of ``task``: the leaderboard's cell. A checkpoint
+    trained on relative actions composes them with the measured pose in its own post-processor, so every
+    line runs on the same env."""
     from lerobot_suture.leaderboard import cells
     from lerobot_suture.runtime.policy import GateMode, PolicyRunner, env_kwargs_for_policy
     from lerobot_suture.sim.tasks import task_spec
 
     runner = PolicyRunner.from_pretrained(pretrained, GateMode.REPORT, "cpu", {})
     seeds = cells.condition_seeds(seed, task, "nominal", episodes)
-    env_kwargs = env_kwargs_for_policy(runner.policy.config) | (
-        {"relative_actions": True} if relative_actions else {}
-    )
+    env_kwargs = env_kwargs_for_policy(runner.policy.config)
     logs, seconds = cells.cell_episodes(runner, env_kwargs, task, "nominal", seeds, batch_envs)
     return cells.summarize_cell(logs, seconds, throws=task_spec(task).throws)
 
@@ -257,9 +255,7 @@ def main() -> None:
             cell = json.loads(cell_path.read_text())
         else:
             print(f"[{lever.name}] evaluating {args.episodes} test episodes ...", flush=True)
-            cell = evaluate(
-                args.task, pretrained, args.episodes, args.seed, args.batch_envs, lever.relative_actions
-            )
+            cell = evaluate(args.task, pretrained, args.episodes, args.seed, args.batch_envs)
             cell_path.parent.mkdir(parents=True, exist_ok=True)
             cell_path.write_text(json.dumps(cell))
         lines.append(

@@ -52,9 +52,6 @@ class SutureEnvConfig(EnvConfig):
             ``obs_type=pixels_agent_pos``.
         subtask: add the high level's subtask and throw (``observation.environment_state``, (5,) after the
             marks; ``lerobot_suture.sim.subtasks``); needs ``obs_type=pixels_agent_pos``.
-        relative_actions: take each action as the motion from the jaw's measured pose, in the jaw frame
-            (``lerobot_suture.sim.relative_actions``): what a policy trained on a dataset recorded with
-            ``--relative_actions=true`` outputs.
     """
 
     task: str | None = DEFAULT_TASK
@@ -71,7 +68,6 @@ class SutureEnvConfig(EnvConfig):
     wrist_camera: bool = False
     marks: bool = False
     subtask: bool = False
-    relative_actions: bool = False
     features: dict[str, PolicyFeature] = field(
         default_factory=lambda: {
             ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(10,)),
@@ -159,6 +155,4 @@ class SutureEnvConfig(EnvConfig):
             kwargs["marks"] = True
         if self.subtask:
             kwargs["subtask"] = True
-        if self.relative_actions:
-            kwargs["relative_actions"] = True
         return kwargs

@@ -47,8 +47,8 @@ class RecordConfig:
         subtask: also record the high level's subtask and throw (``lerobot_suture.sim.subtasks``: one-hot and
             throw, (5,), after the marks in ``observation.environment_state``); needs ``obs_type=pixels_agent_pos``.
         relative_actions: record each action as the motion from the jaw's measured pose, in the jaw frame
-            (``lerobot_suture.sim.relative_actions``): a policy trained on it runs in an env made with
-            ``relative_actions=True`` (``--env.relative_actions=true``).
+            (``lerobot_suture.sim.relative_actions``): an ``ensemble_diffusion`` policy trained on it composes
+            its actions with the measured pose in its post-processor, and runs on the plain env.
         scenario: perturbation scenario (``lerobot_suture.sim.scenarios.SCENARIOS``); the expert fails
             under some of them and those episodes are discarded.
         seed: env seed of the first attempt; attempt ``k`` uses ``seed + k``.

@@ -68,6 +68,25 @@ def load_policy(policy_path: str | Path, device: str = "cpu", overrides: dict | 
     return policy, preprocessor, postprocessor
 
 
+def parse_overrides(items: Sequence[str]) -> dict:
+    """A command line's ``FIELD=VALUE`` config overrides as a dict, each value read as JSON (``[32,64]``,
+    ``8``, ``true``) or, if it is none, kept as the string (``DDIM``).
+
+    Raises:
+        ValueError: an item has no ``=`` or no field name.
+    """
+    overrides = {}
+    for item in items:
+        field, sep, value = item.partition("=")
+        if not sep or not field:
+            raise ValueError(f"Config overrides are FIELD=VALUE pairs, e.g. n_action_steps=8. Got {item!r}.")
+        try:
+            overrides[field] = json.loads(value)
+        except json.JSONDecodeError:
+            overrides[field] = value
+    return overrides
+
+
 def override_config(config, overrides: dict | None):
     """``config`` with the fields of ``overrides`` changed, validated by the config's own checks.
 

@@ -60,6 +60,41 @@ def relative_action(jaw_pos: np.ndarray, jaw_rot: np.ndarray, absolute: np.ndarr
     return out
 
 
+RELATIVE_LOW = np.concatenate([np.full(3, -MAX_RELATIVE_STEP), -np.ones(6), [0.0]])
+RELATIVE_HIGH = np.concatenate([np.full(3, MAX_RELATIVE_STEP), np.ones(6), [1.0]])
+"""Bounds of a relative action (10,): the position change to :data:`MAX_RELATIVE_STEP` per axis, the rotation
+columns to [-1, 1] and the jaw to [0, 1], as the absolute action's."""
+
+
+def target_from_relative(jaw_pos: np.ndarray, jaw_rot: np.ndarray, relative: np.ndarray) -> np.ndarray:
+    """The absolute target (10,) float64 a policy's relative action asks for from the jaw pose ``jaw_pos``
+    (3,) m, ``jaw_rot`` (3, 3): the action clipped to :data:`RELATIVE_LOW` .. :data:`RELATIVE_HIGH`, then
+    composed (:func:`absolute_action`). A non-finite action is returned as it is, for the env's own check to
+    name its bad entries.
+
+    Raises:
+        ValueError: ``relative`` is not of shape (10,).
+    """
+    a = np.asarray(relative, dtype=np.float64)
+    if a.shape != (POSE_DIM,):
+        raise ValueError(
+            f"a relative action must have shape ({POSE_DIM},) (position change 3, rotation change columns 6, "
+            f"jaw 1). Got shape {a.shape}."
+        )
+    if not np.all(np.isfinite(a)):
+        return a
+    return absolute_action(jaw_pos, jaw_rot, np.clip(a, RELATIVE_LOW, RELATIVE_HIGH))
+
+
+def hold_motion(jaw: float) -> np.ndarray:
+    """The relative action (10,) float64 that keeps the jaw where it is: no motion, the identity rotation's
+    columns, the jaw command ``jaw``."""
+    out = np.zeros(POSE_DIM)
+    out[3] = out[7] = 1.0
+    out[9] = jaw
+    return out
+
+
 def find_relative_actions(env: gym.Env) -> RelativeActions | None:
     """The :class:`RelativeActions` wrapper in ``env``'s chain of wrappers, or None."""
     while isinstance(env, gym.Wrapper):
@@ -81,31 +116,20 @@ def env_action(env: gym.Env, absolute: np.ndarray) -> np.ndarray:
 class RelativeActions(gym.ActionWrapper):
     """``env`` driven by actions relative to the jaw's measured pose (see the module docstring).
 
-    The action space bounds the position change to :data:`MAX_RELATIVE_STEP` per axis; the rotation columns to
-    [-1, 1] and the jaw to [0, 1], as the absolute action's. Non-finite actions pass through to the env, whose
-    check names them.
+    The action space is :data:`RELATIVE_LOW` .. :data:`RELATIVE_HIGH`; each action becomes its target with
+    :func:`target_from_relative`, from the simulator's jaw pose. A trained policy does not need this wrapper:
+    its own post-processor composes its actions with the measured pose (``agent_pos``) and hands any env or
+    robot absolute targets.
     """
 
     def __init__(self, env: gym.Env):
         super().__init__(env)
-        step = np.full(3, MAX_RELATIVE_STEP)
         self.action_space = spaces.Box(
-            low=np.concatenate([-step, -np.ones(6), [0.0]]).astype(np.float32),
-            high=np.concatenate([step, np.ones(6), [1.0]]).astype(np.float32),
-            dtype=np.float32,
+            low=RELATIVE_LOW.astype(np.float32), high=RELATIVE_HIGH.astype(np.float32), dtype=np.float32
         )
 
     def action(self, action) -> np.ndarray:
-        a = np.asarray(action, dtype=np.float64)
-        if a.shape != (POSE_DIM,):
-            raise ValueError(
-                f"a relative action must have shape ({POSE_DIM},) (position change 3, rotation change columns 6, "
-                f"jaw 1). Got shape {a.shape}."
-            )
-        if not np.all(np.isfinite(a)):
-            return a  # the env's own check names the bad entries
-        a = np.clip(a, self.action_space.low, self.action_space.high)
-        return absolute_action(*self.env.unwrapped.jaw_pose(), a)
+        return target_from_relative(*self.env.unwrapped.jaw_pose(), action)
 
     def relative(self, absolute: np.ndarray) -> np.ndarray:
         """The action (10,) float32 that asks for the absolute target ``absolute`` from the jaw's pose now."""

@@ -21,6 +21,7 @@ assembly helpers are imported on first use, so registration stays light.
 from importlib import import_module
 
 from .configuration_ensemble_diffusion import EnsembleDiffusionConfig, EnsembleOODConfig
+from .jaw_frame_actions import JawFrameAbsoluteActionsStep  # registered: a saved post-processor names it
 
 _LAZY = {
     "EnsembleDiffusionPolicy": "modeling_ensemble_diffusion",
@@ -35,7 +36,7 @@ _LAZY = {
     "total_covariance_split": "ensemble_stats",
 }
 
-__all__ = ["EnsembleDiffusionConfig", "EnsembleOODConfig", *_LAZY]
+__all__ = ["EnsembleDiffusionConfig", "EnsembleOODConfig", "JawFrameAbsoluteActionsStep", *_LAZY]
 
 
 def __getattr__(name: str):

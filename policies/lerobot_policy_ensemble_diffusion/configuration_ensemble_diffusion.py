@@ -141,6 +141,11 @@ class EnsembleDiffusionConfig(DiffusionConfig):
         optimizer_name: "adamw" (default; decoupled weight decay, as the paper's 0.1 is meant) or "adam"
             (LeRobot's diffusion preset; L2 penalty). Either is built with PyTorch's fused kernel
             (optimizer types `adamw_fused` / `adam_fused`, see `optim.py`).
+        action_feature_names: The names of the training dataset's action components, set by LeRobot's
+            `make_policy` when the policy is built from a dataset and saved with the checkpoint. The relative
+            names `dx` ... `jaw` (`lerobot-suture record --relative_actions=true`) give the policy's processors
+            the pair that composes each action with the measured jaw pose (`jaw_frame_actions.py`), so the
+            checkpoint hands out absolute targets wherever it runs.
     """
 
     # Inputs / output structure (paper, Table I).
@@ -183,6 +188,9 @@ class EnsembleDiffusionConfig(DiffusionConfig):
 
     # Optimizer.
     optimizer_name: str = "adamw"
+
+    # The dataset's action names (LeRobot's field; `make_policy` fills it from the dataset).
+    action_feature_names: list[str] | None = None
 
     def __post_init__(self):
         super().__post_init__()
@@ -250,6 +258,16 @@ class EnsembleDiffusionConfig(DiffusionConfig):
             )
         if isinstance(self.ood, dict):  # built from Python with a plain dict
             self.ood = EnsembleOODConfig(**self.ood)
+
+    @property
+    def relative_actions(self) -> bool:
+        """Whether the policy was trained on actions relative to the jaw's measured pose."""
+        from lerobot_suture.sim.relative_actions import RELATIVE_ACTION_NAMES
+
+        return (
+            self.action_feature_names is not None
+            and tuple(self.action_feature_names) == RELATIVE_ACTION_NAMES
+        )
 
     def validate_features(self) -> None:
         """LeRobot's checks, after taking the needle's keypoints out of the inputs.

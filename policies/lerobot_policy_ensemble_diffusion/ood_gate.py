@@ -29,6 +29,7 @@ from torch import Tensor
 from lerobot_suture.safety.ood.calibration import OODCalibration
 from lerobot_suture.safety.ood.calibration_file import load_calibration
 from lerobot_suture.safety.ood.gate import OODGate, silent_status
+from lerobot_suture.sim.relative_actions import hold_motion
 
 from .configuration_ensemble_diffusion import EnsembleDiffusionConfig
 from .normalization import action_affine_from_stats
@@ -154,7 +155,8 @@ class GatedPolicyMixin:
             self.ood_flagged_at = time.perf_counter()
 
     def _hold_action(self, batch: dict[str, Tensor]) -> Tensor:
-        """The measured pose as a normalized action, (B, A): the arm stops where it is."""
+        """The measured pose as a normalized action, (B, A): the arm stops where it is. For a policy of
+        relative actions, the motion that keeps the measured pose (its post-processor composes it)."""
         if not bool(torch.isfinite(self.state_unnormalize_scale).all()) or not self.has_action_stats:
             raise ValueError(
                 "The O.O.D. gate released control but the policy cannot form a hold action: it does not know "
@@ -163,6 +165,9 @@ class GatedPolicyMixin:
             )
         state = batch[OBS_STATE]  # (B, S), normalized, the current observation
         pose = state * self.state_unnormalize_scale + self.state_unnormalize_offset
+        if self.config.relative_actions:
+            motion = torch.as_tensor(hold_motion(0.0), dtype=pose.dtype, device=pose.device)
+            pose = torch.cat([motion[:-1].expand(pose.shape[0], -1), pose[:, -1:]], dim=1)
         return (pose - self.action_unnormalize_offset) / self.action_unnormalize_scale
 
     def _hold_where_released(self, actions: Tensor, batch: dict[str, Tensor]) -> Tensor:

@@ -14,9 +14,11 @@
 from typing import Any
 
 import torch
-from lerobot.processor import PolicyAction, PolicyProcessorPipeline, make_default_pre_post_processors
+from lerobot.processor import PolicyAction, PolicyProcessorPipeline
+from lerobot.processor.factory import make_default_policy_processor_steps, make_policy_processor_pipelines
 
 from .configuration_ensemble_diffusion import EnsembleDiffusionConfig
+from .jaw_frame_actions import JawFrameAbsoluteActionsStep, state_cache_step
 
 
 def make_ensemble_diffusion_pre_post_processors(
@@ -26,11 +28,14 @@ def make_ensemble_diffusion_pre_post_processors(
     PolicyProcessorPipeline[dict[str, Any], dict[str, Any]],
     PolicyProcessorPipeline[PolicyAction, PolicyAction],
 ]:
-    """Pre- and post-processor pipelines of the ensemble: the same as a single diffusion policy's.
+    """Pre- and post-processor pipelines of the ensemble: a single diffusion policy's, and for a policy trained
+    on relative actions the pair that composes them with the measured jaw pose.
 
     All members share one normalization (one dataset), so the ensemble's processors are LeRobot's default
     diffusion ones: rename -> add batch dim -> device -> normalize, and unnormalize -> cpu. This is also what
     makes separately trained `diffusion` members assemblable (their processor files are reused as they are).
+    With `config.relative_actions` the pre-processor caches the raw state after batching, and the
+    post-processor turns each unnormalized action into its absolute target (`jaw_frame_actions.py`).
 
     Args:
         config: The ensemble policy configuration (features, normalization mapping, device).
@@ -39,4 +44,11 @@ def make_ensemble_diffusion_pre_post_processors(
     Returns:
         The (pre-processor, post-processor) pipelines.
     """
-    return make_default_pre_post_processors(config, dataset_stats)
+    s = make_default_policy_processor_steps(config, dataset_stats)
+    input_steps = [s.rename_observations, s.add_batch_dim, s.to_device, s.normalize]
+    output_steps = [s.unnormalize, s.to_cpu]
+    if config.relative_actions:
+        cache = state_cache_step()
+        input_steps.insert(2, cache)
+        output_steps.append(JawFrameAbsoluteActionsStep(relative_step=cache))
+    return make_policy_processor_pipelines(input_steps=input_steps, output_steps=output_steps)

@@ -8,7 +8,6 @@ callback after every env step, and the command line that runs them on the leader
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import platform
 import sys
@@ -23,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))  # t
 from _report import emit, machine  # noqa: E402
 
 from lerobot_suture.leaderboard.cells import condition_seeds  # noqa: E402
-from lerobot_suture.runtime.policy import env_kwargs_for_policy, reporting_runner  # noqa: E402
+from lerobot_suture.runtime.policy import env_kwargs_for_policy, parse_overrides, reporting_runner  # noqa: E402
 from lerobot_suture.runtime.rollout import make_scenario_env  # noqa: E402
 from lerobot_suture.safety.cbf_config import CBFConfig  # noqa: E402
 from lerobot_suture.sim.geometry import jaw_holding, rotation_angle_of  # noqa: E402
@@ -81,9 +80,6 @@ def run_nominal_seeds(
     parser.add_argument("--batch-envs", type=int, default=10)
     parser.add_argument("--output", type=Path, help="write the JSON here too")
     parser.add_argument(
-        "--relative-actions", action="store_true", help="the policy was trained on relative actions"
-    )
-    parser.add_argument(
         "--override",
         nargs="*",
         default=[],
@@ -97,16 +93,12 @@ def run_nominal_seeds(
         sys.exit(
             f"No trained policy at {args.policy_path} (no config.json): pass a pretrained_model directory."
         )
-    overrides = {}
-    for item in args.override:
-        field, sep, value = item.partition("=")
-        if not sep:
-            parser.error(f"--override takes FIELD=VALUE pairs. Got {item!r}.")
-        overrides[field] = json.loads(value)
+    try:
+        overrides = parse_overrides(args.override)
+    except ValueError as error:
+        parser.error(str(error))
     runner = reporting_runner(args.policy_path, overrides=overrides)
-    env_kwargs = env_kwargs_for_policy(runner.policy.config) | (
-        {"relative_actions": True} if args.relative_actions else {}
-    )
+    env_kwargs = env_kwargs_for_policy(runner.policy.config)  # a relative policy composes its own actions
     seeds = condition_seeds(args.seed, task, "nominal", args.episodes)
     start = time.perf_counter()
     episodes = []

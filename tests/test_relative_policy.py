@@ -1,0 +1,141 @@
+"""A policy trained on relative actions carries that in its checkpoint and hands out absolute targets: LeRobot's
+`make_policy` marks it from the dataset, its saved processors compose each action with the measured jaw pose,
+and its enforced gate's hold keeps the arm where it is."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from lerobot_suture.sim.geometry import matrix_from_rot6
+from lerobot_suture.sim.relative_actions import MAX_RELATIVE_STEP, RELATIVE_ACTION_NAMES, relative_action
+from lerobot_suture.sim.tasks import TASKS
+
+
+@pytest.fixture(scope="module")
+def relative_policy_dir(tmp_path_factory):
+    """An untrained tiny ensemble built by LeRobot's `make_policy` from a one-episode extraction dataset
+    recorded with relative actions (endoscope and state), saved as `lerobot-train` saves one."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+    from lerobot.policies.factory import make_policy, make_pre_post_processors
+    from lerobot_policy_ensemble_diffusion import EnsembleDiffusionConfig
+    from policy_builders import TINY_POLICY_KWARGS
+
+    from lerobot_suture.datasets.record import record
+    from lerobot_suture.datasets.record_config import RecordConfig
+
+    root = tmp_path_factory.mktemp("relative_data") / "data"
+    record(
+        RecordConfig(
+            repo_id="suture-tests/relative-policy",
+            root=str(root),
+            task="extraction",
+            num_episodes=1,
+            val_fraction=0.0,
+            relative_actions=True,
+        )
+    )
+    meta = LeRobotDatasetMetadata("suture-tests/relative-policy", root=root)
+    torch.manual_seed(0)
+    policy = make_policy(EnsembleDiffusionConfig(**TINY_POLICY_KWARGS, device="cpu"), ds_meta=meta)
+    directory = tmp_path_factory.mktemp("relative_policy") / "pretrained_model"
+    policy.save_pretrained(directory)
+    for pipeline in make_pre_post_processors(policy.config, dataset_stats=meta.stats):
+        pipeline.save_pretrained(directory)
+    return directory
+
+
+def test_the_checkpoint_says_it_was_trained_on_relative_actions(relative_policy_dir, tiny_policy_dir):
+    config = json.loads((relative_policy_dir / "config.json").read_text())
+    assert config["action_feature_names"] == list(RELATIVE_ACTION_NAMES)
+    steps = json.loads((relative_policy_dir / "policy_postprocessor.json").read_text())["steps"]
+    assert steps[-1]["registry_name"] == "jaw_frame_absolute_actions"
+    absolute = json.loads((tiny_policy_dir / "policy_postprocessor.json").read_text())["steps"]
+    assert "jaw_frame_absolute_actions" not in [s.get("registry_name") for s in absolute]
+
+
+def test_a_relative_policy_hands_the_plain_env_targets_one_step_from_the_jaw(relative_policy_dir):
+    import gymnasium as gym
+
+    from lerobot_suture.runtime.policy import GateMode, PolicyRunner
+
+    runner = PolicyRunner.from_pretrained(relative_policy_dir, GateMode.REPORT)
+    env = gym.make(TASKS["extraction"].gym_id, obs_type="pixels_agent_pos")
+    observation, _ = env.reset(seed=5)
+    runner.reset()
+    for _ in range(6):
+        target = runner.act(observation)
+        jaw_pos, jaw_rot = env.unwrapped.jaw_pose()
+        # Read as an absolute pose, the raw relative output would sit near the base frame's origin.
+        motion = relative_action(jaw_pos, jaw_rot, target)
+        assert np.all(np.abs(motion[:3]) <= MAX_RELATIVE_STEP + 1e-5), motion[:3]
+        observation, *_ = env.step(target)
+
+
+def test_the_released_gate_of_a_relative_policy_holds_the_measured_pose(relative_policy_dir):
+    import gymnasium as gym
+
+    from lerobot_suture.runtime.policy import GateMode, PolicyRunner
+
+    runner = PolicyRunner.from_pretrained(relative_policy_dir, GateMode.REPORT)
+    env = gym.make(TASKS["extraction"].gym_id, obs_type="pixels_agent_pos")
+    observations = [env.reset(seed=seed)[0] for seed in (1, 2)]
+    batch = runner.preprocess(observations)
+    held = runner.postprocessor(runner.policy._hold_action(batch)).numpy()
+    measured = np.stack([o["agent_pos"] for o in observations])
+    np.testing.assert_allclose(held[:, :3], measured[:, :3], atol=1e-6)
+    for h, m in zip(held, measured, strict=True):
+        np.testing.assert_allclose(matrix_from_rot6(h[3:9]), matrix_from_rot6(m[3:9]), atol=1e-5)
+    np.testing.assert_allclose(held[:, 9], measured[:, 9], atol=1e-5)
+
+
+def test_the_post_processor_names_what_it_lacks(relative_policy_dir):
+    import gymnasium as gym
+    from lerobot.processor import PolicyProcessorPipeline
+    from lerobot.processor.converters import policy_action_to_transition, transition_to_policy_action
+
+    from lerobot_suture.runtime.policy import GateMode, PolicyRunner
+
+    alone = PolicyProcessorPipeline.from_pretrained(
+        relative_policy_dir,
+        config_filename="policy_postprocessor.json",
+        to_transition=policy_action_to_transition,
+        to_output=transition_to_policy_action,
+    )  # loaded without its pre-processor: nothing pairs them
+    with pytest.raises(RuntimeError, match="run its pre-processor"):
+        alone(torch.zeros(1, 10))
+    runner = PolicyRunner.from_pretrained(relative_policy_dir, GateMode.REPORT)
+    runner.preprocess([gym.make(TASKS["extraction"].gym_id, obs_type="pixels_agent_pos").reset(seed=0)[0]])
+    with pytest.raises(ValueError, match="one per step"):
+        runner.postprocessor(torch.zeros(1, 4, 10))  # a whole chunk
+
+
+def test_lerobot_rollout_runs_a_relative_policy_on_the_arm(relative_policy_dir, tmp_path):
+    from robot_commands import read_trace, robot_args, run_command
+
+    from lerobot_suture.sim.task import TASK
+
+    trace = tmp_path / "trace.jsonl"
+    run_command(
+        "lerobot-rollout",
+        [
+            "--strategy.type=base",
+            f"--policy.path={relative_policy_dir}",
+            "--device=cpu",
+            "--fps=10",
+            "--duration=1.5",
+            "--return_to_initial_position=false",
+            "--play_sounds=false",
+            f"--task={TASK}",
+            *robot_args(trace, "--robot.seed=5", "--robot.task=extraction"),
+        ],
+    )
+    steps = read_trace(trace)
+    assert len(steps) >= 5
+    for before, after in zip(steps, steps[1:], strict=False):
+        pose = np.asarray(before["pose"])
+        motion = relative_action(pose[:3], matrix_from_rot6(pose[3:9]), np.asarray(after["action"]))
+        assert np.all(np.abs(motion[:3]) <= MAX_RELATIVE_STEP + 1e-4), motion[:3]
