@@ -28,12 +28,7 @@ from lerobot.processor.relative_action_processor import (
 )
 
 from lerobot_suture.sim.geometry import POSE_DIM, matrix_from_rot6
-from lerobot_suture.sim.relative_actions import RELATIVE_ACTION_NAMES, target_from_relative
-
-
-def has_relative_actions(action_feature_names) -> bool:
-    """Whether a dataset's action names (LeRobot's ``action_feature_names``) are the relative ones."""
-    return action_feature_names is not None and tuple(action_feature_names) == RELATIVE_ACTION_NAMES
+from lerobot_suture.sim.relative_actions import target_from_relative
 
 
 def state_cache_step() -> RelativeActionsProcessorStep:
