@@ -144,6 +144,11 @@ def test_dataset_without_episode_log_or_validation_is_refused(tiny_policy_dir, d
     log_path.write_text(json.dumps(log))
     with pytest.raises(ValueError, match="record it with `--val_fraction` > 0"):
         DaggerConfig(policy=policy, dataset_root=no_val)
+    log["splits"]["val"] = [0]
+    log["env_kwargs"]["relative_actions"] = True
+    log_path.write_text(json.dumps(log))
+    with pytest.raises(ValueError, match="holds relative actions"):
+        DaggerConfig(policy=policy, dataset_root=no_val)
     cfg = DaggerConfig(policy=policy, dataset_root=demo_root, arms="bc,gated", toy=True)
     assert (
         cfg.arm_list == ["gated", "bc"]

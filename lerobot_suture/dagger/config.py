@@ -178,6 +178,13 @@ class DaggerConfig(RolloutCommandConfig):
                 f"The dataset at {self.dataset_root} has no validation episodes to calibrate the gate on: "
                 "record it with `--val_fraction` > 0."
             )
+        if log.get("env_kwargs", {}).get("relative_actions"):
+            raise ValueError(
+                f"The dataset at {self.dataset_root} holds relative actions (`dx` ... `jaw`), and a round records "
+                "the executed absolute targets, so the two cannot be merged into one training set. Run DAgger on "
+                "a policy trained on a dataset recorded with absolute actions (`lerobot-suture record` without "
+                "`--relative_actions`)."
+            )
 
     @property
     def arm_list(self) -> list[str]:
