@@ -139,3 +139,22 @@ def test_lerobot_rollout_runs_a_relative_policy_on_the_arm(relative_policy_dir, 
         pose = np.asarray(before["pose"])
         motion = relative_action(pose[:3], matrix_from_rot6(pose[3:9]), np.asarray(after["action"]))
         assert np.all(np.abs(motion[:3]) <= MAX_RELATIVE_STEP + 1e-4), motion[:3]
+
+
+def test_the_env_wrapper_and_the_post_processor_compose_from_the_same_measured_pose():
+    """A recorded label and a trained policy's action meet the same pose: the last observation's ``agent_pos``
+    (the endoscope's rendering refreshes MuJoCo's kinematics after it is read, so the simulator's pose of the
+    moment is not the one the robot reported)."""
+    import gymnasium as gym
+    from lerobot_policy_ensemble_diffusion.jaw_frame_actions import targets_from_relative
+
+    from lerobot_suture.sim.relative_actions import find_relative_actions
+
+    env = gym.make(TASKS["extraction"].gym_id, relative_actions=True)
+    observation, _ = env.reset(seed=3)
+    rng = np.random.default_rng(0)
+    for _ in range(4):
+        motion = np.concatenate([rng.uniform(-0.004, 0.004, 3), [1, 0.02, 0, -0.02, 1, 0], [0.5]])
+        expected = targets_from_relative(observation["agent_pos"][None], motion[None])[0]
+        np.testing.assert_allclose(find_relative_actions(env).action(motion), expected, atol=1e-12)
+        observation, *_ = env.step(motion.astype(np.float32))

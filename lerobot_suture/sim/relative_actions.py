@@ -113,13 +113,19 @@ def env_action(env: gym.Env, absolute: np.ndarray) -> np.ndarray:
     return wrapper.relative(absolute)
 
 
-class RelativeActions(gym.ActionWrapper):
+def measured_jaw(agent_pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The jaw pose an observation's ``agent_pos`` (10,) reports: position (3,) m and rotation (3, 3), float64."""
+    pose = np.asarray(agent_pos, dtype=np.float64)
+    return pose[:3], matrix_from_rot6(pose[3:9])
+
+
+class RelativeActions(gym.Wrapper):
     """``env`` driven by actions relative to the jaw's measured pose (see the module docstring).
 
     The action space is :data:`RELATIVE_LOW` .. :data:`RELATIVE_HIGH`; each action becomes its target with
-    :func:`target_from_relative`, from the simulator's jaw pose. A trained policy does not need this wrapper:
-    its own post-processor composes its actions with the measured pose (``agent_pos``) and hands any env or
-    robot absolute targets.
+    :func:`target_from_relative`, from the pose the last observation reported (``agent_pos``, as the robot
+    measures it), so a recorded label and a trained policy's post-processor compose from the same numbers. A
+    trained policy does not need this wrapper: its post-processor hands any env or robot absolute targets.
     """
 
     def __init__(self, env: gym.Env):
@@ -127,10 +133,27 @@ class RelativeActions(gym.ActionWrapper):
         self.action_space = spaces.Box(
             low=RELATIVE_LOW.astype(np.float32), high=RELATIVE_HIGH.astype(np.float32), dtype=np.float32
         )
+        self._agent_pos: np.ndarray | None = None
+
+    def reset(self, **kwargs):
+        observation, info = self.env.reset(**kwargs)
+        self._agent_pos = np.array(observation["agent_pos"], dtype=np.float64)
+        return observation, info
+
+    def step(self, action):
+        observation, reward, terminated, truncated, info = self.env.step(self.action(action))
+        self._agent_pos = np.array(observation["agent_pos"], dtype=np.float64)
+        return observation, reward, terminated, truncated, info
+
+    def _measured(self) -> tuple[np.ndarray, np.ndarray]:
+        if self._agent_pos is None:
+            raise RuntimeError("Reset the env before stepping it.")
+        return measured_jaw(self._agent_pos)
 
     def action(self, action) -> np.ndarray:
-        return target_from_relative(*self.env.unwrapped.jaw_pose(), action)
+        """The absolute target (10,) float64 of the relative ``action``."""
+        return target_from_relative(*self._measured(), action)
 
     def relative(self, absolute: np.ndarray) -> np.ndarray:
-        """The action (10,) float32 that asks for the absolute target ``absolute`` from the jaw's pose now."""
-        return relative_action(*self.env.unwrapped.jaw_pose(), absolute).astype(np.float32)
+        """The action (10,) float32 that asks for the absolute target ``absolute`` from the measured pose."""
+        return relative_action(*self._measured(), absolute).astype(np.float32)

@@ -27,8 +27,8 @@ from lerobot.processor.relative_action_processor import (
     RelativeActionsProcessorStep,
 )
 
-from lerobot_suture.sim.geometry import POSE_DIM, matrix_from_rot6
-from lerobot_suture.sim.relative_actions import target_from_relative
+from lerobot_suture.sim.geometry import POSE_DIM
+from lerobot_suture.sim.relative_actions import measured_jaw, target_from_relative
 
 
 def state_cache_step() -> RelativeActionsProcessorStep:
@@ -40,10 +40,7 @@ def targets_from_relative(measured: np.ndarray, relative: np.ndarray) -> np.ndar
     """(B, 10) float64 absolute targets of ``relative`` (B, 10) actions from ``measured`` (B, 10) jaw poses
     (``agent_pos``'s layout: position m, rotation columns, jaw)."""
     return np.stack(
-        [
-            target_from_relative(pose[:3], matrix_from_rot6(pose[3:9]), a)
-            for pose, a in zip(measured, relative, strict=True)
-        ]
+        [target_from_relative(*measured_jaw(pose), a) for pose, a in zip(measured, relative, strict=True)]
     )
 
 
