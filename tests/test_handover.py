@@ -198,6 +198,23 @@ def test_config_overrides_reach_the_policy_and_the_workers(tiny_policy_dir):
         PolicyRunner.from_pretrained(tiny_policy_dir, GateMode.REPORT, overrides={"num_inference_steps": 0})
 
 
+def test_command_line_overrides_are_read_as_json_or_kept_as_text():
+    from lerobot_suture.runtime.policy import parse_overrides
+
+    parsed = parse_overrides(
+        ["n_action_steps=8", "down_dims=[32,64]", "noise_scheduler_type=DDIM", "bootstrap=true"]
+    )
+    assert parsed == {
+        "n_action_steps": 8,
+        "down_dims": [32, 64],
+        "noise_scheduler_type": "DDIM",
+        "bootstrap": True,
+    }
+    for bad in ("n_action_steps", "=8"):
+        with pytest.raises(ValueError, match="FIELD=VALUE"):
+            parse_overrides([bad])
+
+
 def test_each_env_sends_its_own_task_instruction(tiny_policy_dir):
     """A language-conditioned policy reads the instruction of the task its env simulates."""
     runner = PolicyRunner.from_pretrained(tiny_policy_dir, GateMode.REPORT)
