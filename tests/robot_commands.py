@@ -64,6 +64,26 @@ def robot_args(trace: Path, *extra: str) -> list[str]:
     return ["--robot.type=suture_sim", f"--robot.trace_path={trace}", *extra]
 
 
+def base_rollout(policy_dir: Path, trace: Path, *robot_extra: str) -> list[dict]:
+    """1.5 s of ``lerobot-rollout --strategy.type=base`` of the policy at ``policy_dir`` on the simulated arm
+    (``robot_extra``: its further ``--robot.*`` flags); the robot's trace."""
+    run_command(
+        "lerobot-rollout",
+        [
+            "--strategy.type=base",
+            f"--policy.path={policy_dir}",
+            "--device=cpu",
+            "--fps=10",
+            "--duration=1.5",
+            "--return_to_initial_position=false",
+            "--play_sounds=false",
+            f"--task={TASK}",
+            *robot_args(trace, *robot_extra),
+        ],
+    )
+    return read_trace(trace)
+
+
 def dataset_args(root: Path, repo_id: str, episodes: int, episode_s: float, reset_s: float) -> list[str]:
     return [
         f"--dataset.repo_id={repo_id}",

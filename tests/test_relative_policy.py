@@ -114,26 +114,11 @@ def test_the_post_processor_names_what_it_lacks(relative_policy_dir):
 
 
 def test_lerobot_rollout_runs_a_relative_policy_on_the_arm(relative_policy_dir, tmp_path):
-    from robot_commands import read_trace, robot_args, run_command
+    from robot_commands import base_rollout
 
-    from lerobot_suture.sim.task import TASK
-
-    trace = tmp_path / "trace.jsonl"
-    run_command(
-        "lerobot-rollout",
-        [
-            "--strategy.type=base",
-            f"--policy.path={relative_policy_dir}",
-            "--device=cpu",
-            "--fps=10",
-            "--duration=1.5",
-            "--return_to_initial_position=false",
-            "--play_sounds=false",
-            f"--task={TASK}",
-            *robot_args(trace, "--robot.seed=5", "--robot.task=extraction"),
-        ],
+    steps = base_rollout(
+        relative_policy_dir, tmp_path / "trace.jsonl", "--robot.seed=5", "--robot.task=extraction"
     )
-    steps = read_trace(trace)
     assert len(steps) >= 5
     for before, after in zip(steps, steps[1:], strict=False):
         pose = np.asarray(before["pose"])

@@ -14,6 +14,7 @@ from robot_commands import (
     BIN,
     REPLAY_TOLERANCE_M,
     SEED,
+    base_rollout,
     dataset_args,
     environ,
     episode_frames,
@@ -140,22 +141,7 @@ def test_replay_follows_the_recorded_needle_tip(policy_recording, tmp_path):
 
 
 def test_base_rollout_runs_the_policy_on_the_arm(tiny_policy_dir, tmp_path):
-    trace = tmp_path / "trace.jsonl"
-    run_command(
-        "lerobot-rollout",
-        [
-            "--strategy.type=base",
-            f"--policy.path={tiny_policy_dir}",
-            "--device=cpu",
-            "--fps=10",
-            "--duration=1.5",
-            "--return_to_initial_position=false",
-            "--play_sounds=false",
-            f"--task={TASK}",
-            *robot_args(trace, "--robot.seed=5", "--robot.image_size=96"),
-        ],
-    )
-    steps = read_trace(trace)
+    steps = base_rollout(tiny_policy_dir, tmp_path / "trace.jsonl", "--robot.seed=5", "--robot.image_size=96")
     assert len(steps) >= 5 and {line["seed"] for line in steps} == {5}
     assert [line["step"] for line in steps] == list(range(1, len(steps) + 1))
 

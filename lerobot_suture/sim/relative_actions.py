@@ -86,13 +86,9 @@ def target_from_relative(jaw_pos: np.ndarray, jaw_rot: np.ndarray, relative: np.
     return absolute_action(jaw_pos, jaw_rot, np.clip(a, RELATIVE_LOW, RELATIVE_HIGH))
 
 
-def hold_motion(jaw: float) -> np.ndarray:
-    """The relative action (10,) float64 that keeps the jaw where it is: no motion, the identity rotation's
-    columns, the jaw command ``jaw``."""
-    out = np.zeros(POSE_DIM)
-    out[3] = out[7] = 1.0
-    out[9] = jaw
-    return out
+STILL_MOTION = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0])
+"""The motion part (9,) of a relative action that keeps the jaw where it is: no position change, the identity
+rotation's columns; the jaw command follows it."""
 
 
 def find_relative_actions(env: gym.Env) -> RelativeActions | None:

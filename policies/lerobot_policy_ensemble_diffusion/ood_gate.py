@@ -29,7 +29,7 @@ from torch import Tensor
 from lerobot_suture.safety.ood.calibration import OODCalibration
 from lerobot_suture.safety.ood.calibration_file import load_calibration
 from lerobot_suture.safety.ood.gate import OODGate, silent_status
-from lerobot_suture.sim.relative_actions import hold_motion
+from lerobot_suture.sim.relative_actions import STILL_MOTION
 
 from .configuration_ensemble_diffusion import EnsembleDiffusionConfig
 from .normalization import action_affine_from_stats
@@ -166,8 +166,8 @@ class GatedPolicyMixin:
         state = batch[OBS_STATE]  # (B, S), normalized, the current observation
         pose = state * self.state_unnormalize_scale + self.state_unnormalize_offset
         if self.config.relative_actions:
-            motion = torch.as_tensor(hold_motion(0.0), dtype=pose.dtype, device=pose.device)
-            pose = torch.cat([motion[:-1].expand(pose.shape[0], -1), pose[:, -1:]], dim=1)
+            still = torch.as_tensor(STILL_MOTION, dtype=pose.dtype, device=pose.device)
+            pose = torch.cat([still.expand(pose.shape[0], -1), pose[:, -1:]], dim=1)
         return (pose - self.action_unnormalize_offset) / self.action_unnormalize_scale
 
     def _hold_where_released(self, actions: Tensor, batch: dict[str, Tensor]) -> Tensor:
