@@ -173,9 +173,11 @@ def gated_rollout(
     duration: float,
     scenario: str = "nominal",
     queue_threshold: int | None = None,
+    calibration_file: str | None = None,
 ) -> tuple[list[dict], Path]:
     """``lerobot-rollout --strategy.type=gated_dagger`` on the real-time clock at 10 Hz under ``engine``; returns
-    the robot's trace and the recorded dataset's root."""
+    the robot's trace and the recorded dataset's root. ``calibration_file``: the gate's, in the policy directory
+    (unset: the policy's own; absent: the gate reports and never hands over)."""
     work.mkdir(parents=True, exist_ok=True)
     trace, root = work / f"{engine}_trace.jsonl", work / f"{engine}_dataset"
     args = [
@@ -210,6 +212,8 @@ def gated_rollout(
         args.append(f"--duration={duration}")
     if engine == "rtc" and queue_threshold is not None:
         args.append(f"--inference.queue_threshold={queue_threshold}")
+    if calibration_file is not None:
+        args.append(f"--policy.ood.calibration_file={calibration_file}")
     _run("lerobot-rollout", args, work / f"{engine}.log")
     return [json.loads(line) for line in trace.read_text().splitlines()], root
 

@@ -284,6 +284,9 @@ def test_calibrate_makes_a_calibrated_copy_of_an_approximation(tiny_policy_dir, 
     directory, copy = tmp_path / "policy", tmp_path / "samples_2"
     shutil.copytree(tiny_policy_dir, directory)
     save_calibration(fit_calibration(np.full(50, 1.0) + np.arange(50) * 1e-3), directory)  # as trained
+    save_calibration(
+        fit_calibration(np.full(50, 2.0) + np.arange(50) * 1e-3), directory, "ood_calibration_rtc.json"
+    )
     original = {p.name: p.read_bytes() for p in directory.iterdir()}
     args = ["calibrate", f"--policy.path={directory}", "--policy.uncertainty_samples_per_member=2"]
     cli_main(
@@ -294,6 +297,7 @@ def test_calibrate_makes_a_calibrated_copy_of_an_approximation(tiny_policy_dir, 
     runner = PolicyRunner.from_pretrained(copy, GateMode.ENFORCE)  # its own gate, fitted with K = 2
     assert runner.policy.config.uncertainty_samples_per_member == 2
     assert runner.policy.ood_calibration.score_settings["uncertainty_samples_per_member"] == 2
+    assert not (copy / "ood_calibration_rtc.json").exists()  # no calibration of the original's goes along
     with pytest.raises(SystemExit):  # nothing already there is overwritten
         cli_main([*args, f"--copy_to={copy}", "--calibration_episodes=2", "--mode=per_prediction"])
     assert "exists and is not empty" in capsys.readouterr().err

@@ -12,9 +12,13 @@ def main(argv: list[str] | None = None) -> None:
     cfg = draccus.parse(config_class=CalibrateConfig, args=argv, exit_on_error=False)
     report = run_calibration(cfg)
     cal = report["calibration"]
+    source = (
+        f"{report['episodes']} recorded episodes at {report['rollouts']}"
+        if "rollouts" in report
+        else f"{len(report['calibration_seeds'])} nominal episodes"
+    )
     print(
-        f"O.O.D. gate calibrated on {cal['n_samples']} predictions of {len(report['calibration_seeds'])} nominal "
-        f"episodes: {cal['model']} model, mean {cal['mean']:.4g}, std {cal['std']:.4g}, h {cal['h']}, "
+        f"O.O.D. gate calibrated on {cal['n_samples']} predictions of {source}: {cal['model']} model, mean {cal['mean']:.4g}, std {cal['std']:.4g}, h {cal['h']}, "
         f"mode {cal['mode']}, alpha {cal['alpha']} -> threshold {cal['threshold']:.4g} "
         f"({cal['score_name']}, {cal['space']} space)."
     )

@@ -47,8 +47,8 @@ from lerobot_suture.safety.ood.calibration import (
     min_calibration_episodes,
 )
 from lerobot_suture.safety.ood.calibration_file import (
-    CALIBRATION_REPORT_FILENAME,
     StacCalibration,
+    calibration_report_file,
     save_calibration,
 )
 from lerobot_suture.safety.ood.likelihood_ratio import false_alarm_rates
@@ -93,6 +93,12 @@ class CalibrateConfig(RolloutCommandConfig):
         ``stage_alpha`` per segment (FAIL-Detect's convention; needs a running-suture policy and workers=1).
     stage_alpha: the per-segment false-alarm rate of the stage gate (0.01: about 10% over a suture's twelve
         segments; the quantile needs at least 99 successful segments of each subtask).
+    rollouts: fit on the nominal rollouts recorded at this LeRobotDataset root by
+        ``lerobot-rollout --strategy.type=gated_dagger`` instead of rolling the policy out on the env path: the
+        gate of an inference engine that predicts at another cadence (real-time chunking,
+        :mod:`~lerobot_suture.runtime.rollout_calibration`).
+    calibration_file: the file written into the policy directory (with ``<stem>_report.json``). Unset: the
+        policy's ``ood.calibration_file``. A policy reads another with ``--policy.ood.calibration_file=NAME``.
     """
 
     dataset_root: Path | None = None
@@ -109,6 +115,8 @@ class CalibrateConfig(RolloutCommandConfig):
     copy_to: Path | None = None
     per_stage: bool = False
     stage_alpha: float = 0.01
+    rollouts: Path | None = None
+    calibration_file: str | None = None
 
     @property
     def writes_to_policy(self) -> bool:
@@ -130,6 +138,18 @@ class CalibrateConfig(RolloutCommandConfig):
             )
         if not 0 < self.stage_alpha < 0.5:
             raise ValueError(f"`stage_alpha` must be in (0, 0.5). Got {self.stage_alpha!r}.")
+        if self.rollouts is not None and (self.per_stage or self.copy_to is not None or self.score_choice()):
+            raise ValueError(
+                "`rollouts` fits the gate the recorded rollouts were scored with, into the policy itself: drop "
+                "`per_stage`, `copy_to` and the score settings, or calibrate on the env path without `rollouts`."
+            )
+        if self.calibration_file is not None and (
+            not self.calibration_file.endswith(".json")
+            or Path(self.calibration_file).name != self.calibration_file
+        ):
+            raise ValueError(
+                f"`calibration_file` must be a plain .json file name. Got {self.calibration_file!r}."
+            )
         if self.per_stage and self.workers != 1:
             raise ValueError(
                 f"`per_stage` reads each env's subtask in this process: calibrate at `workers`=1. Got {self.workers}."
@@ -252,6 +272,11 @@ def run_calibration(cfg: CalibrateConfig) -> dict:
         logger.info("calibrating the copy %s", copy)
     runner = reporting_runner(cfg.policy.path, cfg.device)
     config = runner.policy.config
+    calibration_file = cfg.calibration_file or config.ood.calibration_file
+    if cfg.rollouts is not None:
+        from lerobot_suture.runtime.rollout_calibration import calibrate_on_rollouts
+
+        return calibrate_on_rollouts(Path(cfg.policy.path), config, cfg.rollouts, calibration_file, cfg)
     choice = cfg.score_choice()
     if choice and cfg.workers != 1:
         raise ValueError(
@@ -283,7 +308,7 @@ def run_calibration(cfg: CalibrateConfig) -> dict:
         space=config.uncertainty_space,
         score_settings=config.score_settings(),
     )
-    path = save_calibration(calibration, cfg.policy.path, filename=config.ood.calibration_file)
+    path = save_calibration(calibration, cfg.policy.path, filename=calibration_file)
     write_score_choice(cfg.policy.path, choice)  # only now that a calibration fitted for it is there
     report = {
         "calibration_file": str(path),
@@ -313,7 +338,7 @@ def run_calibration(cfg: CalibrateConfig) -> dict:
         report["holdout_seeds"] = holdout_seeds
         report["holdout_false_alarm_rate"] = asdict(rates)
         report["holdout_success_rate"] = float(np.mean([log.success for log in held_logs]))
-    (Path(cfg.policy.path) / CALIBRATION_REPORT_FILENAME).write_text(
+    (Path(cfg.policy.path) / calibration_report_file(calibration_file)).write_text(
         json.dumps(report, separators=(",", ":"))
     )
     return report

@@ -73,6 +73,13 @@ class PolicyGates(SilentGates):
         return ood_status(row) if callable(ood_status) else silent_status()
 
 
+class ReportingGates(PolicyGates):
+    """An uncalibrated ensemble's own gate: it reports every prediction's score and never flags, so the rollouts
+    it records calibrate it (``lerobot-suture calibrate --rollouts``)."""
+
+    kind = "ensemble, uncalibrated (reports scores only)"
+
+
 class StacGates(SilentGates):
     """STAC on the chunks ``policy`` predicts, one gate per row of its batch.
 
@@ -192,7 +199,8 @@ class StageGates(SilentGates):
 
 def policy_gates(policy, kind: str = "auto", policy_dir: str | Path | None = None) -> SilentGates:
     """The gates for ``policy``: ``auto`` picks ``ensemble`` for a calibrated ensemble, else ``stac`` when a STAC
-    calibration lies in ``policy_dir``, else ``none``.
+    calibration lies in ``policy_dir``, else ``none``; an ensemble without either reports its scores and never
+    flags (its rollouts then calibrate it: ``lerobot-suture calibrate --rollouts``).
 
     Raises:
         ValueError: an unknown ``kind``, or ``ensemble`` for a policy without a calibrated gate.
@@ -200,9 +208,12 @@ def policy_gates(policy, kind: str = "auto", policy_dir: str | Path | None = Non
     """
     if kind not in GATE_KINDS:
         raise ValueError(f"`gate` must be one of {GATE_KINDS}. Got {kind!r}.")
-    ensemble = callable(getattr(policy, "ood_status", None)) and getattr(policy, "ood_calibration", None)
+    scores = callable(getattr(policy, "ood_status", None))
+    ensemble = scores and getattr(policy, "ood_calibration", None)
     if kind == "auto":
         has_stac = policy_dir is not None and (Path(policy_dir) / STAC_CALIBRATION_FILE).is_file()
+        if scores and not ensemble and not has_stac:
+            return ReportingGates(policy)
         kind = "ensemble" if ensemble else "stac" if has_stac else "none"
     if kind == "ensemble":
         if not ensemble:

@@ -108,13 +108,19 @@ def calibration_file(policy_dir: str | Path) -> Path:
 
 
 def copy_policy(source: str | Path, out: str | Path, overrides: dict | None = None) -> None:
-    """The policy's files copied to ``out`` without its calibration (it holds only for the policy it was
+    """The policy's files copied to ``out`` without its calibrations (they hold only for the policy they were
     fitted to), ``overrides`` written into the copy's ``config.json``; ``out`` appears whole or not at all."""
     source, out = Path(source), Path(out)
     partial = out.with_name(out.name + ".partial")
     shutil.rmtree(partial, ignore_errors=True)
-    drop = {calibration_file(source).name, CALIBRATION_REPORT_FILENAME}
-    shutil.copytree(source, partial, ignore=lambda _, names: [n for n in names if n in drop])
+    own = calibration_file(source).name
+
+    def calibrations(_, names) -> list[str]:  # the policy's own, and any other fitted for an engine
+        return [
+            n for n in names if n in (own, CALIBRATION_REPORT_FILENAME) or n.startswith("ood_calibration")
+        ]
+
+    shutil.copytree(source, partial, ignore=calibrations)
     if overrides:
         config = json.loads((partial / "config.json").read_text())
         (partial / "config.json").write_text(json.dumps({**config, **overrides}, indent=4))

@@ -14,6 +14,7 @@ from lerobot_suture.safety.ood.calibration import CALIBRATE_HINT, CalibrationMod
 __all__ = [
     "CALIBRATION_FILENAME",
     "CALIBRATION_REPORT_FILENAME",
+    "calibration_report_file",
     "STAC_CALIBRATION_FILE",
     "CalibrationNotFoundError",
     "StacCalibration",
@@ -25,6 +26,11 @@ CALIBRATION_FILENAME = "ood_calibration.json"
 """Name of the calibration file inside a pretrained policy directory."""
 CALIBRATION_REPORT_FILENAME = "ood_calibration_report.json"
 """What ``lerobot-suture calibrate`` measured, beside the calibration file."""
+
+
+def calibration_report_file(calibration_file: str) -> str:
+    """The report's name beside a calibration file: ``<stem>_report.json`` (``ood_calibration_report.json``)."""
+    return f"{Path(calibration_file).stem}_report.json"
 
 
 STAC_CALIBRATION_FILE = "stac_calibration.json"

@@ -1,0 +1,161 @@
+"""The ensemble's gate under LeRobot's real-time chunking engine, calibrated at that engine's cadence, against the
+sync engine's gate on the same seeds: where each hands over, nominal and in the paper's scenarios.
+
+Under real-time chunking the policy predicts back to back, each chunk inpainted after the actions still
+committed, and the gate scores the steps after them: another score distribution than the one calibrated on the
+env path, at the sync engine's cadence. Three stages, each on the real-time clock at 10 Hz with
+``lerobot-rollout --strategy.type=gated_dagger`` (the gate, the CBF, the scripted surgeon after a handover):
+
+1. ``calibrate``: ``--calibration-episodes`` nominal scenes of the env path's calibration seeds (fresh seeds from
+   1,000,000) under real-time chunking, with ``--policy.ood.calibration_file`` naming the file about to be
+   written, so the gate reports and never hands over; then ``lerobot-suture calibrate --rollouts`` fits the
+   gate on them into that file, in the policy directory.
+2. ``compare``: nominal (``--episodes``) and each of the paper's scenarios (``--scenario-episodes``), on the test
+   seeds from ``--seed``, both engines: sync with the policy's own calibration, real-time chunking with the new
+   one. Per seed, success and the frame at which the gate handed over.
+3. The handovers against the bar: at the sync engine's frame or at most one chunk (``n_action_steps``) later.
+
+Prints one JSON object (and writes it to ``--out`` after every stage; a stage whose outputs are in
+``--work-dir`` is not run again)::
+
+    .venv/bin/python benchmarks/rtc_gate.py --policy-path outputs/reproduce/train/checkpoints/last/pretrained_model
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import time
+from pathlib import Path
+
+from _report import emit, write
+from robot_path import SCENARIOS, _run, compare_engines, gated_outcomes, gated_rollout
+
+from lerobot_suture.runtime.seeds import FRESH_SEED_BASE
+
+NEEDS = "a trained, calibrated ensemble_diffusion policy (--policy-path)"
+RTC_CALIBRATION_FILE = "ood_calibration_rtc.json"
+
+
+def handover_bar(sync: dict[int, dict], rtc: dict[int, dict], chunk: int) -> dict:
+    """Per seed of both runs: does real-time chunking hand over where sync does, or at most ``chunk`` frames
+    later (and not where sync does not)?"""
+    kinds = {"neither": 0, "within": 0, "earlier": 0, "later": 0, "only_sync": 0, "only_rtc": 0}
+    for seed in sorted(set(sync) & set(rtc)):
+        a, b = sync[seed]["handover"], rtc[seed]["handover"]
+        if a is None or b is None:
+            kinds["neither" if a is None and b is None else "only_sync" if b is None else "only_rtc"] += 1
+        else:
+            kinds["earlier" if b < a else "within" if b - a <= chunk else "later"] += 1
+    met = kinds["neither"] + kinds["within"]
+    return {**kinds, "seeds_meeting_bar": met, "seeds": sum(kinds.values())}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--policy-path", type=Path, required=True)
+    parser.add_argument(
+        "--calibration-episodes", type=int, default=50, help="nominal scenes the RTC gate is fit on"
+    )
+    parser.add_argument("--episodes", type=int, default=50, help="nominal test scenes per engine")
+    parser.add_argument("--scenario-episodes", type=int, default=10, help="per scenario and engine")
+    parser.add_argument("--seed", type=int, default=2_000_000, help="first test seed (the experiments')")
+    parser.add_argument("--episode-s", type=float, default=14.0, help="wall time of an episode at most")
+    parser.add_argument("--out", type=Path)
+    parser.add_argument("--work-dir", type=Path, required=True, help="the commands' outputs; rerun to resume")
+    args = parser.parse_args()
+    config = json.loads((args.policy_path / "config.json").read_text())
+    if config.get("type") != "ensemble_diffusion":
+        raise SystemExit(f"--policy-path must be an ensemble_diffusion policy; {args.policy_path} is not.")
+    chunk = int(config["n_action_steps"])
+    result: dict = {
+        "command": " ".join(["python", *sys.argv]),
+        "policy_path": str(args.policy_path),
+        "calibration_file": RTC_CALIBRATION_FILE,
+        "calibration_first_seed": FRESH_SEED_BASE,
+        "first_seed": args.seed,
+        "queue_threshold": "LeRobot's default, 30",
+        "chunk_frames": chunk,
+    }
+
+    def save() -> None:
+        if args.out is not None:
+            write(result, args.out)
+
+    calibration = args.policy_path / RTC_CALIBRATION_FILE
+    report_file = args.policy_path / "ood_calibration_rtc_report.json"
+    if not calibration.is_file():
+        start = time.perf_counter()
+        shutil.rmtree(args.work_dir / "calibration", ignore_errors=True)  # an interrupted run's scratch
+        _, root = gated_rollout(
+            args.policy_path,
+            "rtc",
+            args.work_dir / "calibration",
+            seed=FRESH_SEED_BASE,
+            episodes=args.calibration_episodes,
+            episode_s=args.episode_s,
+            duration=0,
+            calibration_file=RTC_CALIBRATION_FILE,
+        )
+        _run(
+            "lerobot-suture",
+            [
+                "calibrate",
+                f"--policy.path={args.policy_path}",
+                f"--rollouts={root}",
+                f"--calibration_file={RTC_CALIBRATION_FILE}",
+            ],
+            args.work_dir / "calibrate.log",
+        )
+        result["calibration_seconds"] = round(time.perf_counter() - start, 1)
+    fitted = json.loads(report_file.read_text())
+    sync_threshold = json.loads((args.policy_path / config["ood"]["calibration_file"]).read_text())[
+        "threshold"
+    ]
+    result["thresholds"] = {"sync": sync_threshold, "rtc": fitted["calibration"]["threshold"]}
+    result["calibration_episodes"] = fitted["episodes"]
+    save()
+
+    runs = {"nominal": args.episodes, **{name: args.scenario_episodes for name in SCENARIOS[1:]}}
+    result["compared"] = {}
+    for scenario, episodes in runs.items():
+        if episodes <= 0:
+            continue
+        run_dir, outcomes = args.work_dir / scenario, {}
+        for engine, calibration_file in (("sync", None), ("rtc", RTC_CALIBRATION_FILE)):
+            done = run_dir / f"{engine}_outcomes.json"
+            if not done.is_file():
+                shutil.rmtree(
+                    run_dir / f"{engine}_dataset", ignore_errors=True
+                )  # an interrupted run's scratch
+                trace, root = gated_rollout(
+                    args.policy_path,
+                    engine,
+                    run_dir,
+                    seed=args.seed,
+                    episodes=episodes,
+                    episode_s=args.episode_s,
+                    duration=0,
+                    scenario=scenario,
+                    calibration_file=calibration_file,
+                )
+                found = gated_outcomes(trace, root, f"local/rollout_robot_path_{engine}")
+                done.write_text(json.dumps({str(seed): o for seed, o in found.items()}))
+            outcomes[engine] = {int(seed): o for seed, o in json.loads(done.read_text()).items()}
+        result["compared"][scenario] = {
+            **compare_engines(outcomes["sync"], outcomes["rtc"]),
+            "handover_bar": handover_bar(outcomes["sync"], outcomes["rtc"], chunk),
+            "handover_frames": {
+                engine: {str(seed): o["handover"] for seed, o in found.items()}
+                for engine, found in outcomes.items()
+            },
+        }
+        save()
+    result["work_dir"] = str(args.work_dir)
+    emit(result, args.out)
+
+
+if __name__ == "__main__":
+    main()
