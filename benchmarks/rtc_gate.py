@@ -30,6 +30,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 from _report import emit, write
 from robot_path import SCENARIOS, _run, compare_engines, gated_outcomes, gated_rollout
 
@@ -53,6 +54,43 @@ def handover_bar(sync: dict[int, dict], rtc: dict[int, dict], chunk: int) -> dic
     return {**kinds, "seeds_meeting_bar": met, "seeds": sum(kinds.values())}
 
 
+def plot_handovers(compared: dict, chunk: int, path: Path) -> None:
+    """Per scenario, each seed's handover frame under real-time chunking against sync's (a seed without one at
+    -1), with the band the bar allows, to ``path`` (PNG)."""
+    from matplotlib.figure import Figure
+
+    from lerobot_suture.plotting import save_figure
+
+    figure = Figure(figsize=(3.0 * len(compared), 3.2), dpi=120)
+    for index, (scenario, found) in enumerate(compared.items()):
+        axes = figure.add_subplot(1, len(compared), index + 1)
+        frames = found["handover_frames"]
+        pairs = [
+            (frames["sync"][seed], frames["rtc"][seed]) for seed in frames["sync"] if seed in frames["rtc"]
+        ]
+        pairs = np.array([[-1 if a is None else a, -1 if b is None else b] for a, b in pairs], dtype=float)
+        top = max(10.0, float(pairs.max()) + 2) if pairs.size else 10.0
+        line = np.array([-1.0, top])  # (-1, -1): neither hands over, which meets the bar
+        axes.fill_between(line, line, line + chunk, color="tab:green", alpha=0.2, linewidth=0)
+        axes.plot(line, line, color="k", linewidth=0.6)
+        if pairs.size:
+            jitter = np.random.default_rng(0).uniform(-0.15, 0.15, pairs.shape)
+            axes.scatter(*(pairs + jitter).T, s=14, color="tab:blue")
+        bar = found["handover_bar"]
+        axes.set_title(f"{scenario}: {bar['seeds_meeting_bar']} of {bar['seeds']}", fontsize=9)
+        axes.set_xlim(-2, top)
+        axes.set_ylim(-2, top)
+        axes.set_xlabel("sync handover frame (-1: none)", fontsize=8)
+        if index == 0:
+            axes.set_ylabel("real-time chunking handover frame", fontsize=8)
+    figure.suptitle(
+        f"Handovers, each engine's gate calibrated at its cadence; green: the bar (up to {chunk} frames later)",
+        fontsize=9,
+    )
+    figure.tight_layout()
+    save_figure(figure, path)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--policy-path", type=Path, required=True)
@@ -64,6 +102,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=2_000_000, help="first test seed (the experiments')")
     parser.add_argument("--episode-s", type=float, default=14.0, help="wall time of an episode at most")
     parser.add_argument("--out", type=Path)
+    parser.add_argument("--figure", type=Path, help="a PNG of the handover frames, per scenario")
     parser.add_argument("--work-dir", type=Path, required=True, help="the commands' outputs; rerun to resume")
     args = parser.parse_args()
     config = json.loads((args.policy_path / "config.json").read_text())
@@ -118,7 +157,7 @@ def main() -> None:
     result["calibration_episodes"] = fitted["episodes"]
     save()
 
-    runs = {"nominal": args.episodes, **{name: args.scenario_episodes for name in SCENARIOS[1:]}}
+    runs = {**{name: args.scenario_episodes for name in SCENARIOS[1:]}, "nominal": args.episodes}
     result["compared"] = {}
     for scenario, episodes in runs.items():
         if episodes <= 0:
@@ -153,6 +192,8 @@ def main() -> None:
             },
         }
         save()
+    if args.figure is not None and result["compared"]:
+        plot_handovers(result["compared"], chunk, args.figure)
     result["work_dir"] = str(args.work_dir)
     emit(result, args.out)
 
