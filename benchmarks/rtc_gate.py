@@ -9,7 +9,9 @@ env path, at the sync engine's cadence. Three stages, each on the real-time cloc
 1. ``calibrate``: ``--calibration-episodes`` nominal scenes of the env path's calibration seeds (fresh seeds from
    1,000,000) under real-time chunking, with ``--policy.ood.calibration_file`` naming the file about to be
    written, so the gate reports and never hands over; then ``lerobot-suture calibrate --rollouts`` fits the
-   gate on them into that file, in the policy directory.
+   gate on them into that file, in the policy directory (``--rtc-calibration``, ``ood_calibration_rtc.json``;
+   an existing file is used as it is: the policy's own, ``ood_calibration.json``, runs the sync engine's gate under
+   real-time chunking).
 2. ``compare``: nominal (``--episodes``) and each of the paper's scenarios (``--scenario-episodes``), on the test
    seeds from ``--seed``, both engines: sync with the policy's own calibration, real-time chunking with the new
    one. Per seed, success and the frame at which the gate handed over.
@@ -35,6 +37,7 @@ from _report import emit, write
 from robot_path import SCENARIOS, _run, compare_engines, gated_outcomes, gated_rollout
 
 from lerobot_suture.runtime.seeds import FRESH_SEED_BASE
+from lerobot_suture.safety.ood.calibration_file import calibration_report_file
 
 NEEDS = "a trained, calibrated ensemble_diffusion policy (--policy-path)"
 RTC_CALIBRATION_FILE = "ood_calibration_rtc.json"
@@ -54,7 +57,7 @@ def handover_bar(sync: dict[int, dict], rtc: dict[int, dict], chunk: int) -> dic
     return {**kinds, "seeds_meeting_bar": met, "seeds": sum(kinds.values())}
 
 
-def plot_handovers(compared: dict, chunk: int, path: Path) -> None:
+def plot_handovers(compared: dict, chunk: int, rtc_calibration: str, path: Path) -> None:
     """Per scenario, each seed's handover frame under real-time chunking against sync's (a seed without one at
     -1), with the band the bar allows, to ``path`` (PNG)."""
     from matplotlib.figure import Figure
@@ -84,7 +87,8 @@ def plot_handovers(compared: dict, chunk: int, path: Path) -> None:
         if index == 0:
             axes.set_ylabel("real-time chunking handover frame", fontsize=8)
     figure.suptitle(
-        f"Handovers, each engine's gate calibrated at its cadence; green: the bar (up to {chunk} frames later)",
+        f"Handovers; sync's gate reads the policy's calibration, real-time chunking's {rtc_calibration}; "
+        f"green: the bar (up to {chunk} frames later)",
         fontsize=9,
     )
     figure.tight_layout()
@@ -103,6 +107,12 @@ def main() -> None:
     parser.add_argument("--episode-s", type=float, default=14.0, help="wall time of an episode at most")
     parser.add_argument("--out", type=Path)
     parser.add_argument("--figure", type=Path, help="a PNG of the handover frames, per scenario")
+    parser.add_argument(
+        "--rtc-calibration",
+        default=RTC_CALIBRATION_FILE,
+        help="the file in the policy directory the real-time engine's gate reads; fitted (stage 1) when absent. "
+        "The policy's own (ood_calibration.json): the sync engine's gate under real-time chunking",
+    )
     parser.add_argument("--work-dir", type=Path, required=True, help="the commands' outputs; rerun to resume")
     args = parser.parse_args()
     config = json.loads((args.policy_path / "config.json").read_text())
@@ -112,7 +122,7 @@ def main() -> None:
     result: dict = {
         "command": " ".join(["python", *sys.argv]),
         "policy_path": str(args.policy_path),
-        "calibration_file": RTC_CALIBRATION_FILE,
+        "rtc_calibration_file": args.rtc_calibration,
         "calibration_first_seed": FRESH_SEED_BASE,
         "first_seed": args.seed,
         "queue_threshold": "LeRobot's default, 30",
@@ -123,8 +133,8 @@ def main() -> None:
         if args.out is not None:
             write(result, args.out)
 
-    calibration = args.policy_path / RTC_CALIBRATION_FILE
-    report_file = args.policy_path / "ood_calibration_rtc_report.json"
+    calibration = args.policy_path / args.rtc_calibration
+    report_file = args.policy_path / calibration_report_file(args.rtc_calibration)
     if not calibration.is_file():
         start = time.perf_counter()
         shutil.rmtree(args.work_dir / "calibration", ignore_errors=True)  # an interrupted run's scratch
@@ -136,7 +146,7 @@ def main() -> None:
             episodes=args.calibration_episodes,
             episode_s=args.episode_s,
             duration=0,
-            calibration_file=RTC_CALIBRATION_FILE,
+            calibration_file=args.rtc_calibration,
         )
         _run(
             "lerobot-suture",
@@ -144,7 +154,7 @@ def main() -> None:
                 "calibrate",
                 f"--policy.path={args.policy_path}",
                 f"--rollouts={root}",
-                f"--calibration_file={RTC_CALIBRATION_FILE}",
+                f"--calibration_file={args.rtc_calibration}",
             ],
             args.work_dir / "calibrate.log",
         )
@@ -154,7 +164,7 @@ def main() -> None:
         "threshold"
     ]
     result["thresholds"] = {"sync": sync_threshold, "rtc": fitted["calibration"]["threshold"]}
-    result["calibration_episodes"] = fitted["episodes"]
+    result["calibration_episodes"] = fitted.get("episodes", len(fitted.get("calibration_seeds", ())))
     save()
 
     runs = {**{name: args.scenario_episodes for name in SCENARIOS[1:]}, "nominal": args.episodes}
@@ -163,7 +173,7 @@ def main() -> None:
         if episodes <= 0:
             continue
         run_dir, outcomes = args.work_dir / scenario, {}
-        for engine, calibration_file in (("sync", None), ("rtc", RTC_CALIBRATION_FILE)):
+        for engine, calibration_file in (("sync", None), ("rtc", args.rtc_calibration)):
             done = run_dir / f"{engine}_outcomes.json"
             if not done.is_file():
                 shutil.rmtree(
@@ -193,7 +203,7 @@ def main() -> None:
         }
         save()
     if args.figure is not None and result["compared"]:
-        plot_handovers(result["compared"], chunk, args.figure)
+        plot_handovers(result["compared"], chunk, args.rtc_calibration, args.figure)
     result["work_dir"] = str(args.work_dir)
     emit(result, args.out)
 
