@@ -122,3 +122,26 @@ def test_an_uncalibrated_policy_s_rollouts_calibrate_its_gate(tiny_policy_dir, t
     config.ood.calibration_file, config.ood.enforce = name, True  # --policy.ood.calibration_file=NAME
     loaded = get_policy_class(config.type).from_pretrained(policy, config=config)
     assert loaded.ood_calibration.threshold == pytest.approx(fitted["threshold"])
+
+
+def test_episodes_without_a_score_are_refused(tmp_path):
+    """An episode recorded with `--strategy.gate=none`, or by a policy without a gate, has no score to fit."""
+    from types import SimpleNamespace
+
+    import pandas as pd
+
+    from lerobot_suture.runtime.rollout_calibration import calibrate_on_rollouts
+
+    (tmp_path / "data" / "chunk-000").mkdir(parents=True)
+    pd.DataFrame(
+        {
+            "index": [0, 1, 2, 3],
+            "episode_index": [0, 0, 1, 1],
+            "ood_score": [[NAN], [NAN], [0.1], [0.2]],
+            "intervention": [False] * 4,
+        }
+    ).to_parquet(tmp_path / "data" / "chunk-000" / "file-000.parquet")
+    cfg = SimpleNamespace(mode="per_episode", alpha=0.05, model=None, h=1.0)
+    with pytest.raises(ValueError, match="1 of the 2 episodes .* carry no gate score.*--strategy.gate=none"):
+        calibrate_on_rollouts(tmp_path, None, tmp_path, "ood_calibration_rtc.json", cfg)
+    assert not (tmp_path / "ood_calibration_rtc.json").exists()

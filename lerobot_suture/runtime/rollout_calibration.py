@@ -24,6 +24,7 @@ import numpy as np
 from lerobot_suture.safety.ood.calibration import (
     CalibrationMode,
     conformal_episode_threshold,
+    default_model,
     fit_calibration,
 )
 from lerobot_suture.safety.ood.calibration_file import calibration_report_file, save_calibration
@@ -114,9 +115,8 @@ def check_bounds_do_not_decide(maxima: np.ndarray, handed_over: np.ndarray, alph
 def calibrate_on_rollouts(policy_dir: Path, config, root: Path, calibration_file: str, cfg) -> dict:
     """Fit ``config``'s gate on the rollouts recorded at ``root``, write it as ``calibration_file`` into
     ``policy_dir`` with ``<stem>_report.json``; returns the report. ``cfg``: the calibrate command's model, h,
-    alpha and mode (``per_episode`` only: a frame records the last score, not when it was predicted)."""
-    from lerobot_suture.safety.ood.calibration import default_model
-
+    alpha and mode (``per_episode`` only: a frame records the last score, not when it was predicted). The
+    rollouts are taken to be this policy's, with its score settings as they are now: a frame does not say."""
     if cfg.mode != CalibrationMode.PER_EPISODE:
         raise ValueError(
             f"Rollouts calibrate the per-episode gate only (`--mode=per_episode`). Got mode={cfg.mode!r}."
@@ -130,7 +130,8 @@ def calibrate_on_rollouts(policy_dir: Path, config, root: Path, calibration_file
     if scored < episodes:
         raise ValueError(
             f"{episodes - scored} of the {episodes} episodes under {root} carry no gate score: the policy that "
-            "recorded them has no gate of its own (an ensemble_diffusion policy reports its scores)."
+            "recorded them has no gate of its own, or ran with `--strategy.gate=none` (record an ensemble_diffusion "
+            "policy with the `auto` gate)."
         )
     maxima = np.full(episodes, -np.inf)
     np.maximum.at(maxima, ids, scores)
