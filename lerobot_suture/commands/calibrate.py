@@ -18,7 +18,8 @@ def main(argv: list[str] | None = None) -> None:
         else f"{len(report['calibration_seeds'])} nominal episodes"
     )
     print(
-        f"O.O.D. gate calibrated on {cal['n_samples']} predictions of {source}: {cal['model']} model, mean {cal['mean']:.4g}, std {cal['std']:.4g}, h {cal['h']}, "
+        f"O.O.D. gate calibrated on {cal['n_samples']} predictions of {source}: {cal['model']} model, "
+        f"mean {cal['mean']:.4g}, std {cal['std']:.4g}, h {cal['h']}, "
         f"mode {cal['mode']}, alpha {cal['alpha']} -> threshold {cal['threshold']:.4g} "
         f"({cal['score_name']}, {cal['space']} space)."
     )

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from lerobot_suture.datasets.features import PRIVILEGED_FEATURES
-from lerobot_suture.safety.ood.calibration_file import CALIBRATION_FILENAME, CALIBRATION_REPORT_FILENAME
+from lerobot_suture.safety.ood.calibration_file import CALIBRATION_FILENAME, calibration_report_file
 from lerobot_suture.sim.subtasks import SUBTASK_DIM
 from lerobot_suture.sim.task import TASK
 from lerobot_suture.sim.wound_marks import MARKS_DIM
@@ -117,7 +117,7 @@ def copy_policy(source: str | Path, out: str | Path, overrides: dict | None = No
 
     def calibrations(_, names) -> list[str]:  # the policy's own, and any other fitted for an engine
         return [
-            n for n in names if n in (own, CALIBRATION_REPORT_FILENAME) or n.startswith("ood_calibration")
+            n for n in names if n in (own, calibration_report_file(own)) or n.startswith("ood_calibration")
         ]
 
     shutil.copytree(source, partial, ignore=calibrations)
