@@ -126,11 +126,9 @@ def test_an_uncalibrated_policy_s_rollouts_calibrate_its_gate(tiny_policy_dir, t
 
 def test_episodes_without_a_score_are_refused(tmp_path):
     """An episode recorded with `--strategy.gate=none`, or by a policy without a gate, has no score to fit."""
-    from types import SimpleNamespace
-
     import pandas as pd
 
-    from lerobot_suture.runtime.rollout_calibration import calibrate_on_rollouts
+    from lerobot_suture.runtime.rollout_calibration import rollout_scores
 
     (tmp_path / "data" / "chunk-000").mkdir(parents=True)
     pd.DataFrame(
@@ -141,7 +139,5 @@ def test_episodes_without_a_score_are_refused(tmp_path):
             "intervention": [False] * 4,
         }
     ).to_parquet(tmp_path / "data" / "chunk-000" / "file-000.parquet")
-    cfg = SimpleNamespace(mode="per_episode", alpha=0.05, model=None, h=1.0)
     with pytest.raises(ValueError, match="1 of the 2 episodes .* carry no gate score.*--strategy.gate=none"):
-        calibrate_on_rollouts(tmp_path, None, tmp_path, "ood_calibration_rtc.json", cfg)
-    assert not (tmp_path / "ood_calibration_rtc.json").exists()
+        rollout_scores(tmp_path, "per_episode", 0.05)

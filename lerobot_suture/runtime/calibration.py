@@ -39,6 +39,7 @@ from lerobot_suture.runtime.config import PolicyCommandConfig, PolicyPathConfig,
 from lerobot_suture.runtime.gates import PolicyGates, SilentGates, StacGates, StageGates
 from lerobot_suture.runtime.policy import copy_with_overrides, env_kwargs_for_policy, reporting_runner
 from lerobot_suture.runtime.rollout import EpisodeLog, make_scenario_env, rollout_seeds
+from lerobot_suture.runtime.rollout_calibration import rollout_scores
 from lerobot_suture.runtime.seeds import fresh_seeds
 from lerobot_suture.safety.ood.calibration import (
     conformal_episode_threshold,
@@ -264,6 +265,29 @@ def episode_maxima(scores: np.ndarray, episode_ids: np.ndarray, episodes: int) -
     return maxima
 
 
+def fit_gate(cfg: CalibrateConfig, config, scores: np.ndarray, episode_ids: np.ndarray):
+    """The gate of the policy config ``config`` (its score and settings) fitted on ``scores`` of episodes
+    ``episode_ids`` with the command's model, h, alpha and mode."""
+    return fit_calibration(
+        scores,
+        model=cfg.model or default_model(config.uncertainty_score),
+        h=cfg.h,
+        alpha=cfg.alpha,
+        mode=cfg.mode,
+        episode_ids=episode_ids,
+        score_name=config.uncertainty_score,
+        space=config.uncertainty_space,
+        score_settings=config.score_settings(),
+    )
+
+
+def write_report(policy_dir: Path, calibration_file: str, report: dict) -> None:
+    """``report`` as ``<stem>_report.json`` beside the calibration file."""
+    (Path(policy_dir) / calibration_report_file(calibration_file)).write_text(
+        json.dumps(report, separators=(",", ":"))
+    )
+
+
 def run_calibration(cfg: CalibrateConfig) -> dict:
     """Fit the gate, write it beside the policy with ``ood_calibration_report.json``; returns the report."""
     if cfg.copy_to is not None:
@@ -274,9 +298,12 @@ def run_calibration(cfg: CalibrateConfig) -> dict:
     config = runner.policy.config
     calibration_file = cfg.calibration_file or config.ood.calibration_file
     if cfg.rollouts is not None:
-        from lerobot_suture.runtime.rollout_calibration import calibrate_on_rollouts
-
-        return calibrate_on_rollouts(Path(cfg.policy.path), config, cfg.rollouts, calibration_file, cfg)
+        scores, ids, recorded = rollout_scores(cfg.rollouts, cfg.mode, cfg.alpha)
+        calibration = fit_gate(cfg, config, scores, ids)
+        path = save_calibration(calibration, cfg.policy.path, filename=calibration_file)
+        report = {"calibration_file": str(path), "calibration": calibration.to_dict(), **recorded}
+        write_report(cfg.policy.path, calibration_file, report)
+        return report
     choice = cfg.score_choice()
     if choice and cfg.workers != 1:
         raise ValueError(
@@ -297,17 +324,7 @@ def run_calibration(cfg: CalibrateConfig) -> dict:
     )
     # Fitted before anything is written: a stage gate that cannot be fitted leaves the policy as it was.
     stages = stage_thresholds(fit_logs, cfg.stage_alpha) if cfg.per_stage else None
-    calibration = fit_calibration(
-        scores,
-        model=cfg.model or default_model(config.uncertainty_score),
-        h=cfg.h,
-        alpha=cfg.alpha,
-        mode=cfg.mode,
-        episode_ids=ids,
-        score_name=config.uncertainty_score,
-        space=config.uncertainty_space,
-        score_settings=config.score_settings(),
-    )
+    calibration = fit_gate(cfg, config, scores, ids)
     path = save_calibration(calibration, cfg.policy.path, filename=calibration_file)
     write_score_choice(cfg.policy.path, choice)  # only now that a calibration fitted for it is there
     report = {
@@ -338,9 +355,7 @@ def run_calibration(cfg: CalibrateConfig) -> dict:
         report["holdout_seeds"] = holdout_seeds
         report["holdout_false_alarm_rate"] = asdict(rates)
         report["holdout_success_rate"] = float(np.mean([log.success for log in held_logs]))
-    (Path(cfg.policy.path) / calibration_report_file(calibration_file)).write_text(
-        json.dumps(report, separators=(",", ":"))
-    )
+    write_report(cfg.policy.path, calibration_file, report)
     return report
 
 

@@ -1,4 +1,4 @@
-"""Fitting an ensemble's gate on rollouts recorded on the robot path: ``lerobot-suture calibrate --rollouts=ROOT``.
+"""The scores of rollouts recorded on the robot path, to fit an ensemble's gate on: ``lerobot-suture calibrate --rollouts=ROOT``.
 
 The env path's calibration (:mod:`.calibration`) runs the policy itself, one prediction per chunk, as LeRobot's
 sync engine does. Its real-time chunking engine predicts at another cadence: back to back, each chunk inpainted
@@ -15,19 +15,12 @@ bound of its own; the fit refuses when such a bound decides the threshold.
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
 import numpy as np
 
-from lerobot_suture.safety.ood.calibration import (
-    CalibrationMode,
-    conformal_episode_threshold,
-    default_model,
-    fit_calibration,
-)
-from lerobot_suture.safety.ood.calibration_file import calibration_report_file, save_calibration
+from lerobot_suture.safety.ood.calibration import CalibrationMode, conformal_episode_threshold
 
 RECORDED_COLUMNS = ("episode_index", "ood_score", "intervention")
 
@@ -112,14 +105,19 @@ def check_bounds_do_not_decide(maxima: np.ndarray, handed_over: np.ndarray, alph
     return threshold
 
 
-def calibrate_on_rollouts(policy_dir: Path, config, root: Path, calibration_file: str, cfg) -> dict:
-    """Fit ``config``'s gate on the rollouts recorded at ``root``, write it as ``calibration_file`` into
-    ``policy_dir`` with ``<stem>_report.json``; returns the report. ``cfg``: the calibrate command's model, h,
-    alpha and mode (``per_episode`` only: a frame records the last score, not when it was predicted). The
-    rollouts are taken to be this policy's, with its score settings as they are now: a frame does not say."""
-    if cfg.mode != CalibrationMode.PER_EPISODE:
+def rollout_scores(root: Path, mode: str, alpha: float) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The per-prediction scores and episode ids of the rollouts recorded at ``root``, for the calibrate command
+    to fit at ``alpha`` (``mode`` ``per_episode`` only: a frame records the last score, not when it was
+    predicted), and what the report says of them. The rollouts are taken to be the calibrated policy's, with its
+    score settings as they are now: a frame does not say.
+
+    Raises:
+        ValueError: another mode, an episode without a score, or a handed-over episode that decides the
+            threshold (:func:`check_bounds_do_not_decide`).
+    """
+    if mode != CalibrationMode.PER_EPISODE:
         raise ValueError(
-            f"Rollouts calibrate the per-episode gate only (`--mode=per_episode`). Got mode={cfg.mode!r}."
+            f"Rollouts calibrate the per-episode gate only (`--mode=per_episode`). Got mode={mode!r}."
         )
     frames = recorded_frames(root)
     scores, ids, handed_over = episode_predictions(
@@ -135,28 +133,11 @@ def calibrate_on_rollouts(policy_dir: Path, config, root: Path, calibration_file
         )
     maxima = np.full(episodes, -np.inf)
     np.maximum.at(maxima, ids, scores)
-    check_bounds_do_not_decide(maxima, handed_over, cfg.alpha)
-    calibration = fit_calibration(
-        scores,
-        model=cfg.model or default_model(config.uncertainty_score),
-        h=cfg.h,
-        alpha=cfg.alpha,
-        mode=cfg.mode,
-        episode_ids=ids,
-        score_name=config.uncertainty_score,
-        space=config.uncertainty_space,
-        score_settings=config.score_settings(),
-    )
-    path = save_calibration(calibration, policy_dir, filename=calibration_file)
-    report = {
-        "calibration_file": str(path),
+    check_bounds_do_not_decide(maxima, handed_over, alpha)
+    recorded = {
         "rollouts": str(root),
-        "calibration": calibration.to_dict(),
         "episodes": int(episodes),
         "handed_over_episodes": int(handed_over.sum()),
         "episode_maxima": [float(m) for m in maxima],
     }
-    (Path(policy_dir) / calibration_report_file(calibration_file)).write_text(
-        json.dumps(report, separators=(",", ":")) + "\n"
-    )
-    return report
+    return scores, ids, recorded
