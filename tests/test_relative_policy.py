@@ -143,3 +143,52 @@ def test_the_env_wrapper_and_the_post_processor_compose_from_the_same_measured_p
         expected = targets_from_relative(observation["agent_pos"][None], motion[None])[0]
         np.testing.assert_allclose(find_relative_actions(env).action(motion), expected, atol=1e-12)
         observation, *_ = env.step(motion.astype(np.float32))
+
+
+@pytest.mark.slow
+def test_a_chain_around_a_relative_policy_hands_the_env_targets_one_step_from_the_jaw(tmp_path):
+    """A subtask-conditioned policy trained on relative actions, inside a ``suture_chain``: the chain runs the
+    policy's own processor pair on each step, so the running suture's env gets absolute targets near the jaw."""
+    import gymnasium as gym
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+    from lerobot.policies.factory import make_policy, make_pre_post_processors
+    from lerobot_policy_ensemble_diffusion import EnsembleDiffusionConfig
+    from lerobot_policy_suture_chain.assemble import ChainCommandConfig, write_chain
+    from policy_builders import TINY_POLICY_KWARGS
+
+    from lerobot_suture.datasets.record import record
+    from lerobot_suture.datasets.record_config import RecordConfig
+    from lerobot_suture.runtime.policy import GateMode, PolicyRunner, env_kwargs_for_policy
+
+    root = tmp_path / "data"
+    record(
+        RecordConfig(
+            repo_id="suture-tests/relative-chain",
+            root=str(root),
+            task="running_suture",
+            num_episodes=1,
+            val_fraction=0.0,
+            relative_actions=True,
+            marks=True,
+            subtask=True,
+        )
+    )
+    meta = LeRobotDatasetMetadata("suture-tests/relative-chain", root=root)
+    torch.manual_seed(0)
+    policy = make_policy(EnsembleDiffusionConfig(**TINY_POLICY_KWARGS, device="cpu"), ds_meta=meta)
+    member = tmp_path / "conditioned"
+    policy.save_pretrained(member)
+    for pipeline in make_pre_post_processors(policy.config, dataset_stats=meta.stats):
+        pipeline.save_pretrained(member)
+    chain = write_chain(ChainCommandConfig(output_dir=tmp_path / "chain", policy=member))
+
+    runner = PolicyRunner.from_pretrained(chain, GateMode.REPORT)
+    env = gym.make(TASKS["running_suture"].gym_id, **env_kwargs_for_policy(runner.policy.config))
+    observation, _ = env.reset(seed=5)
+    runner.reset()
+    for _ in range(6):
+        target = runner.act(observation)
+        jaw_pos, jaw_rot = env.unwrapped.jaw_pose()
+        motion = relative_action(jaw_pos, jaw_rot, target)
+        assert np.all(np.abs(motion[:3]) <= MAX_RELATIVE_STEP + 1e-5), motion[:3]
+        observation, *_ = env.step(target)
