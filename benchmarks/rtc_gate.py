@@ -34,8 +34,10 @@ from pathlib import Path
 
 import numpy as np
 from _report import emit, write
+from lerobot_policy_ensemble_diffusion.configuration_ensemble_diffusion import RTC_SCORES
 from robot_path import SCENARIOS, _run, compare_engines, gated_outcomes, gated_rollout
 
+from lerobot_suture.runtime.policy import copy_with_overrides
 from lerobot_suture.runtime.seeds import FRESH_SEED_BASE
 from lerobot_suture.safety.ood.calibration_file import calibration_report_file
 
@@ -55,6 +57,18 @@ def handover_bar(sync: dict[int, dict], rtc: dict[int, dict], chunk: int) -> dic
             kinds["earlier" if b < a else "within" if b - a <= chunk else "later"] += 1
     met = kinds["neither"] + kinds["within"]
     return {**kinds, "seeds_meeting_bar": met, "seeds": sum(kinds.values())}
+
+
+def with_rtc_score(policy_path: Path, rtc_score: str, copy: Path) -> Path:
+    """A copy of the policy at ``copy`` whose gate reads ``rtc_score`` under real-time chunking, with the
+    policy's own calibration: the sync engine's scores do not depend on it. Made once; a rerun reuses it."""
+    if not (copy / "config.json").is_file():
+        own = json.loads((policy_path / "config.json").read_text())["ood"]["calibration_file"]
+        shutil.rmtree(copy, ignore_errors=True)
+        copy_with_overrides(policy_path, copy, {"rtc_score": rtc_score})
+        for name in (own, calibration_report_file(own)):
+            shutil.copy2(policy_path / name, copy / name)
+    return copy
 
 
 def plot_handovers(compared: dict, chunk: int, rtc_calibration: str, path: Path) -> None:
@@ -113,16 +127,26 @@ def main() -> None:
         help="the file in the policy directory the real-time engine's gate reads; fitted (stage 1) when absent. "
         "The policy's own (ood_calibration.json): the sync engine's gate under real-time chunking",
     )
+    parser.add_argument(
+        "--rtc-score",
+        choices=RTC_SCORES,
+        help="the policy's `rtc_score` for both engines (what the gate reads under real-time chunking): another "
+        "than the policy's runs a copy of it in --work-dir, with the policy's own sync calibration",
+    )
     parser.add_argument("--work-dir", type=Path, required=True, help="the commands' outputs; rerun to resume")
     args = parser.parse_args()
     config = json.loads((args.policy_path / "config.json").read_text())
     if config.get("type") != "ensemble_diffusion":
         raise SystemExit(f"--policy-path must be an ensemble_diffusion policy; {args.policy_path} is not.")
+    if args.rtc_score is not None and args.rtc_score != config.get("rtc_score", "inpainted"):
+        args.policy_path = with_rtc_score(args.policy_path, args.rtc_score, args.work_dir / "policy")
+        config = json.loads((args.policy_path / "config.json").read_text())
     chunk = int(config["n_action_steps"])
     result: dict = {
         "command": " ".join(["python", *sys.argv]),
         "policy_path": str(args.policy_path),
         "rtc_calibration_file": args.rtc_calibration,
+        "rtc_score": config.get("rtc_score", "inpainted"),
         "calibration_first_seed": FRESH_SEED_BASE,
         "first_seed": args.seed,
         "queue_threshold": "LeRobot's default, 30",

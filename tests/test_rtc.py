@@ -50,6 +50,31 @@ def test_the_committed_prefix_is_the_chunk_s_start_in_every_sample(batched, pred
     assert policy.last_prediction.action_steps == slice(3, 3 + policy.config.n_action_steps)
 
 
+def test_a_free_score_is_the_sync_score_of_the_observation_and_leaves_the_chunk_as_it_was():
+    """``rtc_score="free"``: the gate reads a second prediction without the prefix, the one the sync engine
+    scores, while the executed chunk is the same inpainted one."""
+    inpainted, free = make_policy(n_members=3), make_policy(n_members=3, rtc_score="free")
+    k, horizon = inpainted.config.uncertainty_samples_per_member, inpainted.config.horizon
+    noise = torch.randn(1, 3, k, horizon, 10, generator=torch.Generator().manual_seed(2))
+    observation, left_over = random_observation(inpainted.config, n_steps=0), padded_left_over(rows=5)
+    chunks = [
+        policy.predict_action_chunk(
+            observation, noise=noise, inference_delay=3, prev_chunk_left_over=left_over
+        )
+        for policy in (inpainted, free)
+    ]
+    torch.testing.assert_close(chunks[0], chunks[1])
+    stacked = random_observation(inpainted.config)  # the same observation, as (B, n_obs_steps, ...)
+    sync = make_policy(n_members=3).predict_action_distribution(stacked, noise=noise)
+    torch.testing.assert_close(free.last_prediction.score, sync.score)
+    assert not torch.allclose(inpainted.last_prediction.score, sync.score)
+    assert free.last_prediction.action_steps == slice(
+        3, 3 + free.config.n_action_steps
+    )  # the executed chunk's
+    with pytest.raises(ValueError, match="rtc_score"):
+        make_policy(rtc_score="guided")
+
+
 def test_no_prefix_on_the_first_chunk_and_the_score_over_the_usual_steps():
     policy = make_policy()
     chunk = policy.predict_action_chunk(

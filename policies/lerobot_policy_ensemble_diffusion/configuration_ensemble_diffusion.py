@@ -40,6 +40,7 @@ SCORE_CHOICES = {
     "uncertainty_steps": UNCERTAINTY_STEPS,
 }
 OPTIMIZER_NAMES = ("adam", "adamw")
+RTC_SCORES = ("inpainted", "free")
 NEEDLE_KEYPOINTS_KEY = "observation.needle_keypoints"
 """The dataset feature `lerobot-suture record` writes with the needle's image position (privileged): a training
 target of `needle_keypoints_weight`, never a policy input."""
@@ -130,6 +131,11 @@ class EnsembleDiffusionConfig(DiffusionConfig):
             0: population). With 0 the total covariance equals the covariance of all N*K samples pooled.
         logdet_eps: Ridge added to Sigma_t before the log-determinant (N samples give a rank <= N - 1
             matrix, whose plain log-determinant is -inf).
+        rtc_score: What the gate reads under LeRobot's real-time chunking engine: "inpainted" (the score of
+            the executed chunk, over the steps after its committed prefix) or "free" (the score of a second
+            prediction on the same observation without the prefix, as the sync engine scores it; the executed
+            chunk stays the inpainted one, and each chunk costs two predictions). The members all continue
+            the same committed prefix, which damps their disagreement in the steps after it.
         ood: Options of the out-of-distribution gate (see `EnsembleOODConfig`).
         needle_keypoints_weight: Weight of an auxiliary loss that makes every member's image encoder locate the
             needle: a linear head on the member's image features regresses the needle's tip, middle and tail
@@ -178,6 +184,7 @@ class EnsembleDiffusionConfig(DiffusionConfig):
     uncertainty_steps: str = "horizon"
     covariance_correction: int = 1
     logdet_eps: float = 1e-6
+    rtc_score: str = "inpainted"
 
     # Out-of-distribution gate.
     ood: EnsembleOODConfig = field(default_factory=EnsembleOODConfig)
@@ -220,7 +227,11 @@ class EnsembleDiffusionConfig(DiffusionConfig):
             raise ValueError(
                 f"`uncertainty_samples_per_member` must be >= 1. Got {self.uncertainty_samples_per_member}."
             )
-        for name, allowed in (*SCORE_CHOICES.items(), ("optimizer_name", OPTIMIZER_NAMES)):
+        for name, allowed in (
+            *SCORE_CHOICES.items(),
+            ("optimizer_name", OPTIMIZER_NAMES),
+            ("rtc_score", RTC_SCORES),
+        ):
             if getattr(self, name) not in allowed:
                 raise ValueError(f"`{name}` must be one of {list(allowed)}. Got {getattr(self, name)!r}.")
         if self.uncertainty_source == "aleatoric" and self.uncertainty_samples_per_member < 2:

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -385,14 +386,9 @@ class EnsembleDiffusionPolicy(GatedPolicyMixin, FeatureCaptureMixin, PreTrainedP
         return {name: getattr(self.config, name) for name in SCORE_CHOICES}
 
     def rescore(self, prediction: EnsemblePrediction, **choice: str) -> Tensor:
-        """(B,) `prediction`'s uncertainty score under another choice of score: the same samples, scored
-        another way (what `lerobot-suture score-study` compares on validation episodes).
-
-        Args:
-            prediction: a prediction of this policy (e.g. `self.last_prediction`).
-            choice: any of the config fields `uncertainty_score`, `uncertainty_space`,
-                `uncertainty_source`, `uncertainty_steps`; those left out keep this policy's values.
-        """
+        """(B,) the score of `prediction` (e.g. `self.last_prediction`) under another `choice` of the config's
+        `uncertainty_*` fields (those left out keep this policy's): the same samples scored another way, as
+        `lerobot-suture score-study` compares them on validation episodes."""
         unknown = sorted(set(choice) - set(SCORE_CHOICES))
         if unknown:
             raise ValueError(f"Unknown score settings {unknown}: choose among {list(SCORE_CHOICES)}.")
@@ -422,8 +418,8 @@ class EnsembleDiffusionPolicy(GatedPolicyMixin, FeatureCaptureMixin, PreTrainedP
         `select_action`) or offline (dataloader batch), as `DiffusionPolicy`. With it, LeRobot's real-time
         chunking engine calls (`rtc_inpainting`): `batch` is the latest observation, `prev_chunk_left_over` what
         is left of the current chunk. The chunk runs from the observation's step to the horizon's end, its first
-        `inference_delay` steps the committed actions. The gate reads the prediction first; once it released
-        control with `ood.enforce`, the chunk holds the measured pose, so no flagged chunk is executed.
+        `inference_delay` steps the committed actions. The gate reads the prediction first (`rtc_score`); once
+        it released control with `ood.enforce`, the chunk holds the measured pose: no flagged chunk executes.
         """
         if inference_delay is None:
             prediction = self.predict_action_distribution(batch, noise=noise)
@@ -432,8 +428,12 @@ class EnsembleDiffusionPolicy(GatedPolicyMixin, FeatureCaptureMixin, PreTrainedP
         steps = self.config.horizon - self.config.n_obs_steps + 1  # a longer delay commits the whole chunk
         prefix = committed_prefix(prev_chunk_left_over, min(int(inference_delay), steps))
         prediction = self.predict_action_distribution(batch, noise=noise, prefix=prefix)
+        if prefix is not None and self.config.rtc_score == "free":  # the gate reads the unconstrained belief
+            self.last_prediction = replace(
+                prediction, score=self.predict_action_distribution(batch, noise=noise).score
+            )
         self._new_prediction = True
-        self._update_ood_gates(prediction.score)
+        self._update_ood_gates(self.last_prediction.score)
         return self._hold_where_released(prediction.normalized.mean[:, -steps:], batch)  # (B, steps, A)
 
     @torch.no_grad()

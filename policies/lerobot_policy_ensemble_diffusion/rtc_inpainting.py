@@ -16,8 +16,9 @@ steps equal the committed actions exactly, in every member and sample, so their 
 
 Why not RTC's guidance: it needs a vector-Jacobian product through the U-Net at every step (about twice the
 cost), written for flow matching; inpainting costs nothing, and on the committed steps it is exact. Only the
-committed steps are inpainted (not RTC's soft schedule over the execution horizon), so the chunk's new part
-is sampled as freely as without a prefix, and the gate's score over it is the one it was calibrated on.
+committed steps are inpainted (not RTC's soft schedule over the execution horizon). Every member and sample
+continues the same prefix, so they disagree less in the steps just after it than from scratch: the policy's
+``rtc_score`` chooses whether the gate reads that damped score or a second, free prediction's.
 """
 
 from __future__ import annotations
