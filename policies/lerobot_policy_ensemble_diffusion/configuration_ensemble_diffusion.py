@@ -133,9 +133,10 @@ class EnsembleDiffusionConfig(DiffusionConfig):
             matrix, whose plain log-determinant is -inf).
         rtc_score: What the gate reads under LeRobot's real-time chunking engine: "inpainted" (the score of
             the executed chunk, over the steps after its committed prefix) or "free" (the score of a second
-            prediction on the same observation without the prefix, as the sync engine scores it; the executed
-            chunk stays the inpainted one, and each chunk costs two predictions). The members all continue
-            the same committed prefix, which damps their disagreement in the steps after it.
+            prediction on the same observation without the prefix, as the sync engine scores it, read by the
+            gate before the inpainted chunk is sampled; the executed chunk stays the inpainted one, and each
+            chunk costs two predictions). The members all continue the same committed prefix, which damps
+            their disagreement in the steps after it.
         ood: Options of the out-of-distribution gate (see `EnsembleOODConfig`).
         needle_keypoints_weight: Weight of an auxiliary loss that makes every member's image encoder locate the
             needle: a linear head on the member's image features regresses the needle's tip, middle and tail

@@ -418,22 +418,23 @@ class EnsembleDiffusionPolicy(GatedPolicyMixin, FeatureCaptureMixin, PreTrainedP
         `select_action`) or offline (dataloader batch), as `DiffusionPolicy`. With it, LeRobot's real-time
         chunking engine calls (`rtc_inpainting`): `batch` is the latest observation, `prev_chunk_left_over` what
         is left of the current chunk. The chunk runs from the observation's step to the horizon's end, its first
-        `inference_delay` steps the committed actions. The gate reads the prediction first (`rtc_score`); once
-        it released control with `ood.enforce`, the chunk holds the measured pose: no flagged chunk executes.
-        """
+        `inference_delay` steps the committed actions. The gate reads the score first (`rtc_score`); once it
+        released control with `ood.enforce`, the chunk holds the measured pose: no flagged chunk executes."""
         if inference_delay is None:
             prediction = self.predict_action_distribution(batch, noise=noise)
             return prediction.normalized.mean[:, prediction.action_steps]  # (B, n_action_steps, A)
         batch = self._observe(batch)
         steps = self.config.horizon - self.config.n_obs_steps + 1  # a longer delay commits the whole chunk
         prefix = committed_prefix(prev_chunk_left_over, min(int(inference_delay), steps))
-        prediction = self.predict_action_distribution(batch, noise=noise, prefix=prefix)
-        if prefix is not None and self.config.rtc_score == "free":  # the gate reads the unconstrained belief
-            self.last_prediction = replace(
-                prediction, score=self.predict_action_distribution(batch, noise=noise).score
-            )
         self._new_prediction = True
-        self._update_ood_gates(self.last_prediction.score)
+        if prefix is not None and self.config.rtc_score == "free":  # the unconstrained belief, gated at once
+            score = self.predict_action_distribution(batch, noise=noise).score
+            self._update_ood_gates(score)
+            prediction = self.predict_action_distribution(batch, noise=noise, prefix=prefix)
+            self.last_prediction = replace(prediction, score=score)
+        else:
+            prediction = self.predict_action_distribution(batch, noise=noise, prefix=prefix)
+            self._update_ood_gates(prediction.score)
         return self._hold_where_released(prediction.normalized.mean[:, -steps:], batch)  # (B, steps, A)
 
     @torch.no_grad()

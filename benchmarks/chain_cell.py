@@ -1,0 +1,65 @@
+"""A running-suture chain of trained policies, one per subtask where given, on the leaderboard's nominal test
+seeds of the running suture: the board's nominal cell, throw by throw.
+
+``lerobot-suture chain`` writes the chain (``--policy`` for every subtask not given its own, ``--insert``,
+``--extract``, ``--lay-down``, ``--pick-up``); the cell is evaluated as ``task_levers.py`` evaluates a lever
+(the CBF on, the gate only reporting). Each policy is a ``pretrained_model`` directory of ``lerobot-train``; a
+policy trained on relative actions composes them in its own processors, so policies of either kind mix::
+
+    .venv/bin/python benchmarks/chain_cell.py --policy DIR --extract DIR --work-dir outputs/chain_cell/NAME
+
+The chain and the finished cell are kept in ``--work-dir``: a rerun reads them back.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+from _report import emit, machine
+from task_levers import evaluate
+
+NEEDS = "trained policies for the running suture's subtasks (--policy, and --insert / --extract / ... DIR)"
+SUBTASK_FLAGS = ("insert", "extract", "lay_down", "pick_up")
+
+
+def main() -> None:
+    from lerobot_policy_suture_chain.assemble import ChainCommandConfig, write_chain
+
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--policy", type=Path, help="the policy of every subtask not given its own")
+    for name in SUBTASK_FLAGS:
+        parser.add_argument(f"--{name.replace('_', '-')}", type=Path, help=f"the {name} subtask's own policy")
+    parser.add_argument("--episodes", type=int, default=50, help="test episodes")
+    parser.add_argument("--seed", type=int, default=7_000_000, help="the leaderboard's base of test seeds")
+    parser.add_argument("--batch-envs", type=int, default=8)
+    parser.add_argument("--work-dir", type=Path, required=True, help="the chain and its cell (rerun: resume)")
+    parser.add_argument("--output", type=Path)
+    args = parser.parse_args()
+
+    policies = {"policy": args.policy, **{name: getattr(args, name) for name in SUBTASK_FLAGS}}
+    chain_dir, cell_path = args.work_dir / "chain", args.work_dir / "cell.json"
+    if not (chain_dir / "config.json").is_file():  # the config refuses a subtask without a policy
+        write_chain(ChainCommandConfig(output_dir=chain_dir, **policies))
+    if cell_path.is_file():
+        cell = json.loads(cell_path.read_text())
+    else:
+        start = time.perf_counter()
+        print(f"evaluating the chain on {args.episodes} test episodes ...", flush=True)
+        cell = evaluate("running_suture", chain_dir, args.episodes, args.seed, args.batch_envs)
+        cell["evaluation_s"] = round(time.perf_counter() - start, 1)
+        cell_path.write_text(json.dumps(cell))
+    report = {
+        "task": "running_suture",
+        "policies": {name: str(path) for name, path in policies.items() if path is not None},
+        "chain": str(chain_dir),
+        "nominal": cell,
+        "machine": machine(),
+    }
+    emit(report, args.output)
+
+
+if __name__ == "__main__":
+    main()
