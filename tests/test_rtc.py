@@ -125,6 +125,27 @@ def test_an_enforced_gate_s_flagged_chunk_holds_the_measured_pose(tmp_path):
     torch.testing.assert_close(chunk, hold[:, None].expand_as(chunk))
 
 
+def test_a_free_score_flags_before_the_inpainted_chunk_is_sampled_and_that_chunk_holds():
+    """``rtc_score="free"``: the gate reads the free prediction first, so a flag waits for one prediction, and
+    the inpainted chunk sampled after it is replaced by the hold pose."""
+    policy = make_policy(rtc_score="free")
+    policy.config.ood.enforce = True
+    scores = np.full(50, 1e-9) * (1 + 1e-3 * np.random.default_rng(0).standard_normal(50))
+    policy.ood_calibration = fit_calibration(scores, model="normal")
+    released_when_inpainting, predict = [], policy.predict_action_distribution
+
+    def recording(batch, **kwargs):
+        if kwargs.get("prefix") is not None:
+            released_when_inpainting.append(policy.ood_status()["released"])
+        return predict(batch, **kwargs)
+
+    policy.predict_action_distribution = recording
+    obs = random_observation(policy.config, n_steps=0)
+    chunk = policy.predict_action_chunk(obs, inference_delay=2, prev_chunk_left_over=padded_left_over(rows=5))
+    assert released_when_inpainting == [True]
+    torch.testing.assert_close(chunk, policy._hold_action(obs)[:, None].expand_as(chunk))
+
+
 RTC_FPS = 20.0
 
 
