@@ -71,7 +71,7 @@ def with_rtc_score(policy_path: Path, rtc_score: str, copy: Path) -> Path:
     return copy
 
 
-def plot_handovers(compared: dict, chunk: int, rtc_calibration: str, path: Path) -> None:
+def plot_handovers(compared: dict, chunk: int, rtc_calibration: str, rtc_score: str, path: Path) -> None:
     """Per scenario, each seed's handover frame under real-time chunking against sync's (a seed without one at
     -1), with the band the bar allows, to ``path`` (PNG)."""
     from matplotlib.figure import Figure
@@ -101,8 +101,8 @@ def plot_handovers(compared: dict, chunk: int, rtc_calibration: str, path: Path)
         if index == 0:
             axes.set_ylabel("real-time chunking handover frame", fontsize=8)
     figure.suptitle(
-        f"Handovers; sync's gate reads the policy's calibration, real-time chunking's {rtc_calibration}; "
-        f"green: the bar (up to {chunk} frames later)",
+        f"Handovers; sync's gate reads the policy's calibration, real-time chunking's {rtc_calibration} "
+        f"(rtc_score {rtc_score}); green: the bar (up to {chunk} frames later)",
         fontsize=9,
     )
     figure.tight_layout()
@@ -227,7 +227,7 @@ def main() -> None:
         }
         save()
     if args.figure is not None and result["compared"]:
-        plot_handovers(result["compared"], chunk, args.rtc_calibration, args.figure)
+        plot_handovers(result["compared"], chunk, args.rtc_calibration, result["rtc_score"], args.figure)
     result["work_dir"] = str(args.work_dir)
     emit(result, args.out)
 
