@@ -302,7 +302,8 @@ def run_calibration(cfg: CalibrateConfig) -> dict:
         calibration = fit_gate(cfg, config, scores, ids)
         path = save_calibration(calibration, cfg.policy.path, filename=calibration_file)
         report = {"calibration_file": str(path), "calibration": calibration.to_dict(), **recorded}
-        report["rtc_score"] = config.rtc_score  # what the gate read, had the rollouts run under real-time chunking
+        # What the gate read, had the rollouts run under real-time chunking.
+        report["rtc_score"] = config.rtc_score
         write_report(cfg.policy.path, calibration_file, report)
         return report
     choice = cfg.score_choice()
