@@ -15,10 +15,10 @@ from lerobot_suture.sim.relative_actions import MAX_RELATIVE_STEP, RELATIVE_ACTI
 from lerobot_suture.sim.tasks import TASKS
 
 
-@pytest.fixture(scope="module")
-def relative_policy_dir(tmp_path_factory):
-    """An untrained tiny ensemble built by LeRobot's `make_policy` from a one-episode extraction dataset
-    recorded with relative actions (endoscope and state), saved as `lerobot-train` saves one."""
+def save_relative_policy(root, directory, task: str, **recorded):
+    """An untrained tiny ensemble built by LeRobot's `make_policy` from a one-episode ``task`` dataset recorded
+    at ``root`` with relative actions (``recorded``: further `RecordConfig` options), saved at ``directory`` as
+    `lerobot-train` saves one; returns ``directory``."""
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
     from lerobot.policies.factory import make_policy, make_pre_post_processors
     from lerobot_policy_ensemble_diffusion import EnsembleDiffusionConfig
@@ -27,25 +27,47 @@ def relative_policy_dir(tmp_path_factory):
     from lerobot_suture.datasets.record import record
     from lerobot_suture.datasets.record_config import RecordConfig
 
-    root = tmp_path_factory.mktemp("relative_data") / "data"
+    repo_id = f"suture-tests/relative-{task}"
     record(
         RecordConfig(
-            repo_id="suture-tests/relative-policy",
+            repo_id=repo_id,
             root=str(root),
-            task="extraction",
+            task=task,
             num_episodes=1,
             val_fraction=0.0,
             relative_actions=True,
+            **recorded,
         )
     )
-    meta = LeRobotDatasetMetadata("suture-tests/relative-policy", root=root)
+    meta = LeRobotDatasetMetadata(repo_id, root=root)
     torch.manual_seed(0)
     policy = make_policy(EnsembleDiffusionConfig(**TINY_POLICY_KWARGS, device="cpu"), ds_meta=meta)
-    directory = tmp_path_factory.mktemp("relative_policy") / "pretrained_model"
     policy.save_pretrained(directory)
     for pipeline in make_pre_post_processors(policy.config, dataset_stats=meta.stats):
         pipeline.save_pretrained(directory)
     return directory
+
+
+def check_targets_one_step_from_the_jaw(runner, env, steps: int = 6) -> None:
+    """``runner`` drives ``env`` from the scene of seed 5; every target it hands out lies within one relative
+    step of the jaw. Read as an absolute pose, a raw relative output would sit near the base frame's origin."""
+    observation, _ = env.reset(seed=5)
+    runner.reset()
+    for _ in range(steps):
+        target = runner.act(observation)
+        jaw_pos, jaw_rot = env.unwrapped.jaw_pose()
+        motion = relative_action(jaw_pos, jaw_rot, target)
+        assert np.all(np.abs(motion[:3]) <= MAX_RELATIVE_STEP + 1e-5), motion[:3]
+        observation, *_ = env.step(target)
+
+
+@pytest.fixture(scope="module")
+def relative_policy_dir(tmp_path_factory):
+    """The tiny relative-action ensemble of a one-episode extraction dataset (endoscope and state)."""
+    root = tmp_path_factory.mktemp("relative_data") / "data"
+    return save_relative_policy(
+        root, tmp_path_factory.mktemp("relative_policy") / "pretrained_model", "extraction"
+    )
 
 
 def test_the_checkpoint_says_it_was_trained_on_relative_actions(relative_policy_dir, tiny_policy_dir):
@@ -63,16 +85,9 @@ def test_a_relative_policy_hands_the_plain_env_targets_one_step_from_the_jaw(rel
     from lerobot_suture.runtime.policy import GateMode, PolicyRunner
 
     runner = PolicyRunner.from_pretrained(relative_policy_dir, GateMode.REPORT)
-    env = gym.make(TASKS["extraction"].gym_id, obs_type="pixels_agent_pos")
-    observation, _ = env.reset(seed=5)
-    runner.reset()
-    for _ in range(6):
-        target = runner.act(observation)
-        jaw_pos, jaw_rot = env.unwrapped.jaw_pose()
-        # Read as an absolute pose, the raw relative output would sit near the base frame's origin.
-        motion = relative_action(jaw_pos, jaw_rot, target)
-        assert np.all(np.abs(motion[:3]) <= MAX_RELATIVE_STEP + 1e-5), motion[:3]
-        observation, *_ = env.step(target)
+    check_targets_one_step_from_the_jaw(
+        runner, gym.make(TASKS["extraction"].gym_id, obs_type="pixels_agent_pos")
+    )
 
 
 def test_the_released_gate_of_a_relative_policy_holds_the_measured_pose(relative_policy_dir):
@@ -150,45 +165,14 @@ def test_a_chain_around_a_relative_policy_hands_the_env_targets_one_step_from_th
     """A subtask-conditioned policy trained on relative actions, inside a ``suture_chain``: the chain runs the
     policy's own processor pair on each step, so the running suture's env gets absolute targets near the jaw."""
     import gymnasium as gym
-    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
-    from lerobot.policies.factory import make_policy, make_pre_post_processors
-    from lerobot_policy_ensemble_diffusion import EnsembleDiffusionConfig
     from lerobot_policy_suture_chain.assemble import ChainCommandConfig, write_chain
-    from policy_builders import TINY_POLICY_KWARGS
 
-    from lerobot_suture.datasets.record import record
-    from lerobot_suture.datasets.record_config import RecordConfig
     from lerobot_suture.runtime.policy import GateMode, PolicyRunner, env_kwargs_for_policy
 
-    root = tmp_path / "data"
-    record(
-        RecordConfig(
-            repo_id="suture-tests/relative-chain",
-            root=str(root),
-            task="running_suture",
-            num_episodes=1,
-            val_fraction=0.0,
-            relative_actions=True,
-            marks=True,
-            subtask=True,
-        )
+    member = save_relative_policy(
+        tmp_path / "data", tmp_path / "conditioned", "running_suture", marks=True, subtask=True
     )
-    meta = LeRobotDatasetMetadata("suture-tests/relative-chain", root=root)
-    torch.manual_seed(0)
-    policy = make_policy(EnsembleDiffusionConfig(**TINY_POLICY_KWARGS, device="cpu"), ds_meta=meta)
-    member = tmp_path / "conditioned"
-    policy.save_pretrained(member)
-    for pipeline in make_pre_post_processors(policy.config, dataset_stats=meta.stats):
-        pipeline.save_pretrained(member)
     chain = write_chain(ChainCommandConfig(output_dir=tmp_path / "chain", policy=member))
-
     runner = PolicyRunner.from_pretrained(chain, GateMode.REPORT)
     env = gym.make(TASKS["running_suture"].gym_id, **env_kwargs_for_policy(runner.policy.config))
-    observation, _ = env.reset(seed=5)
-    runner.reset()
-    for _ in range(6):
-        target = runner.act(observation)
-        jaw_pos, jaw_rot = env.unwrapped.jaw_pose()
-        motion = relative_action(jaw_pos, jaw_rot, target)
-        assert np.all(np.abs(motion[:3]) <= MAX_RELATIVE_STEP + 1e-5), motion[:3]
-        observation, *_ = env.step(target)
+    check_targets_one_step_from_the_jaw(runner, env)

@@ -301,9 +301,12 @@ def run_calibration(cfg: CalibrateConfig) -> dict:
         scores, ids, recorded = rollout_scores(cfg.rollouts, cfg.mode, cfg.alpha)
         calibration = fit_gate(cfg, config, scores, ids)
         path = save_calibration(calibration, cfg.policy.path, filename=calibration_file)
-        report = {"calibration_file": str(path), "calibration": calibration.to_dict(), **recorded}
-        # What the gate read, had the rollouts run under real-time chunking.
-        report["rtc_score"] = config.rtc_score
+        report = {
+            "calibration_file": str(path),
+            "calibration": calibration.to_dict(),
+            **recorded,
+            "rtc_score": config.rtc_score,  # what the gate read, had the rollouts run under real-time chunking
+        }
         write_report(cfg.policy.path, calibration_file, report)
         return report
     choice = cfg.score_choice()
