@@ -128,6 +128,7 @@ def test_lerobot_eval_async_batch_2_with_the_cbf_and_the_enforced_gate(tiny_poli
     assert "control released to the surgeon" in log
 
 
+@pytest.mark.slow  # the async path itself runs by default in the batch-2 test above
 def test_lerobot_eval_default_batch_size_on_a_machine_with_more_cores(tiny_policy_dir, tmp_path):
     # 16 cores: LeRobot takes 70% of them, capped by the episode count, and runs them async.
     # The inference approximations are LeRobot's own overrides of the trained config.
@@ -236,7 +237,7 @@ def expert_actions() -> dict[int, np.ndarray]:
 
 @pytest.mark.parametrize(
     ("batch_size", "use_async"),
-    [(1, False), (2, False), (2, True), (4, True)],
+    [(1, False), (2, False), (2, True), pytest.param(4, True, marks=pytest.mark.slow)],
     ids=["sync1", "sync2", "async2", "async4"],
 )
 def test_eval_policy_counts_each_worker_s_success_in_its_place(expert_actions, batch_size, use_async):
@@ -348,6 +349,7 @@ def _lerobot_train(recorded: Path, out: Path, policy_args: list[str], *extra: st
     return log
 
 
+@pytest.mark.slow
 def test_lerobot_train_evaluates_the_ensemble_in_async_envs_during_training(recorded, tmp_path):
     out = tmp_path / "train"
     log = _lerobot_train(
