@@ -34,8 +34,9 @@ NEEDS = "a task to run (--task); records, trains and evaluates each lever (about
 @dataclass(frozen=True)
 class Lever:
     """One line of the table: the episodes recorded; whether the wrist camera, the wound's marks and the
-    high level's subtask and throw are recorded (a policy trained on them reads them); and whether the actions
-    are relative to the jaw's measured pose (the policy then runs in an env that takes them)."""
+    high level's subtask and throw are recorded (a policy trained on them reads them); whether the actions
+    are relative to the jaw's measured pose (the policy then runs in an env that takes them); and how far (m)
+    the expert's first regrasp of each extraction misses before it recovers (0: it never misses)."""
 
     name: str
     episodes: int | None  # None: the task recipe's own count
@@ -43,6 +44,7 @@ class Lever:
     marks: bool = False
     subtask: bool = False
     relative_actions: bool = False
+    regrasp_miss: float = 0.0
 
 
 LEVERS = (
@@ -55,6 +57,7 @@ LEVERS = (
     Lever("relative actions + wrist camera", None, wrist_camera=True, relative_actions=True),
     Lever("data x500 + relative actions", 500, relative_actions=True),
     Lever("marks + subtask + relative actions", None, marks=True, subtask=True, relative_actions=True),
+    Lever("relative actions + missed regrasps recovered", None, relative_actions=True, regrasp_miss=0.001),
 )
 
 
@@ -91,6 +94,8 @@ def record(task: str, lever: Lever, root: Path, log: Path) -> dict:
     ]
     if lever.episodes is not None:
         command.append(f"--num_episodes={lever.episodes}")
+    if lever.regrasp_miss:
+        command.append(f"--regrasp_miss={lever.regrasp_miss:g}")
     seconds = _timed(root.parent / f"{root.name}.record_s.json", "record_s", lambda: _run(command, log))
     episodes = json.loads(info.read_text())["total_episodes"]
     result = {"episodes": episodes, "record_s": round(seconds, 1)}
@@ -266,6 +271,7 @@ def main() -> None:
                 "marks": lever.marks,
                 "subtask": lever.subtask,
                 "relative_actions": lever.relative_actions,
+                "regrasp_miss": lever.regrasp_miss,
                 "record_s": recorded["record_s"],
                 "train_s": round(train_s, 1),
                 "nominal": {

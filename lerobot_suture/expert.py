@@ -61,6 +61,10 @@ class ExpertConfig:
         angle_tolerance: angle to a waypoint orientation that counts as reached (rad).
         approach_detour: lateral offset of the detour waypoint from the throw's approach pose (m); 0 (the
             default) approaches straight, > 0 via either side, drawn per episode.
+        regrasp_miss: how far (m) the first regrasp of each extraction aims beside the needle, across the jaw
+            (the side drawn per extraction): 0 (the default) aims at it; 0.0006 to 0.003 closes the jaw beside
+            the lodged needle, so the demonstration shows a missed regrasp and the reach again that recovers it
+            (``expert_plans.extraction``).
         assume_nominal_grasp: plan with the env's nominal grasp of the needle instead of the true one, as a
             policy that cannot see how the needle sits in the jaw must: an upper bound on such a policy's
             success, a lower bound on its entry error (``benchmarks/expert_quality.py
@@ -76,6 +80,7 @@ class ExpertConfig:
     position_tolerance: float = 0.0005
     angle_tolerance: float = 0.03
     approach_detour: float = 0.0
+    regrasp_miss: float = 0.0
     assume_nominal_grasp: bool = False
 
     def __post_init__(self):
@@ -95,6 +100,11 @@ class ExpertConfig:
         if not (0.0 <= self.approach_detour <= 0.03 and math.isfinite(self.approach_detour)):
             raise ValueError(
                 f"`approach_detour` must be in [0, 0.03] m (0: a straight approach). Got {self.approach_detour}."
+            )
+        if not (self.regrasp_miss == 0.0 or 0.0006 <= self.regrasp_miss <= 0.003):
+            raise ValueError(
+                f"`regrasp_miss` must be 0 (aim at the needle) or in [0.0006, 0.003] m, beside it by more than "
+                f"the jaw's capture tolerance. Got {self.regrasp_miss}."
             )
 
 

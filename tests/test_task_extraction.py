@@ -9,7 +9,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from lerobot_suture.expert import ScriptedExpert, iter_expert_steps
+from lerobot_suture.expert import ExpertConfig, ScriptedExpert, iter_expert_steps
 from lerobot_suture.sim.extraction import PROTRUSION_RANGE, STRAIN_BOUND
 from lerobot_suture.sim.geometry import jaw_holding, pose_vector
 from lerobot_suture.sim.task import ENTRY_TOLERANCE, EXIT_TOLERANCE
@@ -70,6 +70,40 @@ def test_the_expert_extracts_the_needle_through_the_exit_hole():
         assert not last.info["needle_in_tissue"] and last.info["tissue_strain"] < STRAIN_BOUND / 4
         assert env.unwrapped.tail_exit_error < EXIT_TOLERANCE
         assert len(steps) < TASKS["extraction"].max_episode_steps
+
+
+def closings(env, seed: int, config: ExpertConfig) -> tuple[list[str], list]:
+    """The capture rule of each time the expert's jaw closed on the free needle, judged on the state its
+    step started from (as the env judges it), and the episode's steps."""
+    obs, _ = env.reset(seed=seed)
+    u, expert = env.unwrapped, ScriptedExpert(config)
+    expert.reset(env)
+    rules, steps, before = [], [], u.capture_verdict()
+    for step in iter_expert_steps(env, expert, obs):
+        if step.action[9] >= 0.5 > (steps[-1].action[9] if steps else 1.0):
+            rules.append(before.rule)
+        steps.append(step)
+        before = u.capture_verdict()
+    return rules, steps
+
+
+@pytest.mark.parametrize("seed", [0, 5])
+def test_a_missed_first_regrasp_is_recovered_within_the_episode(seed):
+    env = make()
+    rules, steps = closings(env, seed, ExpertConfig())
+    assert rules == ["caught"] and steps[-1].info["is_success"]
+    rules, missed = closings(env, seed, ExpertConfig(regrasp_miss=0.001))
+    assert rules[0] in ("lodged", "not_between_faces") and rules[1:] == ["caught"], rules
+    last = missed[-1]
+    assert last.terminated and last.info["is_success"] and last.info["tissue_strain"] < STRAIN_BOUND / 2
+    assert len(steps) < len(missed) < TASKS["extraction"].max_episode_steps
+
+
+def test_regrasp_miss_out_of_range_names_its_range():
+    ExpertConfig(regrasp_miss=0.0006)
+    for bad in (0.0003, 0.004, -0.001, math.nan):
+        with pytest.raises(ValueError, match=r"`regrasp_miss` must be 0 .* \[0.0006, 0.003\]"):
+            ExpertConfig(regrasp_miss=bad)
 
 
 @pytest.mark.parametrize("scenario", [s for s in TASKS["extraction"].scenarios if s != "nominal"])

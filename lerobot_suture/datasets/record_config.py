@@ -62,6 +62,10 @@ class RecordConfig:
         approach_detour: m, [0, 0.03]; > 0: the expert approaches via a waypoint this far to one side of
             the entry-exit line, the side drawn per episode (``ExpertConfig.approach_detour``): a dataset
             of two equally valid strategies, for testing whether a detector mistakes them for uncertainty.
+        regrasp_miss: m, 0 or [0.0006, 0.003], extraction and running suture only; > 0: the first regrasp of
+            each extraction aims this far beside the lodged needle and misses, and the expert reaches again
+            (``ExpertConfig.regrasp_miss``): demonstrations of recovering a missed regrasp, which the expert
+            never needs otherwise.
         steps_after_success: control steps recorded after the insertion succeeds, the expert driving on
             (its planned protrusion raised by the arc it turns in them, :func:`expert_config`). A policy's
             episode ends when the throw is over, so the action chunks it predicts there then reach into
@@ -100,6 +104,7 @@ class RecordConfig:
     grasp: str = "narrow"  # grasp randomization: narrow (the test scenes) | wide
     grasp_blind_expert: bool = False  # the expert plans with the nominal grasp, not the true one
     approach_detour: float = 0.0  # m; > 0: the expert approaches via either side, drawn per episode
+    regrasp_miss: float = 0.0  # m; > 0: each extraction's first regrasp misses by this much, then recovers
     seed: int = 0  # env seed of the first attempt; attempt k uses seed + k
     steps_after_success: int = 0  # control steps recorded past success, the expert driving on
     appearance: AppearanceConfig = field(default_factory=AppearanceConfig)  # endoscope view randomization
@@ -144,6 +149,13 @@ class RecordConfig:
             raise ValueError(
                 f"`approach_detour` must be in [0, 0.03] m (0: a straight approach). Got {self.approach_detour}."
             )
+        if self.regrasp_miss:
+            ExpertConfig(regrasp_miss=self.regrasp_miss)  # its range, named as the expert's
+            if self.task not in ("extraction", "running_suture"):
+                raise ValueError(
+                    f"`regrasp_miss` shapes an extraction's regrasp; task {self.task!r} has none. Use it with "
+                    "--task=extraction or --task=running_suture."
+                )
         if self.checkpoint_every < 1:
             raise ValueError(f"`checkpoint_every` must be >= 1. Got {self.checkpoint_every}.")
         if not 0 <= self.steps_after_success <= MAX_STEPS_AFTER_SUCCESS:
@@ -189,6 +201,8 @@ class RecordConfig:
             flags.append("--grasp_blind_expert=true")
         if self.approach_detour:
             flags.append(f"--approach_detour={self.approach_detour:g}")
+        if self.regrasp_miss:
+            flags.append(f"--regrasp_miss={self.regrasp_miss:g}")
         if self.steps_after_success:
             flags.append(f"--steps_after_success={self.steps_after_success}")
         for name, value in self.appearance.active().items():
@@ -199,12 +213,16 @@ class RecordConfig:
 
 
 def expert_config(
-    steps_after_success: int, grasp_blind_expert: bool = False, approach_detour: float = 0.0
+    steps_after_success: int,
+    grasp_blind_expert: bool = False,
+    approach_detour: float = 0.0,
+    regrasp_miss: float = 0.0,
 ) -> ExpertConfig:
     """The recording expert: the default one, driving on through ``steps_after_success`` control steps
     past its usual protrusion (at ``drive_rate``), so it still turns the needle in them; with
     ``grasp_blind_expert`` it plans with the nominal grasp instead of the true one; with
-    ``approach_detour`` it approaches via either side of the entry-exit line (two strategies)."""
+    ``approach_detour`` it approaches via either side of the entry-exit line (two strategies); with
+    ``regrasp_miss`` each extraction's first regrasp misses and the expert recovers it."""
     default = ExpertConfig()
     extra = steps_after_success * default.drive_rate * task.CONTROL_DT  # rad of arc
     return dataclasses.replace(
@@ -212,6 +230,7 @@ def expert_config(
         protrusion_angle=default.protrusion_angle + extra,
         assume_nominal_grasp=grasp_blind_expert,
         approach_detour=approach_detour,
+        regrasp_miss=regrasp_miss,
     )
 
 

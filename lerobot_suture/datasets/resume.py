@@ -62,7 +62,9 @@ def new_episode_log(cfg: RecordConfig) -> dict:
         "expert": {
             "class": "lerobot_suture.expert.ScriptedExpert",
             "config": dataclasses.asdict(
-                expert_config(cfg.steps_after_success, cfg.grasp_blind_expert, cfg.approach_detour)
+                expert_config(
+                    cfg.steps_after_success, cfg.grasp_blind_expert, cfg.approach_detour, cfg.regrasp_miss
+                )
             ),
         },
         "steps_after_success": cfg.steps_after_success,
@@ -106,6 +108,7 @@ def _check_resumable(cfg: RecordConfig, log: dict, root: Path) -> None:
         "steps_after_success": log.get("steps_after_success", 0),  # absent in logs before it existed
         "grasp_blind_expert": log["expert"]["config"].get("assume_nominal_grasp", False),
         "approach_detour": log["expert"]["config"].get("approach_detour", 0.0),
+        "regrasp_miss": log["expert"]["config"].get("regrasp_miss", 0.0),
     }
     for name in (
         *_RESUME_FIELDS,
@@ -114,6 +117,7 @@ def _check_resumable(cfg: RecordConfig, log: dict, root: Path) -> None:
         "steps_after_success",
         "grasp_blind_expert",
         "approach_detour",
+        "regrasp_miss",
     ):
         if getattr(cfg, name) != recorded[name]:
             value = str(recorded[name]).lower() if isinstance(recorded[name], bool) else recorded[name]

@@ -13,7 +13,9 @@ From privileged state (the needle's true pose, lodged in the tissue, and the jaw
    through the exit hole, until the tail is ``PULL_MARGIN`` past it; ``hold``: stay there.
 
 A jaw that missed, or lost the needle, backs off and reaches again for the needle where it now lies. Every
-step re-reads the phantom, so the pull follows a phantom that moves.
+step re-reads the phantom, so the pull follows a phantom that moves. With ``regrasp_miss`` > 0 the first
+reach aims that far beside the needle, across the jaw (the side drawn from the episode's seed and the
+throw), so the jaw closes beside the lodged needle and the plan shows its recovery.
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from lerobot_suture.sim.geometry import (
 )
 
 EXTRACTION_PHASES = ("release", "back_off", "reach", "advance", "close", "pull", "hold")
+_MISS_STREAM = 0x3155  # mixed with the env's seed: the miss side's own stream, apart from the env's draws
 BACK_OFF = 0.006
 """How far the open jaw draws back along its axis from the wire before and after a grasp (m)."""
 PULL_MARGIN = 0.3
@@ -50,6 +53,18 @@ class ExtractionPlan:
         self.phase = "release"
         self.drive_angle = 0.0
         self._goal: np.ndarray | None = None
+        self._aim_beside: float | None = None  # m across the jaw; None until the first act draws it
+
+    def _miss_offset(self, u) -> float:
+        """How far across the jaw (m) the current reach aims beside the needle: ``regrasp_miss`` on the
+        first reach, to a side drawn from the episode's seed and throw, then 0."""
+        if self._aim_beside is None:
+            seed = getattr(u, "np_random_seed", None)
+            rng = np.random.default_rng(
+                None if seed is None or seed < 0 else [_MISS_STREAM, seed, getattr(u, "throw_index", 0)]
+            )
+            self._aim_beside = self.config.regrasp_miss * (1.0 if rng.integers(2) else -1.0)
+        return self._aim_beside
 
     def act(self, env) -> np.ndarray:
         u, cfg = env.unwrapped, self.config
@@ -64,6 +79,7 @@ class ExtractionPlan:
             else:
                 self.phase = "back_off"
                 self._goal = None
+            self._aim_beside = 0.0  # a reach after a closing aims at the needle
         elif self.phase in ("pull", "hold") and not u.needle_grasped:
             self.phase, self._goal = "back_off", None  # lost it: reach for it where it lies
         if self.phase == "release":
@@ -79,6 +95,7 @@ class ExtractionPlan:
                 return pose_vector(*target, 0.0).astype(np.float32)
         if self.phase in ("reach", "advance"):
             grasp_pos, grasp_rot = jaw_holding(*u.needle_pose(), *grasp_transform(REGRASP_ANGLE, 0.0, 0.0))
+            grasp_pos = grasp_pos + self._miss_offset(u) * grasp_rot[:, 1]  # the faces close along y
             if self.phase == "reach":
                 short = grasp_pos - BACK_OFF * grasp_rot[:, 2]
                 left = _turn_left(jaw_rot, grasp_rot)

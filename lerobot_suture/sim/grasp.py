@@ -19,6 +19,9 @@ the phantom carries it when it moves.
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
+
 import mujoco
 import numpy as np
 
@@ -30,7 +33,7 @@ from lerobot_suture.sim.geometry import (
     needle_in_world,
     quat_from_matrix,
 )
-from lerobot_suture.sim.needle_capture import seat_needle
+from lerobot_suture.sim.needle_capture import SeatedGrasp, seat_needle
 from lerobot_suture.sim.psm import PSM
 from lerobot_suture.sim.task import GRASP_ANGLE
 
@@ -41,6 +44,24 @@ JAW_OPEN_ANGLE = 0.6
 """The jaw joint's range (rad): a closure command of 0 opens it this far."""
 _LODGED_CHECK_POINTS = 7
 _NEEDLE_CONTACT_BIT = 2  # the needle geoms' contype in scene.xml
+
+
+@dataclass(frozen=True)
+class CaptureVerdict:
+    """What a closing jaw does with the free needle (:meth:`NeedleGrasp.capture_verdict`).
+
+    Attributes:
+        seated: the grasp it makes, or None when it misses.
+        rule: ``caught``; or the rule that lets the needle go: ``not_between_faces`` (``needle_capture``),
+            ``jaw_too_closed`` (the wire cannot pass between the faces), ``lodged`` (the seat would move a
+            needle lodged in tissue more than ``LODGED_CAPTURE_TOLERANCE``), ``into_pad`` (it would push the
+            needle into the tissue pad).
+        shift: the largest move (m) the seat would make of any point of the needle (nan without a seat).
+    """
+
+    seated: SeatedGrasp | None
+    rule: str
+    shift: float = math.nan
 
 
 class NeedleGrasp:
@@ -102,6 +123,11 @@ class NeedleGrasp:
             self._wire_diameter, self._jaw_closed_gap, self._jaw_pivot_to_tip + self.offset_along_jaw
         )
 
+    @property
+    def closure_command(self) -> float:
+        """The last closure command (:meth:`command_jaw`), in [0, 1]."""
+        return self._last_closure
+
     def command_jaw(self, data: mujoco.MjData, closure: float, in_tissue: bool) -> None:
         """The jaw's position command for ``closure`` in [0, 1] (1 closed); below 0.5 the needle is let go,
         and a command that rises to 0.5 or more closes the jaw on the needle if it catches it
@@ -126,6 +152,32 @@ class NeedleGrasp:
             data.qpos[self.jaw_qpos] = held
             data.qvel[self._jaw_dof] = 0.0
 
+    def capture_verdict(self, data: mujoco.MjData, in_tissue: bool = False) -> CaptureVerdict:
+        """What a jaw closing now would do with the free needle (nothing changes): the seat it would make, or
+        which rule of :meth:`try_capture` lets the needle go."""
+        jaw_pos, jaw_rot = self._arm.jaw_pose(data)
+        centre = data.xpos[self.needle_body]
+        rotation = data.xmat[self.needle_body].reshape(3, 3)
+        seated = seat_needle(jaw_rot.T @ (centre - jaw_pos), jaw_rot.T @ rotation, 0.5 * self._wire_diameter)
+        if seated is None:
+            return CaptureVerdict(None, "not_between_faces")
+        wire_angle = jaw_angle_on_wire(
+            self._wire_diameter, self._jaw_closed_gap, self._jaw_pivot_to_tip + seated.depth
+        )
+        if data.qpos[self.jaw_qpos] <= wire_angle:
+            return CaptureVerdict(None, "jaw_too_closed")  # the wire cannot pass between its faces
+        arc = needle_arc_points(_LODGED_CHECK_POINTS)  # (n, 3) in the needle frame
+        seated_arc = jaw_pos + (seated.position + arc @ seated.rotation.T) @ jaw_rot.T
+        lying_arc = centre + arc @ rotation.T
+        shift = float(np.max(np.linalg.norm(seated_arc - lying_arc, axis=1)))
+        if in_tissue and shift > LODGED_CAPTURE_TOLERANCE:
+            return CaptureVerdict(
+                None, "lodged", shift
+            )  # the tissue holds the needle: the jaw closes beside it
+        if self._pad_depth(data, seated_arc) > self._pad_depth(data, lying_arc) + LODGED_CAPTURE_TOLERANCE:
+            return CaptureVerdict(None, "into_pad", shift)  # the tissue's surface holds the needle
+        return CaptureVerdict(seated, "caught", shift)
+
     def try_capture(self, data: mujoco.MjData, in_tissue: bool = False) -> bool:
         """Close the jaw on the free needle: held from now on, seated as ``needle_capture.seat_needle``
         says, if the wire lies between the faces of a jaw open wider than the wire there, and, for a needle
@@ -133,24 +185,9 @@ class NeedleGrasp:
         Returns whether it caught the needle."""
         if self.held:
             return False
-        jaw_pos, jaw_rot = self._arm.jaw_pose(data)
-        centre = data.xpos[self.needle_body]
-        rotation = data.xmat[self.needle_body].reshape(3, 3)
-        seated = seat_needle(jaw_rot.T @ (centre - jaw_pos), jaw_rot.T @ rotation, 0.5 * self._wire_diameter)
+        seated = self.capture_verdict(data, in_tissue).seated
         if seated is None:
             return False
-        wire_angle = jaw_angle_on_wire(
-            self._wire_diameter, self._jaw_closed_gap, self._jaw_pivot_to_tip + seated.depth
-        )
-        if data.qpos[self.jaw_qpos] <= wire_angle:
-            return False  # the jaw is already too closed for the wire to pass between its faces
-        arc = needle_arc_points(_LODGED_CHECK_POINTS)  # (n, 3) in the needle frame
-        seated_arc = jaw_pos + (seated.position + arc @ seated.rotation.T) @ jaw_rot.T
-        lying_arc = centre + arc @ rotation.T
-        if in_tissue and np.max(np.linalg.norm(seated_arc - lying_arc, axis=1)) > LODGED_CAPTURE_TOLERANCE:
-            return False  # the tissue holds the needle where it lies: the jaw closes beside it
-        if self._pad_depth(data, seated_arc) > self._pad_depth(data, lying_arc) + LODGED_CAPTURE_TOLERANCE:
-            return False  # the seat would push the needle into the tissue: its surface holds it
         self.parameters = seated.parameters
         self.position, self.rotation = seated.position, seated.rotation
         self.reversed = seated.reversed

@@ -11,6 +11,7 @@ import numpy as np
 
 from lerobot_suture.sim.appearance import AppearanceSample
 from lerobot_suture.sim.geometry import InsertionFrame, grasp_transform, insertion_frame
+from lerobot_suture.sim.grasp import CaptureVerdict
 from lerobot_suture.sim.pickup import LIFT_HEIGHT, clearance, grasp_ready_for_throw
 from lerobot_suture.sim.task import GRASP_ANGLE, NEEDLE_TILT
 
@@ -61,6 +62,15 @@ class PrivilegedState:
     @property
     def needle_in_tissue(self) -> bool:
         return self._progress.in_tissue
+
+    @property
+    def jaw_closure_command(self) -> float:
+        """The last jaw closure command, in [0, 1] (1 closed; the jaw closes on the needle as it reaches 0.5)."""
+        return self._grasp.closure_command
+
+    def capture_verdict(self) -> CaptureVerdict:
+        """What the jaw would do with the free needle if it closed now (``grasp.NeedleGrasp.capture_verdict``)."""
+        return self._grasp.capture_verdict(self.data, self.needle_in_tissue)
 
     @property
     def needle_touched_tissue(self) -> bool:

@@ -13,7 +13,10 @@ the closest the jaw came to the expert's regrasp pose (mm and degrees); and wher
 before the first regrasp and during the pull, split into the needle centre's path (translation) and its
 off-axis turn, beside the pull's drift (how far the centre ended from where the pull began), and the strain
 when the needle came out (the bound is judged then; a needle turned on afterwards goes back in and strains
-more). A pull whose path is many times its drift strains the tissue by jitter, not by a straight pull.
+more). A pull whose path is many times its drift strains the tissue by jitter, not by a straight pull. And
+every time the jaw closed before its first regrasp, which rule of the capture let the needle go
+(``grasp.CaptureVerdict``: not between the faces, the jaw too closed, lodged: the seat would move the needle
+in tissue by more than 0.5 mm, or into the pad) and by how much the seat would have moved the needle.
 
     .venv/bin/python studies/benchmarks/extraction_failures.py --policy-path DIR [--episodes 50] [--output F.json]
 """
@@ -58,8 +61,11 @@ def roll_out(runner, env_kwargs: dict, seeds: list[int]) -> list[dict]:
             "strain_parts_mm": {"before_regrasp": [0.0, 0.0], "pull": [0.0, 0.0]},  # [path, turn]
             "pull_drift_mm": None,
             "strain_at_extraction_mm": None,
+            "close_attempts": [],  # [rule, shift mm] of each closing before the first regrasp
             "_pose": None,
             "_pull_start": None,
+            "_verdict": None,
+            "_closure": 1.0,  # the episode starts holding the needle
         }
         for s in seeds
     ]
@@ -67,6 +73,13 @@ def roll_out(runner, env_kwargs: dict, seeds: list[int]) -> list[dict]:
     def on_step(i: int, u, info: dict) -> None:
         ep = out[i]
         held = bool(u.needle_grasped)
+        closure = u.jaw_closure_command
+        closing = ep["_closure"] < 0.5 <= closure
+        if closing and ep["let_go"] and not ep["regrasp_angles_deg"] and ep["_verdict"] is not None:
+            verdict = ep["_verdict"]  # judged on the state the step started from, as the env judged it
+            shift = None if math.isnan(verdict.shift) else 1e3 * verdict.shift
+            ep["close_attempts"].append([verdict.rule, shift])
+        ep["_closure"] = closure
         if not held:
             ep["let_go"] = True
         if ep["let_go"] and not ep["regrasp_angles_deg"]:  # the reach before the first regrasp
@@ -87,6 +100,7 @@ def roll_out(runner, env_kwargs: dict, seeds: list[int]) -> list[dict]:
                 ep["_pull_start"] = centre.copy()
             ep["pull_drift_mm"] = 1e3 * float(np.linalg.norm(centre - ep["_pull_start"]))
         ep["_pose"] = (centre.copy(), rotation.copy())
+        ep["_verdict"] = None if held else u.capture_verdict()
         if not ep["extracted"] and not u.needle_in_tissue:  # out: what the bound is judged on
             ep["strain_at_extraction_mm"] = 1e3 * float(info["tissue_strain"])
         ep["extracted"] = ep["extracted"] or not u.needle_in_tissue
@@ -98,7 +112,7 @@ def roll_out(runner, env_kwargs: dict, seeds: list[int]) -> list[dict]:
 
     roll_out_lockstep(runner, env_kwargs, TASK, seeds, on_step)
     for ep in out:
-        del ep["was_held"], ep["_pose"], ep["_pull_start"]
+        del ep["was_held"], ep["_pose"], ep["_pull_start"], ep["_verdict"], ep["_closure"]
         if math.isinf(ep["closest_mm"]):
             ep["closest_mm"] = None
     return out
@@ -159,6 +173,22 @@ def summarize(episodes: list[dict]) -> dict:
             "within_1mm": float(np.mean(closest <= 1.0)),
             "median_rotation_at_closest_deg": float(np.median([ep["closest_rotation_deg"] for ep in missed])),
         }
+    attempts = [a for ep in episodes for a in ep["close_attempts"]]
+    if attempts:  # why the closings before a first regrasp let the needle go
+        rules = [rule for rule, _ in attempts]
+        lodged = np.array([shift for rule, shift in attempts if rule == "lodged"])
+        summary["close_attempts"] = {
+            "closings": len(attempts),
+            "episodes_closing": sum(bool(ep["close_attempts"]) for ep in episodes),
+            "rules": {rule: rules.count(rule) for rule in sorted(set(rules))},
+        }
+        if lodged.size:
+            summary["close_attempts"]["lodged_shift_mm"] = {
+                "median": float(np.median(lodged)),
+                "q25": float(np.quantile(lodged, 0.25)),
+                "min": float(lodged.min()),
+                "within_1mm": float(np.mean(lodged <= 1.0)),
+            }
     return summary
 
 
