@@ -216,7 +216,7 @@ def figure(report: dict, path: Path) -> None:
     ax.set_xlim(0, 1)
     what = "first throws on the marks" if throws else "success"
     ax.set_xlabel(f"nominal {what}, {lines[0]['nominal']['episodes']} test seeds, 95% Wilson")
-    ax.set_title(f"{report['task']}: what each lever does ({report['members']} member(s))", fontsize=10)
+    fig.suptitle(f"{report['task']}: what each lever does ({report['members']} member(s))", fontsize=10)
     ax.grid(axis="x", alpha=0.3)
     fig.tight_layout()
     save_figure(fig, path, dpi=110)

@@ -61,11 +61,12 @@ def roll_out(runner, env_kwargs: dict, seeds: list[int]) -> list[dict]:
             "strain_parts_mm": {"before_regrasp": [0.0, 0.0], "pull": [0.0, 0.0]},  # [path, turn]
             "pull_drift_mm": None,
             "strain_at_extraction_mm": None,
-            "close_attempts": [],  # [rule, shift mm] of each closing before the first regrasp
+            "close_attempts": [],  # [rule, shift mm, off the regrasp mm, deg] of each closing before the first regrasp
             "_pose": None,
             "_pull_start": None,
             "_verdict": None,
             "_closure": 1.0,  # the episode starts holding the needle
+            "_regrasp_error": None,
         }
         for s in seeds
     ]
@@ -78,7 +79,7 @@ def roll_out(runner, env_kwargs: dict, seeds: list[int]) -> list[dict]:
         if closing and ep["let_go"] and not ep["regrasp_angles_deg"] and ep["_verdict"] is not None:
             verdict = ep["_verdict"]  # judged on the state the step started from, as the env judged it
             shift = None if math.isnan(verdict.shift) else 1e3 * verdict.shift
-            ep["close_attempts"].append([verdict.rule, shift])
+            ep["close_attempts"].append([verdict.rule, shift, *ep["_regrasp_error"]])
         ep["_closure"] = closure
         if not held:
             ep["let_go"] = True
@@ -101,6 +102,7 @@ def roll_out(runner, env_kwargs: dict, seeds: list[int]) -> list[dict]:
             ep["pull_drift_mm"] = 1e3 * float(np.linalg.norm(centre - ep["_pull_start"]))
         ep["_pose"] = (centre.copy(), rotation.copy())
         ep["_verdict"] = None if held else u.capture_verdict()
+        ep["_regrasp_error"] = regrasp_error(u)
         if not ep["extracted"] and not u.needle_in_tissue:  # out: what the bound is judged on
             ep["strain_at_extraction_mm"] = 1e3 * float(info["tissue_strain"])
         ep["extracted"] = ep["extracted"] or not u.needle_in_tissue
@@ -112,7 +114,14 @@ def roll_out(runner, env_kwargs: dict, seeds: list[int]) -> list[dict]:
 
     roll_out_lockstep(runner, env_kwargs, TASK, seeds, on_step)
     for ep in out:
-        del ep["was_held"], ep["_pose"], ep["_pull_start"], ep["_verdict"], ep["_closure"]
+        del (
+            ep["was_held"],
+            ep["_pose"],
+            ep["_pull_start"],
+            ep["_verdict"],
+            ep["_closure"],
+            ep["_regrasp_error"],
+        )
         if math.isinf(ep["closest_mm"]):
             ep["closest_mm"] = None
     return out
@@ -175,12 +184,19 @@ def summarize(episodes: list[dict]) -> dict:
         }
     attempts = [a for ep in episodes for a in ep["close_attempts"]]
     if attempts:  # why the closings before a first regrasp let the needle go
-        rules = [rule for rule, _ in attempts]
-        lodged = np.array([shift for rule, shift in attempts if rule == "lodged"])
+        rules = [a[0] for a in attempts]
+        lodged = np.array([a[1] for a in attempts if a[0] == "lodged"])
         summary["close_attempts"] = {
             "closings": len(attempts),
             "episodes_closing": sum(bool(ep["close_attempts"]) for ep in episodes),
             "rules": {rule: rules.count(rule) for rule in sorted(set(rules))},
+            "off_regrasp_median": {  # how far the jaw was from the expert's regrasp pose as it closed
+                rule: {
+                    "mm": float(np.median([a[2] for a in attempts if a[0] == rule])),
+                    "deg": float(np.median([a[3] for a in attempts if a[0] == rule])),
+                }
+                for rule in sorted(set(rules))
+            },
         }
         if lodged.size:
             summary["close_attempts"]["lodged_shift_mm"] = {
