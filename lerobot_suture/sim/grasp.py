@@ -170,10 +170,8 @@ class NeedleGrasp:
         seated_arc = jaw_pos + (seated.position + arc @ seated.rotation.T) @ jaw_rot.T
         lying_arc = centre + arc @ rotation.T
         shift = float(np.max(np.linalg.norm(seated_arc - lying_arc, axis=1)))
-        if in_tissue and shift > LODGED_CAPTURE_TOLERANCE:
-            return CaptureVerdict(
-                None, "lodged", shift
-            )  # the tissue holds the needle: the jaw closes beside it
+        if in_tissue and shift > LODGED_CAPTURE_TOLERANCE:  # the tissue holds it: the jaw closes beside it
+            return CaptureVerdict(None, "lodged", shift)
         if self._pad_depth(data, seated_arc) > self._pad_depth(data, lying_arc) + LODGED_CAPTURE_TOLERANCE:
             return CaptureVerdict(None, "into_pad", shift)  # the tissue's surface holds the needle
         return CaptureVerdict(seated, "caught", shift)

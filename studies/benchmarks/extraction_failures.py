@@ -114,14 +114,8 @@ def roll_out(runner, env_kwargs: dict, seeds: list[int]) -> list[dict]:
 
     roll_out_lockstep(runner, env_kwargs, TASK, seeds, on_step)
     for ep in out:
-        del (
-            ep["was_held"],
-            ep["_pose"],
-            ep["_pull_start"],
-            ep["_verdict"],
-            ep["_closure"],
-            ep["_regrasp_error"],
-        )
+        for scratch in ("was_held", "_pose", "_pull_start", "_verdict", "_closure", "_regrasp_error"):
+            del ep[scratch]
         if math.isinf(ep["closest_mm"]):
             ep["closest_mm"] = None
     return out
