@@ -35,8 +35,9 @@ NEEDS = "a task to run (--task); records, trains and evaluates each lever (about
 class Lever:
     """One line of the table: the episodes recorded; whether the wrist camera, the wound's marks and the
     high level's subtask and throw are recorded (a policy trained on them reads them); whether the actions
-    are relative to the jaw's measured pose (the policy then runs in an env that takes them); and how far (m)
-    the expert's first regrasp of each extraction misses before it recovers (0: it never misses)."""
+    are relative to the jaw's measured pose (the policy then runs in an env that takes them); how far (m)
+    the expert's first regrasp of each extraction misses before it recovers (0: it never misses); and the
+    noise (m) executed but not recorded while it reaches for a regrasp (DART; 0: none)."""
 
     name: str
     episodes: int | None  # None: the task recipe's own count
@@ -45,6 +46,7 @@ class Lever:
     subtask: bool = False
     relative_actions: bool = False
     regrasp_miss: float = 0.0
+    regrasp_noise: float = 0.0
 
 
 LEVERS = (
@@ -58,6 +60,7 @@ LEVERS = (
     Lever("data x500 + relative actions", 500, relative_actions=True),
     Lever("marks + subtask + relative actions", None, marks=True, subtask=True, relative_actions=True),
     Lever("relative actions + missed regrasps recovered", None, relative_actions=True, regrasp_miss=0.001),
+    Lever("relative actions + noisy regrasps (DART)", None, relative_actions=True, regrasp_noise=0.0004),
 )
 
 
@@ -96,6 +99,8 @@ def record(task: str, lever: Lever, root: Path, log: Path) -> dict:
         command.append(f"--num_episodes={lever.episodes}")
     if lever.regrasp_miss:
         command.append(f"--regrasp_miss={lever.regrasp_miss:g}")
+    if lever.regrasp_noise:
+        command.append(f"--regrasp_noise={lever.regrasp_noise:g}")
     seconds = _timed(root.parent / f"{root.name}.record_s.json", "record_s", lambda: _run(command, log))
     episodes = json.loads(info.read_text())["total_episodes"]
     result = {"episodes": episodes, "record_s": round(seconds, 1)}
@@ -272,6 +277,7 @@ def main() -> None:
                 "subtask": lever.subtask,
                 "relative_actions": lever.relative_actions,
                 "regrasp_miss": lever.regrasp_miss,
+                "regrasp_noise": lever.regrasp_noise,
                 "record_s": recorded["record_s"],
                 "train_s": round(train_s, 1),
                 "nominal": {

@@ -16,6 +16,11 @@ policy emits:
    ``protrusion_angle``, so the tip emerges from the exit point far enough to be grasped;
 4. ``hold``: stay there.
 
+With ``regrasp_noise`` > 0 the expert demonstrates in the manner of DART: while it reaches for an extraction's
+regrasp (``ExtractionPlan.regrasping``), :meth:`ScriptedExpert.executed` adds Gaussian noise to the jaw position
+of the action the env executes, and :func:`iter_expert_steps` records the expert's own action as the label; the
+expert then corrects what the noise did, and recovers a closing it makes beside the needle.
+
 Every step re-reads the phantom, so the expert servos to a moving phantom. It also stands in for the
 surgeon after a handover: ``reset`` with the env mid-episode works out the phase from the state (a
 needle already in tissue is driven on from its current angle). A needle the jaw has lost in
@@ -44,6 +49,7 @@ from lerobot_suture.sim.relative_actions import env_action
 
 PHASES = ("detour", "approach", "descend", "drive", "hold")
 _SIDE_STREAM = 0x51DE  # mixed with the env's seed: the detour side's own stream, apart from the env's draws
+_NOISE_STREAM = 0xDA27  # mixed with the env's seed: the executed noise's own stream
 
 
 @dataclass
@@ -61,6 +67,9 @@ class ExpertConfig:
         angle_tolerance: angle to a waypoint orientation that counts as reached (rad).
         approach_detour: lateral offset of the detour waypoint from the throw's approach pose (m); 0 (the
             default) approaches straight, > 0 via either side, drawn per episode.
+        regrasp_noise: standard deviation (m, per axis, drawn every control step) of the noise on the executed
+            jaw position while the expert reaches for an extraction's regrasp; the recorded label stays the
+            expert's action (DART, module docstring). 0 (the default): the executed action is the label.
         regrasp_miss: how far (m) the first regrasp of each extraction aims beside the needle, across the jaw
             (the side drawn per extraction): 0 (the default) aims at it; 0.0006 to 0.003 closes the jaw beside
             the lodged needle, so the demonstration shows a missed regrasp and the reach again that recovers it
@@ -81,6 +90,7 @@ class ExpertConfig:
     angle_tolerance: float = 0.03
     approach_detour: float = 0.0
     regrasp_miss: float = 0.0
+    regrasp_noise: float = 0.0
     assume_nominal_grasp: bool = False
 
     def __post_init__(self):
@@ -101,6 +111,11 @@ class ExpertConfig:
             raise ValueError(
                 f"`approach_detour` must be in [0, 0.03] m (0: a straight approach). Got {self.approach_detour}."
             )
+        if not (0.0 <= self.regrasp_noise <= 0.002):
+            raise ValueError(
+                f"`regrasp_noise` must be in [0, 0.002] m (0: the executed action is the label). "
+                f"Got {self.regrasp_noise}."
+            )
         if not (self.regrasp_miss == 0.0 or 0.0006 <= self.regrasp_miss <= 0.003):
             raise ValueError(
                 f"`regrasp_miss` must be 0 (aim at the needle) or in [0.0006, 0.003] m, beside it by more than "
@@ -119,6 +134,7 @@ class ScriptedExpert:
         self.drive_angle = 0.0
         self.detour_side = 1.0
         self._plan: PickupPlan | ExtractionPlan | RunningSuturePlan | None = None
+        self._noise = np.random.default_rng()
 
     def reset(self, env=None) -> None:
         """Start over; the phase is worked out from the env's state at the next ``act``. With
@@ -131,6 +147,16 @@ class ScriptedExpert:
         seed = getattr(env.unwrapped, "np_random_seed", None) if env is not None else None
         rng = np.random.default_rng(None if seed is None or seed < 0 else [_SIDE_STREAM, seed])
         self.detour_side = 1.0 if rng.integers(2) else -1.0
+        self._noise = np.random.default_rng(None if seed is None or seed < 0 else [_NOISE_STREAM, seed])
+
+    def executed(self, action: np.ndarray) -> np.ndarray:
+        """The action the env executes for the expert's ``action`` (its last :meth:`act`): the same, or, while it
+        reaches for a regrasp with ``regrasp_noise`` on, its jaw position plus Gaussian noise (DART)."""
+        if self.config.regrasp_noise == 0.0 or not getattr(self._plan, "regrasping", False):
+            return action
+        noisy = np.array(action, dtype=np.float32)
+        noisy[:3] += self._noise.normal(0.0, self.config.regrasp_noise, 3).astype(np.float32)
+        return noisy
 
     @property
     def stage(self) -> str | None:
@@ -248,7 +274,7 @@ def iter_expert_steps(
     needle_keypoints: bool = False,
 ) -> Iterator[ExpertStep]:
     """Yield the expert's steps from ``obs``, the observation ``env.reset`` just returned, to the
-    episode's end.
+    episode's end. A step's action is the expert's; the env executes :meth:`ScriptedExpert.executed` of it.
 
     Args:
         steps_after_success: control steps to go on after the step the insertion succeeds (where the env
@@ -262,8 +288,12 @@ def iter_expert_steps(
     remaining = None  # control steps left once the insertion has succeeded
     while True:
         keypoints = env.unwrapped.needle_keypoints_in_image() if needle_keypoints else None
-        action = env_action(env, expert.act(env))  # relative when the env takes relative actions
-        next_obs, reward, terminated, truncated, info = env.step(action)
+        target = expert.act(env)
+        action = env_action(env, target)  # relative when the env takes relative actions
+        executed = expert.executed(target)
+        next_obs, reward, terminated, truncated, info = env.step(
+            action if executed is target else env_action(env, executed)
+        )
         if remaining is not None:
             remaining -= 1
         elif terminated and info["is_success"]:

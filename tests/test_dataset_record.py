@@ -121,7 +121,7 @@ def test_the_grasp_blind_expert_plans_with_the_nominal_grasp(tmp_path):
     assert "--grasp=wide --grasp_blind_expert=true" in cfg.command()
 
 
-def test_regrasp_miss_reaches_the_expert_and_only_tasks_that_regrasp(tmp_path):
+def test_regrasp_miss_and_noise_reach_the_expert_and_only_tasks_that_regrasp(tmp_path):
     assert expert_config(0, regrasp_miss=0.001).regrasp_miss == 0.001 and expert_config(0).regrasp_miss == 0.0
     cfg = _cfg(tmp_path / "ds", task="extraction", regrasp_miss=0.001)
     assert "--regrasp_miss=0.001" in cfg.command()
@@ -129,6 +129,12 @@ def test_regrasp_miss_reaches_the_expert_and_only_tasks_that_regrasp(tmp_path):
         _cfg(tmp_path / "ds", regrasp_miss=0.001)
     with pytest.raises(ValueError, match="`regrasp_miss` must be 0"):
         _cfg(tmp_path / "ds", task="running_suture", regrasp_miss=0.0001)
+    cfg = _cfg(tmp_path / "ds", task="running_suture", regrasp_noise=0.0004)
+    assert "--regrasp_noise=0.0004" in cfg.command() and expert_config(0, regrasp_noise=0.0004).regrasp_noise
+    with pytest.raises(ValueError, match="`regrasp_noise` shapes an extraction's regrasp; task 'pickup'"):
+        _cfg(tmp_path / "ds", task="pickup", regrasp_noise=0.0004)
+    with pytest.raises(ValueError, match=r"`regrasp_noise` must be in \[0, 0.002\] m"):
+        _cfg(tmp_path / "ds", task="extraction", regrasp_noise=0.01)
 
 
 def test_existing_root_without_resume_is_an_error(tmp_path, capsys):

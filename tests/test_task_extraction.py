@@ -99,6 +99,38 @@ def test_a_missed_first_regrasp_is_recovered_within_the_episode(seed):
     assert len(steps) < len(missed) < TASKS["extraction"].max_episode_steps
 
 
+class _Executed(gym.Wrapper):
+    """Keeps every action the env executes."""
+
+    def __init__(self, env):
+        super().__init__(env)
+        self.actions = []
+
+    def step(self, action):
+        self.actions.append(np.array(action))
+        return self.env.step(action)
+
+
+def test_regrasp_noise_is_executed_on_the_reach_and_never_recorded():
+    env = _Executed(make())
+    obs, _ = env.reset(seed=2)
+    expert = ScriptedExpert(ExpertConfig(regrasp_noise=0.0004))
+    labels, regrasping = [], []
+    for step in iter_expert_steps(env, expert, obs):
+        labels.append(step.action)
+        regrasping.append(expert._plan.regrasping)
+    assert step.terminated and step.info["is_success"]
+    labels, executed, regrasping = np.array(labels), np.array(env.actions), np.array(regrasping)
+    moved = np.linalg.norm(executed[:, :3] - labels[:, :3], axis=1)
+    assert regrasping.sum() > 10 and np.all(moved[regrasping] > 0) and np.all(moved[~regrasping] == 0)
+    assert 0.0002 < np.median(moved[regrasping]) < 0.0012  # 0.4 mm per axis
+    np.testing.assert_array_equal(executed[:, 3:], labels[:, 3:])  # rotation and jaw as the expert's
+    quiet = _Executed(make())
+    obs, _ = quiet.reset(seed=2)
+    plain = [s.action for s in iter_expert_steps(quiet, ScriptedExpert(ExpertConfig()), obs)]
+    np.testing.assert_array_equal(np.array(quiet.actions), np.array(plain))  # off: the label is executed
+
+
 def test_regrasp_miss_out_of_range_names_its_range():
     ExpertConfig(regrasp_miss=0.0006)
     for bad in (0.0003, 0.004, -0.001, math.nan):

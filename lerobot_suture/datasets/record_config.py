@@ -66,6 +66,10 @@ class RecordConfig:
             each extraction aims this far beside the lodged needle and misses, and the expert reaches again
             (``ExpertConfig.regrasp_miss``): demonstrations of recovering a missed regrasp, which the expert
             never needs otherwise.
+        regrasp_noise: m, [0, 0.002], extraction and running suture only; > 0: while the expert reaches for
+            a regrasp, the env executes its jaw position plus Gaussian noise of this deviation per axis and
+            step, and the dataset keeps the expert's own action (DART, ``ExpertConfig.regrasp_noise``):
+            demonstrations that correct a reach gone off, and recover a closing beside the needle.
         steps_after_success: control steps recorded after the insertion succeeds, the expert driving on
             (its planned protrusion raised by the arc it turns in them, :func:`expert_config`). A policy's
             episode ends when the throw is over, so the action chunks it predicts there then reach into
@@ -105,6 +109,7 @@ class RecordConfig:
     grasp_blind_expert: bool = False  # the expert plans with the nominal grasp, not the true one
     approach_detour: float = 0.0  # m; > 0: the expert approaches via either side, drawn per episode
     regrasp_miss: float = 0.0  # m; > 0: each extraction's first regrasp misses by this much, then recovers
+    regrasp_noise: float = 0.0  # m; > 0: noise executed, not recorded, while the expert reaches to regrasp
     seed: int = 0  # env seed of the first attempt; attempt k uses seed + k
     steps_after_success: int = 0  # control steps recorded past success, the expert driving on
     appearance: AppearanceConfig = field(default_factory=AppearanceConfig)  # endoscope view randomization
@@ -149,13 +154,14 @@ class RecordConfig:
             raise ValueError(
                 f"`approach_detour` must be in [0, 0.03] m (0: a straight approach). Got {self.approach_detour}."
             )
-        if self.regrasp_miss:
-            ExpertConfig(regrasp_miss=self.regrasp_miss)  # its range, named as the expert's
-            if self.task not in ("extraction", "running_suture"):
-                raise ValueError(
-                    f"`regrasp_miss` shapes an extraction's regrasp; task {self.task!r} has none. Use it with "
-                    "--task=extraction or --task=running_suture."
-                )
+        for name in ("regrasp_miss", "regrasp_noise"):
+            if getattr(self, name):
+                ExpertConfig(**{name: getattr(self, name)})  # its range, named as the expert's
+                if self.task not in ("extraction", "running_suture"):
+                    raise ValueError(
+                        f"`{name}` shapes an extraction's regrasp; task {self.task!r} has none. Use it with "
+                        "--task=extraction or --task=running_suture."
+                    )
         if self.checkpoint_every < 1:
             raise ValueError(f"`checkpoint_every` must be >= 1. Got {self.checkpoint_every}.")
         if not 0 <= self.steps_after_success <= MAX_STEPS_AFTER_SUCCESS:
@@ -203,6 +209,8 @@ class RecordConfig:
             flags.append(f"--approach_detour={self.approach_detour:g}")
         if self.regrasp_miss:
             flags.append(f"--regrasp_miss={self.regrasp_miss:g}")
+        if self.regrasp_noise:
+            flags.append(f"--regrasp_noise={self.regrasp_noise:g}")
         if self.steps_after_success:
             flags.append(f"--steps_after_success={self.steps_after_success}")
         for name, value in self.appearance.active().items():
@@ -217,12 +225,14 @@ def expert_config(
     grasp_blind_expert: bool = False,
     approach_detour: float = 0.0,
     regrasp_miss: float = 0.0,
+    regrasp_noise: float = 0.0,
 ) -> ExpertConfig:
     """The recording expert: the default one, driving on through ``steps_after_success`` control steps
     past its usual protrusion (at ``drive_rate``), so it still turns the needle in them; with
     ``grasp_blind_expert`` it plans with the nominal grasp instead of the true one; with
     ``approach_detour`` it approaches via either side of the entry-exit line (two strategies); with
-    ``regrasp_miss`` each extraction's first regrasp misses and the expert recovers it."""
+    ``regrasp_miss`` each extraction's first regrasp misses and the expert recovers it; with ``regrasp_noise``
+    the reach for a regrasp is executed with noise and recorded without (DART)."""
     default = ExpertConfig()
     extra = steps_after_success * default.drive_rate * task.CONTROL_DT  # rad of arc
     return dataclasses.replace(
@@ -231,6 +241,7 @@ def expert_config(
         assume_nominal_grasp=grasp_blind_expert,
         approach_detour=approach_detour,
         regrasp_miss=regrasp_miss,
+        regrasp_noise=regrasp_noise,
     )
 
 

@@ -63,7 +63,11 @@ def new_episode_log(cfg: RecordConfig) -> dict:
             "class": "lerobot_suture.expert.ScriptedExpert",
             "config": dataclasses.asdict(
                 expert_config(
-                    cfg.steps_after_success, cfg.grasp_blind_expert, cfg.approach_detour, cfg.regrasp_miss
+                    cfg.steps_after_success,
+                    cfg.grasp_blind_expert,
+                    cfg.approach_detour,
+                    cfg.regrasp_miss,
+                    cfg.regrasp_noise,
                 )
             ),
         },
@@ -109,6 +113,7 @@ def _check_resumable(cfg: RecordConfig, log: dict, root: Path) -> None:
         "grasp_blind_expert": log["expert"]["config"].get("assume_nominal_grasp", False),
         "approach_detour": log["expert"]["config"].get("approach_detour", 0.0),
         "regrasp_miss": log["expert"]["config"].get("regrasp_miss", 0.0),
+        "regrasp_noise": log["expert"]["config"].get("regrasp_noise", 0.0),
     }
     for name in (
         *_RESUME_FIELDS,
@@ -118,6 +123,7 @@ def _check_resumable(cfg: RecordConfig, log: dict, root: Path) -> None:
         "grasp_blind_expert",
         "approach_detour",
         "regrasp_miss",
+        "regrasp_noise",
     ):
         if getattr(cfg, name) != recorded[name]:
             value = str(recorded[name]).lower() if isinstance(recorded[name], bool) else recorded[name]

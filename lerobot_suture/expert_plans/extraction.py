@@ -55,6 +55,11 @@ class ExtractionPlan:
         self._goal: np.ndarray | None = None
         self._aim_beside: float | None = None  # m across the jaw; None until the first act draws it
 
+    @property
+    def regrasping(self) -> bool:
+        """Whether the plan is reaching for the regrasp (``reach`` or ``advance``)."""
+        return self.phase in ("reach", "advance")
+
     def _miss_offset(self, u) -> float:
         """How far across the jaw (m) the current reach aims beside the needle: ``regrasp_miss`` on the
         first reach, to a side drawn from the episode's seed and throw, then 0."""

@@ -81,6 +81,11 @@ class RunningSuturePlan:
         self._throw = -1
 
     @property
+    def regrasping(self) -> bool:
+        """Whether the current stage's plan is reaching for an extraction's regrasp."""
+        return getattr(self._plan, "regrasping", False)
+
+    @property
     def phase(self) -> str | None:
         """``stage/phase`` of the plan in use."""
         return None if self.stage is None else f"{self.stage}/{self._plan.phase}"
