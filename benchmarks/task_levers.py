@@ -60,7 +60,7 @@ LEVERS = (
     Lever("data x500 + relative actions", 500, relative_actions=True),
     Lever("marks + subtask + relative actions", None, marks=True, subtask=True, relative_actions=True),
     Lever("relative actions + missed regrasps recovered", None, relative_actions=True, regrasp_miss=0.001),
-    Lever("relative actions + noisy regrasps (DART)", None, relative_actions=True, regrasp_noise=0.0004),
+    Lever("relative actions + DART regrasps", None, relative_actions=True, regrasp_noise=0.0004),
 )
 
 
