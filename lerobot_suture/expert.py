@@ -35,6 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lerobot_suture.expert_plans import episode_stream
 from lerobot_suture.expert_plans.extraction import ExtractionPlan
 from lerobot_suture.expert_plans.pickup import PickupPlan
 from lerobot_suture.expert_plans.running_suture import RunningSuturePlan
@@ -145,9 +146,8 @@ class ScriptedExpert:
         self.drive_angle = 0.0
         self._plan: PickupPlan | ExtractionPlan | RunningSuturePlan | None = None
         seed = getattr(env.unwrapped, "np_random_seed", None) if env is not None else None
-        rng = np.random.default_rng(None if seed is None or seed < 0 else [_SIDE_STREAM, seed])
-        self.detour_side = 1.0 if rng.integers(2) else -1.0
-        self._noise = np.random.default_rng(None if seed is None or seed < 0 else [_NOISE_STREAM, seed])
+        self.detour_side = 1.0 if episode_stream(seed, _SIDE_STREAM).integers(2) else -1.0
+        self._noise = episode_stream(seed, _NOISE_STREAM)
 
     def executed(self, action: np.ndarray) -> np.ndarray:
         """The action the env executes for the expert's ``action`` (its last :meth:`act`): the same, or, while it

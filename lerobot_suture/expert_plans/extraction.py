@@ -24,6 +24,7 @@ import math
 
 import numpy as np
 
+from lerobot_suture.expert_plans import episode_stream
 from lerobot_suture.sim.extraction import REGRASP_ANGLE
 from lerobot_suture.sim.geometry import (
     grasp_transform,
@@ -64,9 +65,8 @@ class ExtractionPlan:
         """How far across the jaw (m) the current reach aims beside the needle: ``regrasp_miss`` on the
         first reach, to a side drawn from the episode's seed and throw, then 0."""
         if self._aim_beside is None:
-            seed = getattr(u, "np_random_seed", None)
-            rng = np.random.default_rng(
-                None if seed is None or seed < 0 else [_MISS_STREAM, seed, getattr(u, "throw_index", 0)]
+            rng = episode_stream(
+                getattr(u, "np_random_seed", None), _MISS_STREAM, getattr(u, "throw_index", 0)
             )
             self._aim_beside = self.config.regrasp_miss * (1.0 if rng.integers(2) else -1.0)
         return self._aim_beside
