@@ -36,8 +36,9 @@ class Lever:
     """One line of the table: the episodes recorded; whether the wrist camera, the wound's marks and the
     high level's subtask and throw are recorded (a policy trained on them reads them); whether the actions
     are relative to the jaw's measured pose (the policy then runs in an env that takes them); how far (m)
-    the expert's first regrasp of each extraction misses before it recovers (0: it never misses); and the
-    noise (m) executed but not recorded while it reaches for a regrasp (DART; 0: none)."""
+    the expert's first regrasp of each extraction misses before it recovers (0: it never misses); the
+    noise (m) executed but not recorded while it reaches for a regrasp (DART; 0: none); and whether the regrasp
+    planned through the marks is recorded as an observation, with the expert's regrasps aimed at it."""
 
     name: str
     episodes: int | None  # None: the task recipe's own count
@@ -47,6 +48,7 @@ class Lever:
     relative_actions: bool = False
     regrasp_miss: float = 0.0
     regrasp_noise: float = 0.0
+    regrasp_target: bool = False
 
 
 LEVERS = (
@@ -61,6 +63,7 @@ LEVERS = (
     Lever("marks + subtask + relative actions", None, marks=True, subtask=True, relative_actions=True),
     Lever("relative actions + missed regrasps recovered", None, relative_actions=True, regrasp_miss=0.001),
     Lever("relative actions + DART regrasps", None, relative_actions=True, regrasp_noise=0.0004),
+    Lever("relative actions + planned regrasp", None, relative_actions=True, regrasp_target=True),
 )
 
 
@@ -101,6 +104,8 @@ def record(task: str, lever: Lever, root: Path, log: Path) -> dict:
         command.append(f"--regrasp_miss={lever.regrasp_miss:g}")
     if lever.regrasp_noise:
         command.append(f"--regrasp_noise={lever.regrasp_noise:g}")
+    if lever.regrasp_target:
+        command += ["--regrasp_target=true", "--regrasp_aim=marks"]
     seconds = _timed(root.parent / f"{root.name}.record_s.json", "record_s", lambda: _run(command, log))
     episodes = json.loads(info.read_text())["total_episodes"]
     result = {"episodes": episodes, "record_s": round(seconds, 1)}
@@ -278,6 +283,7 @@ def main() -> None:
                 "relative_actions": lever.relative_actions,
                 "regrasp_miss": lever.regrasp_miss,
                 "regrasp_noise": lever.regrasp_noise,
+                "regrasp_target": lever.regrasp_target,
                 "record_s": recorded["record_s"],
                 "train_s": round(train_s, 1),
                 "nominal": {

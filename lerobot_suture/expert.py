@@ -49,6 +49,8 @@ from lerobot_suture.sim.geometry import (
 from lerobot_suture.sim.relative_actions import env_action
 
 PHASES = ("detour", "approach", "descend", "drive", "hold")
+REGRASP_AIMS = ("needle", "marks")
+"""What an extraction's regrasp may aim at (``ExpertConfig.regrasp_aim``)."""
 _SIDE_STREAM = 0x51DE  # mixed with the env's seed: the detour side's own stream, apart from the env's draws
 _NOISE_STREAM = 0xDA27  # mixed with the env's seed: the executed noise's own stream
 
@@ -75,6 +77,9 @@ class ExpertConfig:
             (the side drawn per extraction): 0 (the default) aims at it; 0.0006 to 0.003 closes the jaw beside
             the lodged needle, so the demonstration shows a missed regrasp and the reach again that recovers it
             (``expert_plans.extraction``).
+        regrasp_aim: what an extraction's regrasp aims at: ``"needle"`` (the default), the needle's true pose;
+            ``"marks"``, the grasp planned through the registered marks (``extraction.planned_regrasp``), which
+            a policy with the ``regrasp_target`` observation is given, so its labels follow from what it reads.
         assume_nominal_grasp: plan with the env's nominal grasp of the needle instead of the true one, as a
             policy that cannot see how the needle sits in the jaw must: an upper bound on such a policy's
             success, a lower bound on its entry error (``benchmarks/expert_quality.py
@@ -92,6 +97,7 @@ class ExpertConfig:
     approach_detour: float = 0.0
     regrasp_miss: float = 0.0
     regrasp_noise: float = 0.0
+    regrasp_aim: str = "needle"
     assume_nominal_grasp: bool = False
 
     def __post_init__(self):
@@ -122,6 +128,8 @@ class ExpertConfig:
                 f"`regrasp_miss` must be 0 (aim at the needle) or in [0.0006, 0.003] m, beside it by more than "
                 f"the jaw's capture tolerance. Got {self.regrasp_miss}."
             )
+        if self.regrasp_aim not in REGRASP_AIMS:
+            raise ValueError(f"`regrasp_aim` must be one of {REGRASP_AIMS}. Got {self.regrasp_aim!r}.")
 
 
 class ScriptedExpert:

@@ -19,6 +19,7 @@ def make_suture_env(
     id_task: str | None = None,
     marks: bool = False,
     subtask: bool = False,
+    regrasp_target: bool = False,
     relative_actions: bool = False,
     **kwargs,
 ) -> gym.Env:
@@ -34,6 +35,8 @@ def make_suture_env(
             (:class:`~lerobot_suture.sim.wound_marks.WoundMarks`).
         subtask: add the high level's subtask and throw to ``environment_state``, after the marks
             (:class:`~lerobot_suture.sim.subtasks.SubtaskObservation`).
+        regrasp_target: add the regrasp planned through the marks, in the jaw frame, to ``environment_state``,
+            after the marks and the subtask (:class:`~lerobot_suture.sim.regrasp_target.RegraspTarget`).
         relative_actions: take actions relative to the jaw's measured pose, in the jaw frame
             (:class:`~lerobot_suture.sim.relative_actions.RelativeActions`).
         **kwargs: the env's own arguments (see its docstring), ``task`` among them.
@@ -65,6 +68,10 @@ def make_suture_env(
         from lerobot_suture.sim.subtasks import SubtaskObservation
 
         env = SubtaskObservation(env)
+    if regrasp_target:
+        from lerobot_suture.sim.regrasp_target import RegraspTarget
+
+        env = RegraspTarget(env)
     if cbf is None:
         return env
     from lerobot_suture.safety.cbf_config import CBFConfig

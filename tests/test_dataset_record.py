@@ -137,6 +137,12 @@ def test_regrasp_miss_and_noise_reach_the_expert_and_only_tasks_that_regrasp(tmp
         _cfg(tmp_path / "ds", task="extraction", regrasp_noise=0.01)
 
 
+@pytest.mark.parametrize("detour", [-0.001, 0.05, float("nan")])
+def test_approach_detour_out_of_range_names_the_expert_s_range(tmp_path, detour):
+    with pytest.raises(ValueError, match=r"`approach_detour` must be in \[0, 0.03\] m"):
+        _cfg(tmp_path / "ds", approach_detour=detour)
+
+
 def test_existing_root_without_resume_is_an_error(tmp_path, capsys):
     root = tmp_path / "ds"
     root.mkdir()

@@ -11,6 +11,7 @@ from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 
 from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.sim.appearance import AppearanceConfig
+from lerobot_suture.sim.regrasp_target import REGRASP_TARGET_DIM
 from lerobot_suture.sim.scenarios import SCENARIOS
 from lerobot_suture.sim.subtasks import SUBTASK_DIM
 from lerobot_suture.sim.suture_env import OBS_TYPES, check_image_side
@@ -52,6 +53,9 @@ class SutureEnvConfig(EnvConfig):
             ``obs_type=pixels_agent_pos``.
         subtask: add the high level's subtask and throw (``observation.environment_state``, (5,) after the
             marks; ``lerobot_suture.sim.subtasks``); needs ``obs_type=pixels_agent_pos``.
+        regrasp_target: add the regrasp planned through the registered marks, in the jaw frame
+            (``observation.environment_state``, (9,) after the marks and the subtask;
+            ``lerobot_suture.sim.regrasp_target``); needs ``obs_type=pixels_agent_pos``.
     """
 
     task: str | None = DEFAULT_TASK
@@ -68,6 +72,7 @@ class SutureEnvConfig(EnvConfig):
     wrist_camera: bool = False
     marks: bool = False
     subtask: bool = False
+    regrasp_target: bool = False
     features: dict[str, PolicyFeature] = field(
         default_factory=lambda: {
             ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(10,)),
@@ -110,7 +115,7 @@ class SutureEnvConfig(EnvConfig):
             self.features[ENDOSCOPE_KEY] = image
         if self.wrist_camera:
             self.features[WRIST_KEY] = image
-        for name in ("marks", "subtask"):
+        for name in ("marks", "subtask", "regrasp_target"):
             if getattr(self, name) and self.obs_type != "pixels_agent_pos":
                 raise ValueError(
                     f"`{name}` adds to observation.environment_state; `obs_type`={self.obs_type!r} holds the "
@@ -120,7 +125,9 @@ class SutureEnvConfig(EnvConfig):
             self.features["environment_state"] = PolicyFeature(
                 type=FeatureType.ENV, shape=(ENVIRONMENT_STATE_DIM,)
             )
-        registered = MARKS_DIM * self.marks + SUBTASK_DIM * self.subtask
+        registered = (
+            MARKS_DIM * self.marks + SUBTASK_DIM * self.subtask + REGRASP_TARGET_DIM * self.regrasp_target
+        )
         if registered:
             self.features["environment_state"] = PolicyFeature(type=FeatureType.ENV, shape=(registered,))
 
@@ -155,4 +162,6 @@ class SutureEnvConfig(EnvConfig):
             kwargs["marks"] = True
         if self.subtask:
             kwargs["subtask"] = True
+        if self.regrasp_target:
+            kwargs["regrasp_target"] = True
         return kwargs

@@ -45,13 +45,17 @@ _SUBTASK_DESCRIPTION = (
     "the high level's subtask (one-hot: insert, extract, lay down, pick up) and throw, from the measured pose "
     "(`--subtask=true`)"
 )
+_REGRASP_TARGET_DESCRIPTION = (
+    "the regrasp planned through the marks, in the jaw frame (m, rotation columns) (`--regrasp_target=true`)"
+)
 
 
-def _env_state_parts(info: dict) -> tuple[bool, bool]:
-    """Whether ``observation.environment_state`` holds the wound's marks, and the high level's subtask."""
+def _env_state_parts(info: dict) -> tuple[bool, bool, bool]:
+    """Whether ``observation.environment_state`` holds the wound's marks, the high level's subtask, and the
+    planned regrasp."""
     feature = info["features"].get("observation.environment_state") or {}
     names = list(feature.get("names") or [])
-    return "entry_x" in names, "subtask_insert" in names
+    return "entry_x" in names, "subtask_insert" in names, "regrasp_dx" in names
 
 
 _RELATIVE_ACTION_DESCRIPTION = (
@@ -137,7 +141,9 @@ def render_description(root: str | Path, template_path: str | Path | None = None
             "description": "; ".join(
                 text
                 for text, on in zip(
-                    (_MARKS_DESCRIPTION, _SUBTASK_DESCRIPTION), _env_state_parts(info), strict=True
+                    (_MARKS_DESCRIPTION, _SUBTASK_DESCRIPTION, _REGRASP_TARGET_DESCRIPTION),
+                    _env_state_parts(info),
+                    strict=True,
                 )
                 if on
             )

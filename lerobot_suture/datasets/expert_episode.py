@@ -117,6 +117,7 @@ def make_env(
     marks: bool = False,
     subtask: bool = False,
     relative_actions: bool = False,
+    regrasp_target: bool = False,
 ):
     """The env the dataset is recorded in (``gym.make`` of the task's gym id); ``appearance`` the fields of
     an :class:`~lerobot_suture.sim.appearance.AppearanceConfig` (None: all off)."""
@@ -132,6 +133,7 @@ def make_env(
         **({"marks": True} if marks else {}),
         **({"subtask": True} if subtask else {}),
         **({"relative_actions": True} if relative_actions else {}),
+        **({"regrasp_target": True} if regrasp_target else {}),
     )
 
 

@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 from lerobot_suture.sim import task
+from lerobot_suture.sim.regrasp_target import REGRASP_TARGET_NAMES
 from lerobot_suture.sim.relative_actions import RELATIVE_ACTION_NAMES
 from lerobot_suture.sim.subtasks import SUBTASK_NAMES
 from lerobot_suture.sim.wound_marks import MARKS_NAMES
@@ -52,11 +53,13 @@ def dataset_features(
     marks: bool = False,
     subtask: bool = False,
     relative_actions: bool = False,
+    regrasp_target: bool = False,
 ) -> dict[str, dict]:
     """LeRobot feature specification of the dataset (``LeRobotDataset.create(features=...)``); ``marks``: the
     wound's marks as ``observation.environment_state`` (6,), in place of the privileged one; ``subtask``: the
     high level's subtask and throw (5,) there too, after the marks; ``relative_actions``: the action as the
-    motion from the jaw's measured pose, named by :data:`RELATIVE_ACTION_NAMES`."""
+    motion from the jaw's measured pose, named by :data:`RELATIVE_ACTION_NAMES`; ``regrasp_target``: the
+    regrasp planned through the marks, in the jaw frame (9,), after the marks and the subtask."""
     features: dict[str, dict] = {}
     if "pixels" in obs_type:
         image = {
@@ -75,7 +78,11 @@ def dataset_features(
     features[STATE_KEY] = {"dtype": "float32", "shape": (10,), "names": list(POSE_NAMES)}
     if obs_type in ("state", "pixels_agent_pos_state"):
         features[ENV_STATE_KEY] = {"dtype": "float32", "shape": (18,), "names": list(ENV_STATE_NAMES)}
-    registered = (list(MARKS_NAMES) if marks else []) + (list(SUBTASK_NAMES) if subtask else [])
+    registered = (
+        (list(MARKS_NAMES) if marks else [])
+        + (list(SUBTASK_NAMES) if subtask else [])
+        + (list(REGRASP_TARGET_NAMES) if regrasp_target else [])
+    )
     if registered:
         features[ENV_STATE_KEY] = {"dtype": "float32", "shape": (len(registered),), "names": registered}
     action_names = RELATIVE_ACTION_NAMES if relative_actions else POSE_NAMES

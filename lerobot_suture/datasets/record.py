@@ -187,6 +187,7 @@ def record(cfg: RecordConfig) -> RecordSummary:
         cfg.marks,
         cfg.subtask,
         cfg.relative_actions,
+        cfg.regrasp_target,
     )
     expert = ScriptedExpert(ExpertConfig(**log["expert"]["config"]))
     env = make_env(
@@ -200,6 +201,7 @@ def record(cfg: RecordConfig) -> RecordSummary:
         log["env_kwargs"].get("marks", False),
         log["env_kwargs"].get("subtask", False),
         log["env_kwargs"].get("relative_actions", False),
+        log["env_kwargs"].get("regrasp_target", False),
     )
     bars_were_enabled = hf_datasets.is_progress_bar_enabled()
     hf_datasets.disable_progress_bars()  # a "Map" bar per saved episode otherwise

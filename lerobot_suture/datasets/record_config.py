@@ -46,6 +46,10 @@ class RecordConfig:
             (``observation.environment_state``, (6,) m); needs ``obs_type=pixels_agent_pos``.
         subtask: also record the high level's subtask and throw (``lerobot_suture.sim.subtasks``: one-hot and
             throw, (5,), after the marks in ``observation.environment_state``); needs ``obs_type=pixels_agent_pos``.
+        regrasp_target: also record the regrasp planned through the marks, in the jaw frame
+            (``lerobot_suture.sim.regrasp_target``: (9,), after the marks and the subtask in
+            ``observation.environment_state``); needs ``obs_type=pixels_agent_pos``. With
+            ``--regrasp_aim=marks`` the expert's regrasps go where it says.
         relative_actions: record each action as the motion from the jaw's measured pose, in the jaw frame
             (``lerobot_suture.sim.relative_actions``): an ``ensemble_diffusion`` policy trained on it composes
             its actions with the measured pose in its post-processor, and runs on the plain env.
@@ -70,6 +74,9 @@ class RecordConfig:
             a regrasp, the env executes its jaw position plus Gaussian noise of this deviation per axis and
             step, and the dataset keeps the expert's own action (DART, ``ExpertConfig.regrasp_noise``):
             demonstrations that correct a reach gone off, and recover a closing beside the needle.
+        regrasp_aim: ``needle`` or ``marks``, extraction and running suture only: what the expert's regrasps
+            aim at, the needle's true pose or the grasp planned through the registered marks
+            (``ExpertConfig.regrasp_aim``).
         steps_after_success: control steps recorded after the insertion succeeds, the expert driving on
             (its planned protrusion raised by the arc it turns in them, :func:`expert_config`). A policy's
             episode ends when the throw is over, so the action chunks it predicts there then reach into
@@ -103,6 +110,7 @@ class RecordConfig:
     wrist_camera: bool = False  # also record the wrist camera (observation.images.wrist, image_size too)
     marks: bool = False  # also record the wound's marks (observation.environment_state, (6,) m)
     subtask: bool = False  # also record the high level's subtask and throw (observation.environment_state)
+    regrasp_target: bool = False  # also record the planned regrasp, in the jaw frame (environment_state)
     relative_actions: bool = False  # actions as the motion from the jaw's measured pose, in the jaw frame
     scenario: str = "nominal"  # perturbation scenario the expert is recorded in
     grasp: str = "narrow"  # grasp randomization: narrow (the test scenes) | wide
@@ -110,6 +118,7 @@ class RecordConfig:
     approach_detour: float = 0.0  # m; > 0: the expert approaches via either side, drawn per episode
     regrasp_miss: float = 0.0  # m; > 0: each extraction's first regrasp misses by this much, then recovers
     regrasp_noise: float = 0.0  # m; > 0: noise executed, not recorded, while the expert reaches to regrasp
+    regrasp_aim: str = "needle"  # what the expert's regrasps aim at: needle (its true pose) | marks (planned)
     seed: int = 0  # env seed of the first attempt; attempt k uses seed + k
     steps_after_success: int = 0  # control steps recorded past success, the expert driving on
     appearance: AppearanceConfig = field(default_factory=AppearanceConfig)  # endoscope view randomization
@@ -137,7 +146,7 @@ class RecordConfig:
                 f"`wrist_camera` records an image; `obs_type`={self.obs_type!r} has none. Pass "
                 "--obs_type=pixels_agent_pos."
             )
-        for name in ("marks", "subtask"):
+        for name in ("marks", "subtask", "regrasp_target"):
             if getattr(self, name) and self.obs_type != "pixels_agent_pos":
                 raise ValueError(
                     f"`{name}` records into observation.environment_state; `obs_type`={self.obs_type!r} "
@@ -150,14 +159,10 @@ class RecordConfig:
             raise ValueError(f"`grasp` must be one of {list(task.GRASP_RANGES)}. Got {self.grasp!r}.")
         if not 0 <= self.seed < 2**32 - 1_000_000:
             raise ValueError(f"`seed` must be in [0, 2**32 - 1e6). Got {self.seed}.")
-        if not 0.0 <= self.approach_detour <= 0.03:
-            raise ValueError(
-                f"`approach_detour` must be in [0, 0.03] m (0: a straight approach). Got {self.approach_detour}."
-            )
-        for name in ("regrasp_miss", "regrasp_noise"):
-            if getattr(self, name):
+        for name in ("approach_detour", "regrasp_miss", "regrasp_noise", "regrasp_aim"):
+            if getattr(self, name) not in (0.0, "needle"):
                 ExpertConfig(**{name: getattr(self, name)})  # its range, named as the expert's
-                if self.task not in ("extraction", "running_suture"):
+                if name != "approach_detour" and self.task not in ("extraction", "running_suture"):
                     raise ValueError(
                         f"`{name}` shapes an extraction's regrasp; task {self.task!r} has none. Use it with "
                         "--task=extraction or --task=running_suture."
@@ -201,6 +206,8 @@ class RecordConfig:
             flags.append("--marks=true")
         if self.subtask:
             flags.append("--subtask=true")
+        if self.regrasp_target:
+            flags.append("--regrasp_target=true")
         if self.relative_actions:
             flags.append("--relative_actions=true")
         if self.grasp_blind_expert:
@@ -211,6 +218,8 @@ class RecordConfig:
             flags.append(f"--regrasp_miss={self.regrasp_miss:g}")
         if self.regrasp_noise:
             flags.append(f"--regrasp_noise={self.regrasp_noise:g}")
+        if self.regrasp_aim != "needle":
+            flags.append(f"--regrasp_aim={self.regrasp_aim}")
         if self.steps_after_success:
             flags.append(f"--steps_after_success={self.steps_after_success}")
         for name, value in self.appearance.active().items():
@@ -226,13 +235,15 @@ def expert_config(
     approach_detour: float = 0.0,
     regrasp_miss: float = 0.0,
     regrasp_noise: float = 0.0,
+    regrasp_aim: str = "needle",
 ) -> ExpertConfig:
     """The recording expert: the default one, driving on through ``steps_after_success`` control steps
     past its usual protrusion (at ``drive_rate``), so it still turns the needle in them; with
     ``grasp_blind_expert`` it plans with the nominal grasp instead of the true one; with
     ``approach_detour`` it approaches via either side of the entry-exit line (two strategies); with
     ``regrasp_miss`` each extraction's first regrasp misses and the expert recovers it; with ``regrasp_noise``
-    the reach for a regrasp is executed with noise and recorded without (DART)."""
+    the reach for a regrasp is executed with noise and recorded without (DART); ``regrasp_aim`` what the
+    regrasps aim at."""
     default = ExpertConfig()
     extra = steps_after_success * default.drive_rate * task.CONTROL_DT  # rad of arc
     return dataclasses.replace(
@@ -242,6 +253,7 @@ def expert_config(
         approach_detour=approach_detour,
         regrasp_miss=regrasp_miss,
         regrasp_noise=regrasp_noise,
+        regrasp_aim=regrasp_aim,
     )
 
 

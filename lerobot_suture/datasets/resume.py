@@ -48,6 +48,8 @@ def new_episode_log(cfg: RecordConfig) -> dict:
         env_kwargs["subtask"] = True  # absent when off
     if cfg.relative_actions:
         env_kwargs["relative_actions"] = True  # absent when off
+    if cfg.regrasp_target:
+        env_kwargs["regrasp_target"] = True  # absent when off
     if cfg.appearance.enabled:
         # Absent when off: the logs of datasets recorded without it read the same as before it existed.
         env_kwargs["appearance"] = dataclasses.asdict(cfg.appearance)
@@ -68,6 +70,7 @@ def new_episode_log(cfg: RecordConfig) -> dict:
                     cfg.approach_detour,
                     cfg.regrasp_miss,
                     cfg.regrasp_noise,
+                    cfg.regrasp_aim,
                 )
             ),
         },
@@ -95,6 +98,7 @@ _RESUME_FIELDS = (
     "marks",
     "subtask",
     "relative_actions",
+    "regrasp_target",
 )
 
 
@@ -106,6 +110,7 @@ def _check_resumable(cfg: RecordConfig, log: dict, root: Path) -> None:
         "marks": False,  # absent when off
         "subtask": False,  # absent when off
         "relative_actions": False,  # absent when off
+        "regrasp_target": False,  # absent when off
         **{k: v for k, v in log["env_kwargs"].items() if k != "appearance"},
         "video": log["video"],
         "seed": log["seed"],
@@ -114,6 +119,7 @@ def _check_resumable(cfg: RecordConfig, log: dict, root: Path) -> None:
         "approach_detour": log["expert"]["config"].get("approach_detour", 0.0),
         "regrasp_miss": log["expert"]["config"].get("regrasp_miss", 0.0),
         "regrasp_noise": log["expert"]["config"].get("regrasp_noise", 0.0),
+        "regrasp_aim": log["expert"]["config"].get("regrasp_aim", "needle"),
     }
     for name in (
         *_RESUME_FIELDS,
@@ -124,6 +130,7 @@ def _check_resumable(cfg: RecordConfig, log: dict, root: Path) -> None:
         "approach_detour",
         "regrasp_miss",
         "regrasp_noise",
+        "regrasp_aim",
     ):
         if getattr(cfg, name) != recorded[name]:
             value = str(recorded[name]).lower() if isinstance(recorded[name], bool) else recorded[name]

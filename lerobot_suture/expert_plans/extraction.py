@@ -15,7 +15,9 @@ From privileged state (the needle's true pose, lodged in the tissue, and the jaw
 A jaw that missed, or lost the needle, backs off and reaches again for the needle where it now lies. Every
 step re-reads the phantom, so the pull follows a phantom that moves. With ``regrasp_miss`` > 0 the first
 reach aims that far beside the needle, across the jaw (the side drawn from the episode's seed and the
-throw), so the jaw closes beside the lodged needle and the plan shows its recovery.
+throw), so the jaw closes beside the lodged needle and the plan shows its recovery. With ``regrasp_aim``
+``"marks"`` every reach aims at the grasp planned through the registered marks
+(``sim.extraction.planned_regrasp``) instead of the needle's true pose.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ import math
 import numpy as np
 
 from lerobot_suture.expert_plans import episode_stream
-from lerobot_suture.sim.extraction import REGRASP_ANGLE
+from lerobot_suture.sim.extraction import REGRASP_ANGLE, planned_regrasp
 from lerobot_suture.sim.geometry import (
     grasp_transform,
     jaw_holding,
@@ -99,7 +101,12 @@ class ExtractionPlan:
                 target = step_towards(jaw_pos, jaw_rot, self._goal, jaw_rot, cfg.approach_speed * dt, 0.0)
                 return pose_vector(*target, 0.0).astype(np.float32)
         if self.phase in ("reach", "advance"):
-            grasp_pos, grasp_rot = jaw_holding(*u.needle_pose(), *grasp_transform(REGRASP_ANGLE, 0.0, 0.0))
+            if cfg.regrasp_aim == "marks":
+                grasp_pos, grasp_rot = planned_regrasp(u.entry_point, u.exit_point, u.phantom_rotation[:, 2])
+            else:
+                grasp_pos, grasp_rot = jaw_holding(
+                    *u.needle_pose(), *grasp_transform(REGRASP_ANGLE, 0.0, 0.0)
+                )
             grasp_pos = grasp_pos + self._miss_offset(u) * grasp_rot[:, 1]  # the faces close along y
             if self.phase == "reach":
                 short = grasp_pos - BACK_OFF * grasp_rot[:, 2]

@@ -155,7 +155,9 @@ class StageGraph:
                 others = sorted(k for k in running if self.kinds[k] != unit_kind)[:2]
                 cells_running = sum(self.kinds[k] == unit_kind for k in running)
                 # Redrawn at every wait, so that a long training shows it is running.
-                bar.set_postfix_str(", ".join([f"{cells_running} running", *others, f"left {_clock(left)}"]))
+                bar.set_postfix_str(
+                    ", ".join([f"{cells_running} cells running", *others, f"left {_clock(left)}"])
+                )
         return results, seconds, failures
 
 

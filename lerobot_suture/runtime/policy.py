@@ -9,6 +9,7 @@ postprocessor).
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
 import logging
 import shutil
@@ -21,6 +22,7 @@ import torch
 
 from lerobot_suture.datasets.features import PRIVILEGED_FEATURES
 from lerobot_suture.safety.ood.calibration_file import CALIBRATION_FILENAME, calibration_report_file
+from lerobot_suture.sim.regrasp_target import REGRASP_TARGET_DIM
 from lerobot_suture.sim.subtasks import SUBTASK_DIM
 from lerobot_suture.sim.task import TASK
 from lerobot_suture.sim.wound_marks import MARKS_DIM
@@ -183,11 +185,16 @@ def env_kwargs_for_policy(config) -> dict:
             f"{WRIST_IMAGE} with wrist_camera=True)."
         )
     env_state = "observation.environment_state" in features
-    # What the environment state holds, by its size: the marks (6), the subtask (5), both (11), else privileged.
+    # What the environment state holds, by its size: any of the marks (6), the subtask (5) and the planned
+    # regrasp (9), each combination of a size of its own; any other size is the privileged state (18).
     size = int(np.prod(features["observation.environment_state"].shape)) if env_state else 0
-    marks = size in (MARKS_DIM, MARKS_DIM + SUBTASK_DIM)
-    subtask = size in (SUBTASK_DIM, MARKS_DIM + SUBTASK_DIM)
-    registered = marks or subtask
+    parts = {"marks": MARKS_DIM, "subtask": SUBTASK_DIM, "regrasp_target": REGRASP_TARGET_DIM}
+    combinations = {
+        sum(parts[name] for name in chosen): chosen
+        for flags in itertools.product((False, True), repeat=len(parts))
+        if (chosen := [name for name, on in zip(parts, flags, strict=True) if on])
+    }
+    registered = combinations.get(size, [])
     if images:
         sizes = {tuple(features[k].shape[-2:]) for k in images}
         height, width = sizes.pop()
@@ -202,14 +209,13 @@ def env_kwargs_for_policy(config) -> dict:
         }
         if WRIST_IMAGE in features:
             kwargs["wrist_camera"] = True
-        if marks:
-            kwargs["marks"] = True  # the wound's marks (6,), not the privileged state (18,)
-        if subtask:
-            kwargs["subtask"] = True  # the high level's subtask and throw (5,), after any marks
+        for name in registered:
+            kwargs[name] = True
         return kwargs
     if registered:
         raise ValueError(
-            "The policy reads the wound's marks or the subtask without an image: the suture env gives them beside one."
+            "The policy reads the wound's marks, the subtask or the planned regrasp without an image: the suture "
+            "env gives them beside one."
         )
     return {"obs_type": "state"}
 

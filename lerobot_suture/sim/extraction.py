@@ -19,7 +19,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from lerobot_suture.sim.task import EXIT_TOLERANCE
+from lerobot_suture.sim.geometry import grasp_transform, insertion_frame, jaw_holding
+from lerobot_suture.sim.task import EXIT_TOLERANCE, NEEDLE_TILT
 
 PROTRUSION_RANGE = (0.5, 0.7)
 """Arc (rad) of the needle beyond the exit point at the start: 5 to 7 mm of a 10 mm radius needle."""
@@ -48,3 +49,19 @@ def throw_sweep(start_angle: float) -> np.ndarray:
 def extraction_succeeded(held: bool, extracted: bool, tail_exit_error: float, strain: float) -> bool:
     """Whether an extraction is done (module docstring); lengths in m."""
     return held and extracted and tail_exit_error <= TAIL_EXIT_TOLERANCE and strain <= STRAIN_BOUND
+
+
+def planned_regrasp(
+    entry_point: np.ndarray, exit_point: np.ndarray, surface_normal: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The jaw pose (position (3,) m, rotation (3, 3), world) that grasps the needle of a throw planned through
+    the marks ``entry_point`` and ``exit_point`` (m) on a surface of unit normal ``surface_normal``.
+
+    What a system with the registered wound and the needle's geometry knows: the needle of a throw on its
+    marks lies on the planned arc, its tip an unknown arc in :data:`PROTRUSION_RANGE` past the exit point.
+    The plan takes the middle of that range and grasps :data:`REGRASP_ANGLE` short of that tip, so the grasp
+    lands on the wire whatever the protrusion, up to half the range (about 1 mm) along it.
+    """
+    frame = insertion_frame(entry_point, exit_point, surface_normal, NEEDLE_TILT)
+    drive = frame.exit_angle + 0.5 * sum(PROTRUSION_RANGE)
+    return jaw_holding(frame.centre, frame.needle_rotation(drive), *grasp_transform(REGRASP_ANGLE, 0.0, 0.0))
