@@ -79,6 +79,23 @@ def test_the_observation_is_the_motion_to_the_plan_in_the_jaw_frame():
     np.testing.assert_array_equal(plain_obs["agent_pos"], again["agent_pos"])
 
 
+@pytest.mark.parametrize("tip_trace", [False, True])
+def test_the_target_is_seen_from_the_observation_s_own_pose_at_every_step(tip_trace):
+    # With the tip trace off, rendering leaves the simulator's kinematics a physics step past agent_pos; the
+    # target must not read them, or a policy trained on one setting sees an offset under the other.
+    env = make(regrasp_target=True, record_tip_trace=tip_trace)
+    obs, _ = env.reset(seed=4)
+    u = env.unwrapped
+    expert = ScriptedExpert(ExpertConfig(regrasp_aim="marks"))
+    expert.reset(env)
+    for step in list(iter_expert_steps(env, expert, obs))[:30]:
+        pose = step.obs["agent_pos"].astype(np.float64)
+        expected = regrasp_target(
+            pose[:3], matrix_from_rot6(pose[3:9]), u.entry_point, u.exit_point, u.phantom_rotation[:, 2]
+        )
+        np.testing.assert_array_equal(step.obs["environment_state"], expected)
+
+
 def test_the_plan_is_a_pure_function_of_the_registration_and_the_jaw():
     rng = np.random.default_rng(0)
     entry, exit_ = rng.normal(size=3) * 0.01, rng.normal(size=3) * 0.01

@@ -9,7 +9,8 @@ the registration, as the robot path's ``--robot.registration`` reports the marks
 
 A policy must place the regrasp within about 0.5 mm and 1 degree (``studies/benchmarks/extraction_failures.py``);
 the endoscope's 72 px image resolves about 1 mm. Given as the motion from the jaw's measured pose to the planned
-grasp, in the jaw frame (the frame of ``relative_actions``), the reach is the action the observation names.
+grasp, in the jaw frame (the frame of ``relative_actions``), the reach is the action the observation names. It is
+seen from the observation's own ``agent_pos``, so the two agree whatever else the simulator has computed since.
 
 :class:`RegraspTarget` appends it to ``environment_state`` (after the marks and the subtask when the env gives
 them): the position change (3, m) and the first two columns of the rotation change (6), the names of
@@ -23,7 +24,7 @@ import numpy as np
 from gymnasium import spaces
 
 from lerobot_suture.sim.extraction import planned_regrasp
-from lerobot_suture.sim.geometry import rot6_from_matrix
+from lerobot_suture.sim.geometry import matrix_from_rot6, rot6_from_matrix
 
 STATE_KEY = "environment_state"
 REGRASP_TARGET_DIM = 9
@@ -50,10 +51,14 @@ def regrasp_target(
     ).astype(np.float32)
 
 
-def env_regrasp_target(env) -> np.ndarray:
-    """(9,) float32: :func:`regrasp_target` of ``env``'s measured jaw pose and its current throw's marks."""
+def env_regrasp_target(env, agent_pos: np.ndarray) -> np.ndarray:
+    """(9,) float32: :func:`regrasp_target` seen from the measured pose ``agent_pos`` (the observation's, (10,))
+    with ``env``'s current throw's marks."""
     base = env.unwrapped
-    return regrasp_target(*base.jaw_pose(), base.entry_point, base.exit_point, base.phantom_rotation[:, 2])
+    pose = np.asarray(agent_pos, dtype=np.float64)
+    return regrasp_target(
+        pose[:3], matrix_from_rot6(pose[3:9]), base.entry_point, base.exit_point, base.phantom_rotation[:, 2]
+    )
 
 
 class RegraspTarget(gym.ObservationWrapper):
@@ -79,7 +84,9 @@ class RegraspTarget(gym.ObservationWrapper):
         self.observation_space = spaces.Dict(spaces_)
 
     def observation(self, observation: dict) -> dict:
-        target = env_regrasp_target(self.env)
+        # From the observation's own pose, not the simulator's kinematics: rendering the endoscope brings
+        # those a physics step past ``agent_pos``, and a policy reads the two as one measurement.
+        target = env_regrasp_target(self.env, observation["agent_pos"])
         if self._before:
             target = np.concatenate([np.asarray(observation[STATE_KEY], dtype=np.float32), target])
         return {**observation, STATE_KEY: target}
