@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -34,11 +36,15 @@ def test_the_planned_regrasp_lies_on_the_lodged_needle_whatever_its_protrusion()
         radius = np.linalg.norm(planned[0] - centre)
         assert abs(radius - np.linalg.norm(true_pos - centre)) < 1e-6  # on the needle's circle
         assert abs(rotation[:, 2] @ (planned[0] - centre)) < 1e-6  # in its plane
-        np.testing.assert_allclose(planned[1][:, 2], true_rot[:, 2], atol=1e-6)  # the jaw's axis on its normal
+        np.testing.assert_allclose(
+            planned[1][:, 2], true_rot[:, 2], atol=1e-6
+        )  # the jaw's axis on its normal
         assert np.linalg.norm(planned[0] - true_pos) < 0.0011  # half the protrusion range along the wire
 
 
-@pytest.mark.parametrize("scenario", ["nominal", *[s for s in TASKS["extraction"].scenarios if s != "nominal"]])
+@pytest.mark.parametrize(
+    "scenario", ["nominal", *[s for s in TASKS["extraction"].scenarios if s != "nominal"]]
+)
 def test_the_expert_aimed_at_the_plan_catches_the_needle_at_its_first_closing(scenario):
     env = make(obs_type="state", scenario=scenario)
     for seed in (0, 1):
@@ -46,7 +52,8 @@ def test_the_expert_aimed_at_the_plan_catches_the_needle_at_its_first_closing(sc
         expert = ScriptedExpert(ExpertConfig(regrasp_aim="marks"))
         expert.reset(env)
         steps = list(iter_expert_steps(env, expert, obs))
-        closings = sum(a >= 0.5 > b for a, b in zip([s.action[9] for s in steps][1:], [s.action[9] for s in steps]))
+        jaw = [s.action[9] for s in steps]
+        closings = sum(now >= 0.5 > before for before, now in itertools.pairwise(jaw))
         assert steps[-1].info["is_success"], (scenario, seed)
         if scenario != "needle_drop":  # a dropped needle is caught a second time
             assert closings == 1, (scenario, seed)
