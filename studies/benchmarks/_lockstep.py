@@ -2,7 +2,9 @@
 
 Shared by the benchmarks that read the simulator's privileged state while a trained policy acts (where a
 task's episodes end): the same envs (the CBF on), seeding and batching as a leaderboard cell, with a
-callback after every env step, and the command line that runs them on the leaderboard's nominal seeds.
+callback after every env step, and the command line that runs them on the leaderboard's nominal seeds. Unlike
+a cell, the envs do not record the needle tip's physics-rate trace, so ``agent_pos`` is a physics step behind
+the simulator's kinematics, as in a recording; a policy that leans on that step ends differently in a cell.
 """
 
 from __future__ import annotations
