@@ -7,8 +7,8 @@ protrudes is unknown, and a grasp planned at the middle of that range lands on t
 (:func:`lerobot_suture.sim.extraction.planned_regrasp`). The needle's pose is never read: the plan comes from
 the registration, as the robot path's ``--robot.registration`` reports the marks.
 
-A policy must place the regrasp within about 0.5 mm and 1 degree (``studies/benchmarks/extraction_failures.py``);
-the endoscope's 72 px image resolves about 1 mm. Given as the motion from the jaw's measured pose to the planned
+A policy must place the regrasp within about 0.5 mm and 1 degree (``studies/benchmarks/extraction_failures.py``).
+Given as the motion from the jaw's measured pose to the planned
 grasp, in the jaw frame (the frame of ``relative_actions``), the reach is the action the observation names. It is
 seen from the observation's own ``agent_pos``, so the two agree whatever else the simulator has computed since.
 
@@ -25,6 +25,8 @@ from gymnasium import spaces
 
 from lerobot_suture.sim.extraction import planned_regrasp
 from lerobot_suture.sim.geometry import matrix_from_rot6, rot6_from_matrix
+from lerobot_suture.sim.subtasks import SUBTASK_DIM
+from lerobot_suture.sim.wound_marks import MARKS_DIM
 
 STATE_KEY = "environment_state"
 REGRASP_TARGET_DIM = 9
@@ -32,7 +34,7 @@ REGRASP_TARGET_NAMES = tuple(
     f"regrasp_{name}" for name in ("dx", "dy", "dz", "dr11", "dr21", "dr31", "dr12", "dr22", "dr32")
 )
 """The planned regrasp's components in the jaw frame (m, then the rotation change's first two columns)."""
-REGISTERED_SIZES = (0, 6, 5, 11)
+REGISTERED_SIZES = (0, MARKS_DIM, SUBTASK_DIM, MARKS_DIM + SUBTASK_DIM)
 """Sizes of an ``environment_state`` it may follow: none, the marks, the subtask, both."""
 
 
