@@ -24,7 +24,8 @@ import numpy as np
 from gymnasium import spaces
 
 from lerobot_suture.sim.extraction import planned_regrasp
-from lerobot_suture.sim.geometry import matrix_from_rot6, rot6_from_matrix
+from lerobot_suture.sim.geometry import pose_vector
+from lerobot_suture.sim.relative_actions import measured_jaw, relative_action
 from lerobot_suture.sim.subtasks import SUBTASK_DIM
 from lerobot_suture.sim.wound_marks import MARKS_DIM
 
@@ -47,19 +48,16 @@ def regrasp_target(
 ) -> np.ndarray:
     """(9,) float32: the planned regrasp of the throw through ``entry_point``, ``exit_point`` (m) on the surface
     of normal ``surface_normal``, seen from the jaw at ``jaw_pos`` (3,) m, ``jaw_rot`` (3, 3)."""
-    target_pos, target_rot = planned_regrasp(entry_point, exit_point, surface_normal)
-    return np.concatenate(
-        [jaw_rot.T @ (target_pos - jaw_pos), rot6_from_matrix(jaw_rot.T @ target_rot)]
-    ).astype(np.float32)
+    target = pose_vector(*planned_regrasp(entry_point, exit_point, surface_normal), 0.0)
+    return relative_action(jaw_pos, jaw_rot, target)[:REGRASP_TARGET_DIM].astype(np.float32)
 
 
 def env_regrasp_target(env, agent_pos: np.ndarray) -> np.ndarray:
     """(9,) float32: :func:`regrasp_target` seen from the measured pose ``agent_pos`` (the observation's, (10,))
     with ``env``'s current throw's marks."""
     base = env.unwrapped
-    pose = np.asarray(agent_pos, dtype=np.float64)
     return regrasp_target(
-        pose[:3], matrix_from_rot6(pose[3:9]), base.entry_point, base.exit_point, base.phantom_rotation[:, 2]
+        *measured_jaw(agent_pos), base.entry_point, base.exit_point, base.phantom_rotation[:, 2]
     )
 
 
