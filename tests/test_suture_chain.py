@@ -22,6 +22,7 @@ from policy_builders import (
 )
 
 from lerobot_suture.runtime.policy import env_kwargs_for_policy, load_policy
+from lerobot_suture.sim.regrasp_target import REGRASP_TARGET_DIM
 from lerobot_suture.sim.subtasks import SUBTASK_DIM, subtask_vector
 from lerobot_suture.sim.wound_marks import MARKS_DIM
 
@@ -85,15 +86,24 @@ def test_the_config_names_a_policy_for_every_subtask_and_nothing_else():
 
 def test_each_policy_reads_the_environment_state_it_was_trained_on():
     marks, subtasks = torch.ones(2, MARKS_DIM), torch.zeros(2, SUBTASK_DIM)
-    assert environment_state_for(0, marks, subtasks) is None
-    assert environment_state_for(MARKS_DIM, marks, subtasks) is marks
-    assert environment_state_for(SUBTASK_DIM, None, subtasks) is subtasks
-    both = environment_state_for(MARKS_DIM + SUBTASK_DIM, marks, subtasks)
+    target = torch.full((2, REGRASP_TARGET_DIM), 2.0)
+    parts = {"marks": marks, "subtask": subtasks, "regrasp_target": target}
+    assert environment_state_for(0, parts) is None
+    assert torch.equal(environment_state_for(MARKS_DIM, parts), marks)
+    assert torch.equal(environment_state_for(SUBTASK_DIM, {"subtask": subtasks}), subtasks)
+    both = environment_state_for(MARKS_DIM + SUBTASK_DIM, parts)
     assert both.shape == (2, MARKS_DIM + SUBTASK_DIM) and torch.equal(both[:, :MARKS_DIM], marks)
+    every = environment_state_for(MARKS_DIM + SUBTASK_DIM + REGRASP_TARGET_DIM, parts)
+    assert torch.equal(every, torch.cat([marks, subtasks, target], dim=-1))
+    assert torch.equal(
+        environment_state_for(SUBTASK_DIM + REGRASP_TARGET_DIM, parts)[:, SUBTASK_DIM:], target
+    )
     with pytest.raises(ValueError, match="--env.marks=true"):
-        environment_state_for(MARKS_DIM, None, subtasks)
+        environment_state_for(MARKS_DIM, {"subtask": subtasks})
+    with pytest.raises(ValueError, match="--env.regrasp_target=true"):
+        environment_state_for(MARKS_DIM + REGRASP_TARGET_DIM, {"marks": marks, "subtask": subtasks})
     with pytest.raises(ValueError, match="7 entries"):
-        environment_state_for(7, marks, subtasks)
+        environment_state_for(7, parts)
 
 
 def test_the_command_refuses_a_subtask_without_a_policy_and_a_used_directory(tmp_path, subtask_policies):
@@ -207,7 +217,7 @@ def test_lerobot_eval_runs_the_chain_on_the_running_suture(tmp_path, subtask_pol
 def test_the_robot_reports_the_marks_after_the_pose_and_the_chain_splits_them(tmp_path, subtask_policies):
     """``--robot.marks=true``: the env's marks as ``*.pos`` scalars after the pose, which LeRobot stacks into
     ``observation.state`` (16,); the chain reads the same subtasks and acts the same as from the env path's split."""
-    from lerobot_policy_suture_chain.modeling_suture_chain import marks_apart
+    from lerobot_policy_suture_chain.modeling_suture_chain import state_apart
     from lerobot_robot_suture.config_suture_sim import MARK_FEATURES, POSE_FEATURES, SutureSimConfig
     from lerobot_robot_suture.suture_sim import SutureSim
 
@@ -229,7 +239,7 @@ def test_the_robot_reports_the_marks_after_the_pose_and_the_chain_splits_them(tm
     stacked = [{**b, OBS_STATE: torch.cat([b[OBS_STATE], b[OBS_ENV_STATE]], dim=-1)} for b in split]
     for b in stacked:
         b.pop(OBS_ENV_STATE)
-    assert torch.equal(marks_apart(stacked[0])[OBS_ENV_STATE], split[0][OBS_ENV_STATE])
+    assert torch.equal(state_apart(stacked[0], MARKS_DIM)[OBS_ENV_STATE], split[0][OBS_ENV_STATE])
     actions = {}
     for name, batches in (("split", split), ("stacked", stacked)):
         torch.manual_seed(0)
@@ -264,3 +274,74 @@ def test_lerobot_rollout_runs_the_chain_on_the_arm_with_its_marks(tmp_path, subt
     )
     steps = read_trace(trace)
     assert len(steps) >= 5 and {line["seed"] for line in steps} == {5}
+
+
+def test_a_policy_that_reads_the_planned_regrasp_gets_it_from_the_env_and_the_robot(
+    tmp_path, subtask_policies
+):
+    """An extract policy trained with ``regrasp_target=True``: the chain asks the env for the planned regrasp after
+    the marks, hands the policy marks, subtask and regrasp in the env's order, and reads the same from the robot
+    path, where ``--robot.regrasp_target=true`` reports it after the marks in ``observation.state`` (25,)."""
+    from lerobot_policy_suture_chain.modeling_suture_chain import state_apart
+    from lerobot_robot_suture.config_suture_sim import (
+        MARK_FEATURES,
+        POSE_FEATURES,
+        REGRASP_TARGET_FEATURES,
+        SutureSimConfig,
+    )
+    from lerobot_robot_suture.suture_sim import SutureSim
+
+    from lerobot_suture.sim.regrasp_target import env_regrasp_target
+
+    conditioned, _ = subtask_policies
+    every = MARKS_DIM + SUBTASK_DIM + REGRASP_TARGET_DIM
+    regrasp = _save_act(
+        tmp_path / "regrasp",
+        2,
+        {**SUTURE_INPUT_FEATURES, OBS_ENV_STATE: PolicyFeature(FeatureType.ENV, (every,))},
+    )
+    out = write_chain(ChainCommandConfig(output_dir=tmp_path / "chain", policy=conditioned, extract=regrasp))
+    chain, pre, post = load_policy(out)
+    assert chain.config.input_features[OBS_ENV_STATE].shape == (MARKS_DIM + REGRASP_TARGET_DIM,)
+    kwargs = env_kwargs_for_policy(chain.config)
+    assert kwargs.get("marks") is True and kwargs.get("regrasp_target") is True and not kwargs.get("subtask")
+
+    robot = SutureSim(
+        SutureSimConfig(task="extraction", marks=True, regrasp_target=True, clock="fast", seed=3)
+    )
+    names = [*POSE_FEATURES, *MARK_FEATURES, *REGRASP_TARGET_FEATURES]
+    assert list(robot.observation_features)[: len(names)] == names
+    robot.connect()
+    try:
+        observation = robot.get_observation()
+        pose = np.array([observation[key] for key in POSE_FEATURES])
+        expected = env_regrasp_target(robot.env, pose)
+        assert [observation[key] for key in REGRASP_TARGET_FEATURES] == pytest.approx(
+            expected.tolist(), abs=1e-6
+        )
+    finally:
+        robot.disconnect()
+
+    rng = np.random.default_rng(2)
+    entry = np.array([-0.008, 0.003, 0.0], dtype=np.float32)
+    target = torch.from_numpy(rng.normal(0, 0.01, (1, REGRASP_TARGET_DIM)).astype(np.float32))
+    split = [_batch([1.0], entry, rng), _batch([0.0], entry, rng)]  # the second lets go: extract
+    for b in split:
+        b[OBS_ENV_STATE] = torch.cat([b[OBS_ENV_STATE], target], dim=-1)
+    stacked = [
+        {OBS_STATE: torch.cat([b[OBS_STATE], b[OBS_ENV_STATE]], -1), IMAGE_KEY: b[IMAGE_KEY]} for b in split
+    ]
+    assert torch.equal(
+        state_apart(stacked[1], MARKS_DIM + REGRASP_TARGET_DIM)[OBS_ENV_STATE], split[1][OBS_ENV_STATE]
+    )
+    ref, ref_pre, ref_post = load_policy(out / "policies" / "extract")
+    ref.reset()
+    marks = split[1][OBS_ENV_STATE][:, :MARKS_DIM]
+    vector = torch.from_numpy(subtask_vector("extract", 0))[None]
+    sub = {**split[1], OBS_ENV_STATE: torch.cat([marks, vector, target], dim=-1)}
+    expected = ref_post(ref.select_action(ref_pre(sub)))
+    for batches in (split, stacked):
+        chain.reset()
+        actions = [post(chain.select_action(pre(dict(b)))) for b in batches]
+        assert chain.readings == [("extract", 0)]
+        assert torch.allclose(actions[1], expected, atol=1e-6)

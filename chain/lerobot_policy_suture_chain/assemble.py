@@ -21,10 +21,10 @@ from lerobot.utils.constants import ACTION, OBS_ENV_STATE
 from lerobot.utils.import_utils import register_third_party_plugins
 
 from lerobot_suture.datasets.features import PRIVILEGED_FEATURES
+from lerobot_suture.sim.state_layout import state_parts, state_size
 from lerobot_suture.sim.subtasks import SUBTASKS
-from lerobot_suture.sim.wound_marks import MARKS_DIM
 
-from .configuration_suture_chain import ENV_STATE_SIZES, POLICIES_DIR, SutureChainConfig
+from .configuration_suture_chain import POLICIES_DIR, SutureChainConfig
 from .processor_suture_chain import make_suture_chain_pre_post_processors
 
 
@@ -76,8 +76,9 @@ class ChainCommandConfig:
 
 
 def chain_input_features(configs: list[PreTrainedConfig]) -> dict[str, PolicyFeature]:
-    """What the chain reads: every subtask policy's inputs but the privileged ones, and the wound's marks as
-    the environment state (the high level reads them; each policy gets its own environment state from them).
+    """What the chain reads: every subtask policy's inputs but the privileged ones, and as the environment state
+    the wound's marks (the high level reads them), then the planned regrasp where a subtask policy reads it; each
+    policy gets its own environment state from them.
 
     Raises:
         ValueError: two policies read one key at different shapes, or their actions differ.
@@ -93,13 +94,23 @@ def chain_input_features(configs: list[PreTrainedConfig]) -> dict[str, PolicyFea
                     f"{tuple(feature.shape)}): train them on observations of one size."
                 )
             features[key] = feature
-    features[OBS_ENV_STATE] = PolicyFeature(type=FeatureType.ENV, shape=(MARKS_DIM,))
+    read = {name for c in configs for name in state_parts(_env_state_size(c)) or ()}
+    # The high level reads the marks; the planned regrasp comes from the env where a subtask policy reads it,
+    # the subtask from the chain itself.
+    parts = ("marks", *(["regrasp_target"] if "regrasp_target" in read else []))
+    features[OBS_ENV_STATE] = PolicyFeature(type=FeatureType.ENV, shape=(state_size(parts),))
     actions = {tuple(c.output_features[ACTION].shape) for c in configs}
     if len(actions) != 1:
         raise ValueError(
             f"The subtask policies act in different spaces {sorted(actions)}: one action for all."
         )
     return features
+
+
+def _env_state_size(config: PreTrainedConfig) -> int:
+    """Entries of the environment state a policy reads (0: none)."""
+    feature = (config.input_features or {}).get(OBS_ENV_STATE)
+    return int(np.prod(feature.shape)) if feature is not None else 0
 
 
 def write_chain(cfg: ChainCommandConfig) -> Path:
@@ -111,11 +122,11 @@ def write_chain(cfg: ChainCommandConfig) -> Path:
         names.setdefault(source, "all" if len(set(sources.values())) == 1 else subtask)
     configs = {source: PreTrainedConfig.from_pretrained(source) for source in names}
     for source, config in configs.items():
-        size = config.input_features.get(OBS_ENV_STATE)
-        if size is not None and int(np.prod(size.shape)) not in ENV_STATE_SIZES:
+        if state_parts(_env_state_size(config)) is None:
             raise ValueError(
-                f"The policy at {source} reads a privileged environment state ({tuple(size.shape)}): a chain runs "
-                "on what a robot measures. Train it with obs_type=pixels_agent_pos."
+                f"The policy at {source} reads a privileged environment state "
+                f"({tuple(config.input_features[OBS_ENV_STATE].shape)}): a chain runs on what a robot measures. "
+                "Train it with obs_type=pixels_agent_pos."
             )
     first = next(iter(configs.values()))
     config = SutureChainConfig(
@@ -144,6 +155,6 @@ def main(argv: list[str] | None = None) -> None:
     config = PreTrainedConfig.from_pretrained(out)
     served = ", ".join(f"{subtask}: {name}" for subtask, name in config.subtask_policies.items())
     print(f"Chain written to {out} ({served}).")
-    print(
-        f"Run it: lerobot-eval --policy.path={out} --env.type=suture --env.task=running_suture --env.marks=true"
-    )
+    env_state = config.input_features[OBS_ENV_STATE]
+    flags = " ".join(f"--env.{name}=true" for name in state_parts(int(np.prod(env_state.shape))))
+    print(f"Run it: lerobot-eval --policy.path={out} --env.type=suture --env.task=running_suture {flags}")

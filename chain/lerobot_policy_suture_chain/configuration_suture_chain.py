@@ -9,14 +9,10 @@ from dataclasses import dataclass, field
 from lerobot.configs.policies import PreTrainedConfig
 from lerobot.optim.optimizers import AdamWConfig
 
-from lerobot_suture.sim.subtasks import SUBTASK_DIM, SUBTASKS, SubtaskRulesConfig
-from lerobot_suture.sim.wound_marks import MARKS_DIM
+from lerobot_suture.sim.subtasks import SUBTASKS, SubtaskRulesConfig
 
 POLICIES_DIR = "policies"
 """The folder of a chain's directory that holds its subtask policies, one ``pretrained_model`` folder each."""
-ENV_STATE_SIZES = (MARKS_DIM, SUBTASK_DIM, MARKS_DIM + SUBTASK_DIM)
-"""The environment states the chain gives a subtask policy: the marks, the subtask and throw, or both (marks
-first); a policy that reads any other (the privileged state) cannot run on what a robot measures."""
 _NAME = re.compile(r"^[A-Za-z0-9_.-]+$")
 
 

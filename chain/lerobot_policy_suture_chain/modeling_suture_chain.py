@@ -1,10 +1,11 @@
 """``SutureChainPolicy``: the running suture's high level above one LeRobot policy per subtask.
 
 Each control step the rules of ``lerobot_suture.sim.subtasks`` read every environment's measured pose
-(``observation.state``) and the registered wound's marks (``observation.environment_state``, (6,) m; on the robot
-path, after the pose in ``observation.state``: :func:`marks_apart`) and say
-which subtask its arm is in and which throw; the policy serving that subtask gives the action. A subtask policy
-sees the environment state it was trained on: the marks (6,), the subtask and throw (5,), both (11,) or none.
+(``observation.state``) and the registered wound's marks (``observation.environment_state``, (6,) m, then the
+planned regrasp (9,) where a subtask policy reads it; on the robot path, after the pose in ``observation.state``:
+:func:`state_apart`) and say which subtask its arm is in and which throw; the policy serving that subtask gives
+the action. A subtask policy sees the environment state it was trained on: any combination of the marks (6,),
+the subtask and throw (5,) and the planned regrasp (9,) (``lerobot_suture.sim.state_layout``), or none.
 
 Subtask policies keep their own observation and action queues, one row per environment. A policy that an
 environment enters is reset first, so its first action is predicted from the new subtask's observation and not
@@ -23,47 +24,49 @@ from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import OBS_ENV_STATE, OBS_STATE
 from torch import Tensor, nn
 
-from lerobot_suture.sim.subtasks import SUBTASK_DIM, SubtaskRules, subtask_vector
-from lerobot_suture.sim.wound_marks import MARKS_DIM
+from lerobot_suture.sim.state_layout import LAYOUTS, part_slices, state_parts
+from lerobot_suture.sim.subtasks import SubtaskRules, subtask_vector
 
-from .configuration_suture_chain import ENV_STATE_SIZES, POLICIES_DIR, SutureChainConfig
+from .configuration_suture_chain import POLICIES_DIR, SutureChainConfig
 
 POSE_DIM = 10
 """Entries of the measured pose (``observation.state`` on the env path)."""
 
 
-def marks_apart(batch: dict[str, Tensor]) -> dict[str, Tensor]:
-    """``batch`` with the wound's marks as ``observation.environment_state``: on the robot path LeRobot stacks
+def state_apart(batch: dict[str, Tensor], env_state_size: int) -> dict[str, Tensor]:
+    """``batch`` with the registered parts as ``observation.environment_state``: on the robot path LeRobot stacks
     every scalar the robot reports into ``observation.state``, so ``--robot.marks=true`` gives the pose and then
-    the marks, (16,); the env path gives them apart already."""
+    the marks, (16,), and ``--robot.regrasp_target=true`` the planned regrasp after them, (25,); the env path gives
+    them apart already."""
     state = batch[OBS_STATE]
-    if OBS_ENV_STATE in batch or state.shape[-1] != POSE_DIM + MARKS_DIM:
+    if OBS_ENV_STATE in batch or state.shape[-1] != POSE_DIM + env_state_size:
         return batch
     return {**batch, OBS_STATE: state[..., :POSE_DIM], OBS_ENV_STATE: state[..., POSE_DIM:]}
 
 
-def environment_state_for(size: int, marks: Tensor | None, subtasks: Tensor) -> Tensor | None:
-    """What a subtask policy whose environment state has ``size`` entries reads (0: none): the marks
-    (``MARKS_DIM``), the subtask and throw (``SUBTASK_DIM``) or both, marks first.
+def environment_state_for(size: int, parts: dict[str, Tensor | None]) -> Tensor | None:
+    """What a subtask policy whose environment state has ``size`` entries reads (0: none), stacked from ``parts``
+    (name of ``STATE_PARTS`` -> (B, n) tensor, or None where the observation lacks it) in the env's order.
 
     Raises:
-        ValueError: a size the chain cannot produce, or the marks are needed and absent.
+        ValueError: a size that is no combination of the parts, or a part it needs is absent.
     """
-    if size == 0:
+    layout = state_parts(size)
+    if layout is None:
+        sizes = ", ".join(f"{'+'.join(names)} ({n})" for n, names in LAYOUTS.items())
+        raise ValueError(
+            f"A subtask policy reads an environment state of {size} entries; the chain gives {sizes}."
+        )
+    if not layout:
         return None
-    if size == SUBTASK_DIM:
-        return subtasks
-    if size not in ENV_STATE_SIZES:
+    missing = [name for name in layout if parts.get(name) is None]
+    if missing:
+        flags = " ".join(f"`--env.{name}=true`" for name in missing)
         raise ValueError(
-            f"A subtask policy reads an environment state of {size} entries; the chain gives the marks "
-            f"({MARKS_DIM}), the subtask ({SUBTASK_DIM}) or both ({MARKS_DIM + SUBTASK_DIM})."
+            f"A subtask policy reads {missing}, and the observation has none: run the env with {flags}."
         )
-    if marks is None:
-        raise ValueError(
-            "A subtask policy reads the wound's marks, and the observation has none: run the env with "
-            "`--env.marks=true`."
-        )
-    return marks if size == MARKS_DIM else torch.cat([marks, subtasks.to(marks)], dim=-1)
+    first = parts[layout[0]]
+    return torch.cat([parts[name].to(first) for name in layout], dim=-1)
 
 
 class SutureChainPolicy(PreTrainedPolicy):
@@ -139,16 +142,22 @@ class SutureChainPolicy(PreTrainedPolicy):
             "select_action, as lerobot-eval and lerobot-rollout's sync engine do."
         )
 
-    def _read_subtasks(self, batch: dict[str, Tensor]) -> tuple[set[str], Tensor | None]:
-        """Update each environment's subtask; the policies some environment entered, and the marks."""
-        poses = batch[OBS_STATE].detach().float().cpu().numpy().reshape(len(batch[OBS_STATE]), -1)
+    def _registered(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+        """The registered parts the observation's environment state holds (the chain's input layout)."""
         env_state = batch.get(OBS_ENV_STATE)
-        marks = env_state[..., :MARKS_DIM] if env_state is not None else None
+        if env_state is None:
+            return {}
+        layout = state_parts(env_state.shape[-1]) or ()
+        return {name: env_state[..., where] for name, where in part_slices(layout).items()}
+
+    def _read_subtasks(self, batch: dict[str, Tensor], marks: Tensor | None) -> set[str]:
+        """Update each environment's subtask; the policies some environment entered."""
+        poses = batch[OBS_STATE].detach().float().cpu().numpy().reshape(len(batch[OBS_STATE]), -1)
         marks_np = marks.detach().float().cpu().numpy() if marks is not None else [None] * len(poses)
         if len(self._rules) != len(poses):  # the episode's first step (lerobot-eval resets before it)
             self._rules = [SubtaskRules(self.config.rules) for _ in poses]
             self.readings = [rules.reset(pose) for rules, pose in zip(self._rules, poses, strict=True)]
-            return set(), marks
+            return set()
         before = self.readings
         self.readings = [r.update(p, m) for r, p, m in zip(self._rules, poses, marks_np, strict=True)]
         entered = {
@@ -156,15 +165,17 @@ class SutureChainPolicy(PreTrainedPolicy):
             for old, new in zip(before, self.readings, strict=True)
             if new != old
         }
-        return entered, marks
+        return entered
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
-        batch = marks_apart(batch)
-        entered, marks = self._read_subtasks(batch)
+        env_feature = self.config.input_features.get(OBS_ENV_STATE)
+        batch = state_apart(batch, int(np.prod(env_feature.shape)) if env_feature is not None else 0)
+        parts = self._registered(batch)
+        entered = self._read_subtasks(batch, parts.get("marks"))
         for name in entered:
             self.policies[name].reset()
-        subtasks = torch.from_numpy(np.stack([subtask_vector(*reading) for reading in self.readings]))
+        parts["subtask"] = torch.from_numpy(np.stack([subtask_vector(*reading) for reading in self.readings]))
         serving = [self.config.subtask_policies[subtask] for subtask, _ in self.readings]
         actions = None
         for name in dict.fromkeys(serving):
@@ -173,7 +184,7 @@ class SutureChainPolicy(PreTrainedPolicy):
             feature = policy.config.input_features.get(OBS_ENV_STATE)
             size = int(np.prod(feature.shape)) if feature is not None else 0
             sub_batch = {k: v for k, v in batch.items() if k != OBS_ENV_STATE}
-            env_state = environment_state_for(size, marks, subtasks)
+            env_state = environment_state_for(size, parts)
             if env_state is not None:
                 sub_batch[OBS_ENV_STATE] = env_state
             action = postprocessor(policy.select_action(preprocessor(sub_batch)))

@@ -11,12 +11,10 @@ from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 
 from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.sim.appearance import AppearanceConfig
-from lerobot_suture.sim.regrasp_target import REGRASP_TARGET_DIM
 from lerobot_suture.sim.scenarios import SCENARIOS
-from lerobot_suture.sim.subtasks import SUBTASK_DIM
+from lerobot_suture.sim.state_layout import STATE_PARTS, state_size
 from lerobot_suture.sim.suture_env import OBS_TYPES, check_image_side
 from lerobot_suture.sim.tasks import DEFAULT_TASK, TASKS, check_scenario, task_spec
-from lerobot_suture.sim.wound_marks import MARKS_DIM
 
 _TASK_BY_GYM_NAME = {spec.gym_id.split("/", 1)[1]: name for name, spec in TASKS.items()}
 
@@ -115,7 +113,7 @@ class SutureEnvConfig(EnvConfig):
             self.features[ENDOSCOPE_KEY] = image
         if self.wrist_camera:
             self.features[WRIST_KEY] = image
-        for name in ("marks", "subtask", "regrasp_target"):
+        for name in STATE_PARTS:
             if getattr(self, name) and self.obs_type != "pixels_agent_pos":
                 raise ValueError(
                     f"`{name}` adds to observation.environment_state; `obs_type`={self.obs_type!r} holds the "
@@ -125,9 +123,7 @@ class SutureEnvConfig(EnvConfig):
             self.features["environment_state"] = PolicyFeature(
                 type=FeatureType.ENV, shape=(ENVIRONMENT_STATE_DIM,)
             )
-        registered = (
-            MARKS_DIM * self.marks + SUBTASK_DIM * self.subtask + REGRASP_TARGET_DIM * self.regrasp_target
-        )
+        registered = state_size(name for name in STATE_PARTS if getattr(self, name))
         if registered:
             self.features["environment_state"] = PolicyFeature(type=FeatureType.ENV, shape=(registered,))
 

@@ -9,7 +9,6 @@ postprocessor).
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import json
 import logging
 import shutil
@@ -22,10 +21,8 @@ import torch
 
 from lerobot_suture.datasets.features import PRIVILEGED_FEATURES
 from lerobot_suture.safety.ood.calibration_file import CALIBRATION_FILENAME, calibration_report_file
-from lerobot_suture.sim.regrasp_target import REGRASP_TARGET_DIM
-from lerobot_suture.sim.subtasks import SUBTASK_DIM
+from lerobot_suture.sim.state_layout import state_parts
 from lerobot_suture.sim.task import TASK
-from lerobot_suture.sim.wound_marks import MARKS_DIM
 
 logger = logging.getLogger(__name__)
 ACTION = "action"  # LeRobot's key of the action (and of a policy's action queue)
@@ -185,16 +182,8 @@ def env_kwargs_for_policy(config) -> dict:
             f"{WRIST_IMAGE} with wrist_camera=True)."
         )
     env_state = "observation.environment_state" in features
-    # What the environment state holds, by its size: any of the marks (6), the subtask (5) and the planned
-    # regrasp (9), each combination of a size of its own; any other size is the privileged state (18).
     size = int(np.prod(features["observation.environment_state"].shape)) if env_state else 0
-    parts = {"marks": MARKS_DIM, "subtask": SUBTASK_DIM, "regrasp_target": REGRASP_TARGET_DIM}
-    combinations = {
-        sum(parts[name] for name in chosen): chosen
-        for flags in itertools.product((False, True), repeat=len(parts))
-        if (chosen := [name for name, on in zip(parts, flags, strict=True) if on])
-    }
-    registered = combinations.get(size, [])
+    registered = state_parts(size) or ()  # None: the privileged state
     if images:
         sizes = {tuple(features[k].shape[-2:]) for k in images}
         height, width = sizes.pop()

@@ -10,6 +10,7 @@ from lerobot.robots.config import RobotConfig
 from lerobot_suture.datasets.features import POSE_NAMES
 from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.sim.appearance import AppearanceConfig
+from lerobot_suture.sim.regrasp_target import REGRASP_TARGET_NAMES
 from lerobot_suture.sim.scenarios import SAFETY_SCENARIOS, SCENARIOS
 from lerobot_suture.sim.suture_env import check_image_side
 from lerobot_suture.sim.task import GRASP_RANGES
@@ -31,6 +32,9 @@ MARK_FEATURES = [f"{name}.pos" for name in MARKS_NAMES]
 """The wound's marks as scalar features (``--robot.marks=true``; entry x, y, z, exit x, y, z, m, the arm's base
 frame). Named ``*.pos`` so that LeRobot routes them to the policy: ``lerobot-rollout`` and ``lerobot-record`` stack
 them into ``observation.state`` after the pose, (16,), which the ``suture_chain`` policy splits again."""
+REGRASP_TARGET_FEATURES = [f"{name}.pos" for name in REGRASP_TARGET_NAMES]
+"""The planned regrasp as scalar features (``--robot.regrasp_target=true``; the motion to it in the jaw frame, m,
+then the rotation change's first two columns), after the marks in ``observation.state``: (25,) with the marks."""
 CLOCKS = ("realtime", "fast")
 EPISODE_ENDS = ("continue", "hold")
 
@@ -51,6 +55,9 @@ class SutureSimConfig(RobotConfig):
             a surgical robot with a wrist camera on each instrument reports it.
         marks: report the current throw's entry and exit marks (:data:`MARK_FEATURES`), as a registered wound
             gives them (the env's ``marks=True``): the policy's input, where ``registration`` is the CBF's.
+        regrasp_target: report the regrasp planned through the current throw's marks, seen from the measured
+            pose in the jaw frame (:data:`REGRASP_TARGET_FEATURES`; the env's ``regrasp_target=True``), as a
+            system with the registered wound and the needle's geometry plans it: the policy's input.
         scenario: perturbation scenario, one of ``lerobot_suture.sim.scenarios.SCENARIOS`` (or, in a task with a
             throw, ``SAFETY_SCENARIOS``: tissue that breathes).
         scenario_onset_step: onset (control steps); None takes the scenario's default.
@@ -87,6 +94,7 @@ class SutureSimConfig(RobotConfig):
     image_size: int = 96
     wrist_camera: bool = False
     marks: bool = False
+    regrasp_target: bool = False
     scenario: str = "nominal"
     scenario_onset_step: int | None = None
     scenario_magnitude: float | None = None
@@ -139,4 +147,5 @@ class SutureSimConfig(RobotConfig):
             "record_tip_trace": self.tip_trace,
             **({"wrist_camera": True} if self.wrist_camera else {}),
             **({"marks": True} if self.marks else {}),
+            **({"regrasp_target": True} if self.regrasp_target else {}),
         }

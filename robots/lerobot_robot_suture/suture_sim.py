@@ -8,7 +8,8 @@ that ``lerobot-eval --env.type=suture`` and the expert recordings run.
 - ``get_observation()``: ``{"endoscope": (H, W, 3) uint8, "x.pos": ..., ..., "jaw.pos": ...}``, the
   endoscope image and the measured pose of the needle holder (the env's ``agent_pos``);
   ``--robot.wrist_camera=true`` adds ``"wrist"``, the image of a camera on the instrument's shaft;
-  ``--robot.marks=true`` the current throw's entry and exit marks (``entry_x.pos`` ... ``exit_z.pos``, m).
+  ``--robot.marks=true`` the current throw's entry and exit marks (``entry_x.pos`` ... ``exit_z.pos``, m);
+  ``--robot.regrasp_target=true`` the regrasp planned through them, in the jaw frame (``regrasp_dx.pos`` ...).
 - ``send_action({"x.pos": ..., ..., "jaw.pos": ...})``: the target pose of the needle holder; the env steps
   one control period (0.1 s, 50 physics steps) towards it. Returns the target clipped to the action space.
 - ``--robot.registration=true`` adds the registered wound and the needle in the jaw to the observation (what
@@ -36,14 +37,22 @@ from lerobot.robots.robot import Robot
 from lerobot.utils.decorators import check_if_already_connected, check_if_not_connected
 
 from lerobot_suture.lerobot_shim import install_episode_hooks
+from lerobot_suture.sim.regrasp_target import STATE_KEY
+from lerobot_suture.sim.state_layout import part_slices
 from lerobot_suture.sim.task import CONTROL_DT
 from lerobot_suture.sim.tasks import task_spec
-from lerobot_suture.sim.wound_marks import MARKS_KEY
 
 from . import link
 from .cbf_step import GRASP_FEATURES, THROW_FEATURE, WOUND_FEATURES
 from .clock import ControlClock
-from .config_suture_sim import CAMERA, MARK_FEATURES, POSE_FEATURES, WRIST_CAMERA, SutureSimConfig
+from .config_suture_sim import (
+    CAMERA,
+    MARK_FEATURES,
+    POSE_FEATURES,
+    REGRASP_TARGET_FEATURES,
+    WRIST_CAMERA,
+    SutureSimConfig,
+)
 from .faults import FaultInjector
 
 logger = logging.getLogger(__name__)
@@ -51,6 +60,9 @@ logger = logging.getLogger(__name__)
 FPS = round(1.0 / CONTROL_DT)
 """The arm's control rate (10 Hz): record and replay its datasets at ``--dataset.fps=10``."""
 END_EFFECTOR_COMMAND_KEYS = ("delta_x", "delta_y", "delta_z")
+_PART_FEATURES = {"marks": MARK_FEATURES, "regrasp_target": REGRASP_TARGET_FEATURES}
+"""The env's ``environment_state`` parts a robot reports (its config's flags), in the env's order, with their
+feature names."""
 
 
 @dataclass(frozen=True)
@@ -103,8 +115,17 @@ class SutureSim(Robot):
     def observation_features(self) -> dict[str, type | tuple]:
         size = self.config.image_size
         images = dict.fromkeys(self.cameras, (size, size, 3))
-        marks = MARK_FEATURES if self.config.marks else []
-        return {**dict.fromkeys([*POSE_FEATURES, *marks], float), **images, **self._registration_features}
+        registered = [feature for part in self._registered_parts for feature in _PART_FEATURES[part]]
+        return {
+            **dict.fromkeys([*POSE_FEATURES, *registered], float),
+            **images,
+            **self._registration_features,
+        }
+
+    @cached_property
+    def _registered_parts(self) -> tuple[str, ...]:
+        """The env's ``environment_state`` parts this robot reports, in the env's order."""
+        return tuple(part for part in _PART_FEATURES if getattr(self.config, part))
 
     @cached_property
     def _registration_features(self) -> dict[str, type]:
@@ -206,8 +227,9 @@ class SutureSim(Robot):
         """What the arm reports for the state it is in now, through the configured faults (once per step)."""
         pose = self._obs["agent_pos"]
         observation: dict = {name: float(v) for name, v in zip(POSE_FEATURES, pose, strict=True)}
-        if self.config.marks:
-            observation.update(zip(MARK_FEATURES, map(float, self._obs[MARKS_KEY]), strict=True))
+        for part, where in part_slices(self._registered_parts).items():
+            values = map(float, self._obs[STATE_KEY][where])
+            observation.update(zip(_PART_FEATURES[part], values, strict=True))
         for name in self.cameras:  # the env's pixels carry the same names
             observation[name] = self._obs["pixels"][name]
         observation.update(self._registration())

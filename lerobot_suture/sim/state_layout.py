@@ -1,0 +1,54 @@
+"""What a registered ``environment_state`` holds: the parts a real system measures or plans, in the order the env
+stacks them, each combination told apart by its size alone.
+
+The parts are the current throw's marks (``marks=True``, :mod:`lerobot_suture.sim.wound_marks`), the high level's
+subtask and throw (``subtask=True``, :mod:`lerobot_suture.sim.subtasks`) and the regrasp planned through the marks
+(``regrasp_target=True``, :mod:`lerobot_suture.sim.regrasp_target`). Every non-empty combination has a size of its
+own, so a policy's ``observation.environment_state`` shape names the flags it was recorded with; any other size is
+the privileged simulator state.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+from lerobot_suture.sim.regrasp_target import REGRASP_TARGET_DIM
+from lerobot_suture.sim.subtasks import SUBTASK_DIM
+from lerobot_suture.sim.wound_marks import MARKS_DIM
+
+STATE_PARTS: dict[str, int] = {
+    "marks": MARKS_DIM,
+    "subtask": SUBTASK_DIM,
+    "regrasp_target": REGRASP_TARGET_DIM,
+}
+"""Each part's name (the env's flag) and size, in the order the env stacks them."""
+
+
+def state_size(parts) -> int:
+    """Entries of an ``environment_state`` holding ``parts`` (names of :data:`STATE_PARTS`)."""
+    return sum(STATE_PARTS[name] for name in parts)
+
+
+LAYOUTS: dict[int, tuple[str, ...]] = {
+    state_size(chosen): chosen
+    for flags in itertools.product((False, True), repeat=len(STATE_PARTS))
+    if (chosen := tuple(name for name, on in zip(STATE_PARTS, flags, strict=True) if on))
+}
+"""Size -> the parts an ``environment_state`` of that size holds (every non-empty combination)."""
+assert len(LAYOUTS) == 2 ** len(STATE_PARTS) - 1, "two combinations of parts share a size"
+
+
+def state_parts(size: int) -> tuple[str, ...] | None:
+    """The parts a registered ``environment_state`` of ``size`` entries holds; ``()`` for 0, None for a size that is
+    no combination (the privileged state)."""
+    return () if size == 0 else LAYOUTS.get(size)
+
+
+def part_slices(parts) -> dict[str, slice]:
+    """Where each of ``parts`` lies in an ``environment_state`` that holds exactly them."""
+    slices, start = {}, 0
+    for name in STATE_PARTS:
+        if name in parts:
+            slices[name] = slice(start, start + STATE_PARTS[name])
+            start += STATE_PARTS[name]
+    return slices
