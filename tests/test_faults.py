@@ -236,3 +236,16 @@ def test_command_rejects_wrong_shapes():
 def test_pose_keys_must_have_ten_entries():
     with pytest.raises(ValueError, match="`pose_keys`"):
         FaultInjector(FaultConfig(), pose_keys=("x.pos",))
+
+
+def test_derived_keys_are_delayed_with_the_pose_and_the_rest_pass_through():
+    """The planned regrasp is seen from the measured pose: a delayed pose carries the regrasp of its own step, while
+    the marks (the registration, not measured from the pose) pass through current."""
+    injector = FaultInjector(FaultConfig(observation_latency=2), derived_keys=("regrasp_dx.pos",))
+    outputs = []
+    for k in range(6):
+        obs = {**observation(k), "regrasp_dx.pos": 100.0 + k, "entry_x.pos": 200.0 + k}
+        outputs.append(injector.observe(obs))
+    assert [o["x.pos"] for o in outputs] == [0, 0, 0, 1, 2, 3]
+    assert [o["regrasp_dx.pos"] - 100 for o in outputs] == [o["x.pos"] for o in outputs]
+    assert [o["entry_x.pos"] - 200 for o in outputs] == list(range(6))

@@ -334,6 +334,8 @@ def test_a_policy_that_reads_the_planned_regrasp_gets_it_from_the_env_and_the_ro
     assert torch.equal(
         state_apart(stacked[1], MARKS_DIM + REGRASP_TARGET_DIM)[OBS_ENV_STATE], split[1][OBS_ENV_STATE]
     )
+    with pytest.raises(ValueError, match="--robot.marks=true --robot.regrasp_target=true"):
+        state_apart({OBS_STATE: torch.zeros(1, 16)}, MARKS_DIM + REGRASP_TARGET_DIM)  # the marks alone
     ref, ref_pre, ref_post = load_policy(out / "policies" / "extract")
     ref.reset()
     marks = split[1][OBS_ENV_STATE][:, :MARKS_DIM]

@@ -39,8 +39,15 @@ def state_apart(batch: dict[str, Tensor], env_state_size: int) -> dict[str, Tens
     the marks, (16,), and ``--robot.regrasp_target=true`` the planned regrasp after them, (25,); the env path gives
     them apart already."""
     state = batch[OBS_STATE]
-    if OBS_ENV_STATE in batch or state.shape[-1] != POSE_DIM + env_state_size:
+    if OBS_ENV_STATE in batch or state.shape[-1] == POSE_DIM:
         return batch
+    if state.shape[-1] != POSE_DIM + env_state_size:
+        flags = " ".join(f"--robot.{name}=true" for name in state_parts(env_state_size) or ())
+        raise ValueError(
+            f"The chain reads the pose ({POSE_DIM}) and then {env_state_size} registered entries from "
+            f"observation.state on the robot path, and it holds {state.shape[-1]}: run the robot with {flags} and "
+            "no other registered feature."
+        )
     return {**batch, OBS_STATE: state[..., :POSE_DIM], OBS_ENV_STATE: state[..., POSE_DIM:]}
 
 
@@ -61,9 +68,11 @@ def environment_state_for(size: int, parts: dict[str, Tensor | None]) -> Tensor 
         return None
     missing = [name for name in layout if parts.get(name) is None]
     if missing:
-        flags = " ".join(f"`--env.{name}=true`" for name in missing)
+        env_flags = " ".join(f"`--env.{name}=true`" for name in missing)
+        robot_flags = " ".join(f"`--robot.{name}=true`" for name in missing)
         raise ValueError(
-            f"A subtask policy reads {missing}, and the observation has none: run the env with {flags}."
+            f"A subtask policy reads {missing}, and the observation has none: run the env with {env_flags} (the "
+            f"robot with {robot_flags})."
         )
     first = parts[layout[0]]
     return torch.cat([parts[name].to(first) for name in layout], dim=-1)
@@ -147,7 +156,13 @@ class SutureChainPolicy(PreTrainedPolicy):
         env_state = batch.get(OBS_ENV_STATE)
         if env_state is None:
             return {}
-        layout = state_parts(env_state.shape[-1]) or ()
+        layout = state_parts(env_state.shape[-1])
+        if layout is None:
+            raise ValueError(
+                f"The chain reads the registered wound, and observation.environment_state holds "
+                f"{env_state.shape[-1]} entries, the privileged state: run the env with obs_type=pixels_agent_pos "
+                "and `--env.marks=true`."
+            )
         return {name: env_state[..., where] for name, where in part_slices(layout).items()}
 
     def _read_subtasks(self, batch: dict[str, Tensor], marks: Tensor | None) -> set[str]:

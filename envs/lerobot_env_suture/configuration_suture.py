@@ -12,7 +12,7 @@ from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.sim.appearance import AppearanceConfig
 from lerobot_suture.sim.scenarios import SCENARIOS
-from lerobot_suture.sim.state_layout import STATE_PARTS, state_size
+from lerobot_suture.sim.state_layout import PRIVILEGED_STATE_DIM, STATE_PARTS, state_size
 from lerobot_suture.sim.suture_env import OBS_TYPES, check_image_side
 from lerobot_suture.sim.tasks import DEFAULT_TASK, TASKS, check_scenario, task_spec
 
@@ -20,7 +20,6 @@ _TASK_BY_GYM_NAME = {spec.gym_id.split("/", 1)[1]: name for name, spec in TASKS.
 
 ENDOSCOPE_KEY = "pixels/endoscope"
 WRIST_KEY = "pixels/wrist"
-ENVIRONMENT_STATE_DIM = 18
 
 
 @EnvConfig.register_subclass("suture")
@@ -121,7 +120,7 @@ class SutureEnvConfig(EnvConfig):
                 )
         if self.obs_type in ("state", "pixels_agent_pos_state"):
             self.features["environment_state"] = PolicyFeature(
-                type=FeatureType.ENV, shape=(ENVIRONMENT_STATE_DIM,)
+                type=FeatureType.ENV, shape=(PRIVILEGED_STATE_DIM,)
             )
         registered = state_size(name for name in STATE_PARTS if getattr(self, name))
         if registered:

@@ -14,6 +14,7 @@ from lerobot_suture.expert import ExpertConfig
 from lerobot_suture.sim import suture_env, task
 from lerobot_suture.sim.appearance import AppearanceConfig
 from lerobot_suture.sim.scenarios import SCENARIOS
+from lerobot_suture.sim.state_layout import STATE_PARTS
 from lerobot_suture.sim.tasks import check_scenario
 
 COMMAND = "lerobot-suture record"
@@ -146,7 +147,7 @@ class RecordConfig:
                 f"`wrist_camera` records an image; `obs_type`={self.obs_type!r} has none. Pass "
                 "--obs_type=pixels_agent_pos."
             )
-        for name in ("marks", "subtask", "regrasp_target"):
+        for name in STATE_PARTS:
             if getattr(self, name) and self.obs_type != "pixels_agent_pos":
                 raise ValueError(
                     f"`{name}` records into observation.environment_state; `obs_type`={self.obs_type!r} "

@@ -29,8 +29,9 @@ from lerobot_suture.safety.ood.calibration_file import STAC_CALIBRATION_FILE, St
 from lerobot_suture.safety.ood.chunk_consistency import ChunkCapture, ChunkConsistencyMonitor, chunk_source
 from lerobot_suture.safety.ood.gate import ChunkGate, silent_status
 from lerobot_suture.safety.ood.stage_gate import StageGate, StageThresholds
+from lerobot_suture.sim.state_layout import registered_marks
 from lerobot_suture.sim.subtasks import SubtaskRules, SubtaskRulesConfig
-from lerobot_suture.sim.wound_marks import MARKS_DIM, MARKS_KEY
+from lerobot_suture.sim.wound_marks import MARKS_KEY
 
 GATE_KINDS = ("auto", "ensemble", "stac", "none")
 
@@ -168,8 +169,7 @@ class StageGates(SilentGates):
     def observe(self, row: int, observation: dict) -> None:
         self.base.observe(row, observation)
         rules, pose = self.rules[row], observation["agent_pos"]
-        marks = observation.get(MARKS_KEY)  # the registered wound's, when the env gives them
-        marks = marks if marks is not None and np.shape(marks) == (MARKS_DIM,) else None
+        marks = registered_marks(observation.get(MARKS_KEY))
         subtask, throw = rules.update(pose, marks) if self._started[row] else rules.reset(pose)
         self._started[row] = True
         self.gates[row].enter(subtask, throw)

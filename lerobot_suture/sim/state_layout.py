@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import itertools
 
+import numpy as np
+
 from lerobot_suture.sim.regrasp_target import REGRASP_TARGET_DIM
 from lerobot_suture.sim.subtasks import SUBTASK_DIM
 from lerobot_suture.sim.wound_marks import MARKS_DIM
@@ -35,7 +37,10 @@ LAYOUTS: dict[int, tuple[str, ...]] = {
     if (chosen := tuple(name for name, on in zip(STATE_PARTS, flags, strict=True) if on))
 }
 """Size -> the parts an ``environment_state`` of that size holds (every non-empty combination)."""
-assert len(LAYOUTS) == 2 ** len(STATE_PARTS) - 1, "two combinations of parts share a size"
+PRIVILEGED_STATE_DIM = 18
+"""Entries of the privileged simulator state (``obs_type`` with ``state``), which no combination may share."""
+if len(LAYOUTS) != 2 ** len(STATE_PARTS) - 1 or PRIVILEGED_STATE_DIM in LAYOUTS:
+    raise RuntimeError(f"The registered parts' sizes {LAYOUTS} do not tell the combinations apart.")
 
 
 def state_parts(size: int) -> tuple[str, ...] | None:
@@ -52,3 +57,12 @@ def part_slices(parts) -> dict[str, slice]:
             slices[name] = slice(start, start + STATE_PARTS[name])
             start += STATE_PARTS[name]
     return slices
+
+
+def registered_marks(env_state):
+    """The marks (..., 6) in a registered ``environment_state`` (parts along its last axis), or None where it holds
+    none (or is the privileged state, or None)."""
+    if env_state is None:
+        return None
+    parts = state_parts(np.shape(env_state)[-1]) or ()
+    return env_state[..., part_slices(parts)["marks"]] if "marks" in parts else None

@@ -38,6 +38,8 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from lerobot_suture.sim.wound_marks import MARKS_DIM
+
 SUBTASKS = ("insert", "extract", "lay_down", "pick_up")
 """A throw's subtasks in their order; ``pick_up`` leads into the next throw's ``insert``."""
 JAW_INDEX = 9
@@ -148,12 +150,12 @@ class SubtaskObservation(gym.Wrapper):
         spaces_ = dict(env.observation_space.spaces)
         before = spaces_.get(SUBTASK_KEY)
         self._marks = before is not None
-        if before is not None and before.shape != (6,):
+        if before is not None and before.shape != (MARKS_DIM,):
             raise ValueError(
                 "`subtask` adds the subtask to environment_state, which holds the privileged state with obs_type="
                 f"{env.unwrapped.obs_type!r}. Pass obs_type='pixels_agent_pos' (the wound's marks may stay)."
             )
-        size = SUBTASK_DIM + (6 if self._marks else 0)
+        size = SUBTASK_DIM + (MARKS_DIM if self._marks else 0)
         spaces_[SUBTASK_KEY] = spaces.Box(-np.inf, np.inf, (size,), dtype=np.float32)
         self.observation_space = spaces.Dict(spaces_)
         self.rules = SubtaskRules(config)

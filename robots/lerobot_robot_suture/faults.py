@@ -109,16 +109,23 @@ class FaultInjector:
         config: the faults.
         camera_key: the observation's image entry.
         pose_keys: the observation's 10 pose entries, delayed with the image by ``observation_latency``.
+        derived_keys: entries computed from the measured pose (the planned regrasp, seen from it), delayed
+            with it so that the two still agree.
     """
 
     def __init__(
-        self, config: FaultConfig, camera_key: str = "endoscope", pose_keys: Sequence[str] = POSE_KEYS
+        self,
+        config: FaultConfig,
+        camera_key: str = "endoscope",
+        pose_keys: Sequence[str] = POSE_KEYS,
+        derived_keys: Sequence[str] = (),
     ):
         if len(pose_keys) != len(POSE_KEYS):
             raise ValueError(f"`pose_keys` must name {len(POSE_KEYS)} pose entries. Got {len(pose_keys)}.")
         self.config = config
         self.camera_key = camera_key
         self.pose_keys = tuple(pose_keys)
+        self.delayed_keys = (*pose_keys, *derived_keys)
         self.reset(0)
 
     def reset(self, scene_seed: int) -> None:
@@ -144,14 +151,15 @@ class FaultInjector:
             observation: ``{camera_key: (H, W, 3) uint8, "x.pos": float, ...}``; not mutated.
 
         Returns:
-            A new dict with the camera faults, then the observation latency (on the image and the
-            ``pose_keys``), applied; other entries pass through. Its frame is a copy whenever a fault is on.
+            A new dict with the camera faults, then the observation latency (on the image, the
+            ``pose_keys`` and the ``derived_keys``), applied; other entries pass through. Its frame is a copy
+            whenever a fault is on.
         """
         step = self.step
         self.step += 1
         if not self.config.any:
             return dict(observation)
-        measured = {key: observation[key] for key in self.pose_keys}
+        measured = {key: observation[key] for key in self.delayed_keys}
         measured[self.camera_key] = self._camera(np.asarray(observation[self.camera_key]), step)
         self._observations.append(measured)
         # The deque holds the last latency + 1 measurements: its oldest is the one latency steps ago, or

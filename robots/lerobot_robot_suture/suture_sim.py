@@ -92,7 +92,12 @@ class SutureSim(Robot):
         self._clock = ControlClock(CONTROL_DT, realtime=config.clock == "realtime")
         self._trace = None
         self._obs: dict | None = None
-        self._faults = FaultInjector(config.faults, camera_key=CAMERA, pose_keys=tuple(POSE_FEATURES))
+        self._faults = FaultInjector(
+            config.faults,
+            camera_key=CAMERA,
+            pose_keys=tuple(POSE_FEATURES),
+            derived_keys=tuple(REGRASP_TARGET_FEATURES) if config.regrasp_target else (),
+        )
         self._observed: dict | None = None
         self.last_info: dict = {}
         """The env's ``info`` of the last reset or step (``is_success``, ``needle_tip_pos``, ...)."""
