@@ -36,9 +36,8 @@ def test_the_planned_regrasp_lies_on_the_lodged_needle_whatever_its_protrusion()
         radius = np.linalg.norm(planned[0] - centre)
         assert abs(radius - np.linalg.norm(true_pos - centre)) < 1e-6  # on the needle's circle
         assert abs(rotation[:, 2] @ (planned[0] - centre)) < 1e-6  # in its plane
-        np.testing.assert_allclose(
-            planned[1][:, 2], true_rot[:, 2], atol=1e-6
-        )  # the jaw's axis on its normal
+        # the jaw's axis on its normal
+        np.testing.assert_allclose(planned[1][:, 2], true_rot[:, 2], atol=1e-6)
         assert np.linalg.norm(planned[0] - true_pos) < 0.0011  # half the protrusion range along the wire
 
 

@@ -15,6 +15,7 @@ from lerobot_suture.sim.state_layout import (
     STATE_PARTS,
     part_slices,
     registered_marks,
+    registered_parts,
     state_parts,
     state_size,
 )
@@ -46,6 +47,7 @@ def test_the_env_stacks_the_parts_where_the_layout_says(flags):
     assert state_parts(obs["environment_state"].shape[-1]) == flags
     for name, where in part_slices(flags).items():
         np.testing.assert_array_equal(obs["environment_state"][where], alone[name][-STATE_PARTS[name] :])
+    assert registered_parts(obs["environment_state"]).keys() == set(flags)
     marks = registered_marks(obs["environment_state"])
     if "marks" in flags:
         np.testing.assert_array_equal(marks, alone["marks"])
@@ -57,4 +59,5 @@ def test_registered_marks_reads_batches_and_refuses_the_privileged_state():
     batch = np.arange(2 * 15, dtype=np.float32).reshape(2, 15)  # marks, then the planned regrasp
     np.testing.assert_array_equal(registered_marks(batch), batch[:, :MARKS_DIM])
     assert registered_marks(np.zeros(PRIVILEGED_STATE_DIM)) is None
+    assert registered_parts(np.zeros(PRIVILEGED_STATE_DIM)) is None and registered_parts(None) == {}
     assert registered_marks(None) is None

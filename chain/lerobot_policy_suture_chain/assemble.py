@@ -14,7 +14,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import draccus
-import numpy as np
 from lerobot.configs.policies import PreTrainedConfig
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.utils.constants import ACTION, OBS_ENV_STATE
@@ -24,7 +23,7 @@ from lerobot_suture.datasets.features import PRIVILEGED_FEATURES
 from lerobot_suture.sim.state_layout import state_parts, state_size
 from lerobot_suture.sim.subtasks import SUBTASKS
 
-from .configuration_suture_chain import POLICIES_DIR, SutureChainConfig
+from .configuration_suture_chain import POLICIES_DIR, SutureChainConfig, env_state_size
 from .processor_suture_chain import make_suture_chain_pre_post_processors
 
 
@@ -94,7 +93,7 @@ def chain_input_features(configs: list[PreTrainedConfig]) -> dict[str, PolicyFea
                     f"{tuple(feature.shape)}): train them on observations of one size."
                 )
             features[key] = feature
-    read = {name for c in configs for name in state_parts(_env_state_size(c)) or ()}
+    read = {name for c in configs for name in state_parts(env_state_size(c)) or ()}
     # The high level reads the marks; the planned regrasp comes from the env where a subtask policy reads it,
     # the subtask from the chain itself.
     parts = ("marks", *(["regrasp_target"] if "regrasp_target" in read else []))
@@ -107,12 +106,6 @@ def chain_input_features(configs: list[PreTrainedConfig]) -> dict[str, PolicyFea
     return features
 
 
-def _env_state_size(config: PreTrainedConfig) -> int:
-    """Entries of the environment state a policy reads (0: none)."""
-    feature = (config.input_features or {}).get(OBS_ENV_STATE)
-    return int(np.prod(feature.shape)) if feature is not None else 0
-
-
 def write_chain(cfg: ChainCommandConfig) -> Path:
     """The chain's directory, written from ``cfg``; its subtask policies copied under ``policies/``."""
     register_third_party_plugins()
@@ -122,7 +115,7 @@ def write_chain(cfg: ChainCommandConfig) -> Path:
         names.setdefault(source, "all" if len(set(sources.values())) == 1 else subtask)
     configs = {source: PreTrainedConfig.from_pretrained(source) for source in names}
     for source, config in configs.items():
-        if state_parts(_env_state_size(config)) is None:
+        if state_parts(env_state_size(config)) is None:
             raise ValueError(
                 f"The policy at {source} reads a privileged environment state "
                 f"({tuple(config.input_features[OBS_ENV_STATE].shape)}): a chain runs on what a robot measures. "
@@ -155,6 +148,5 @@ def main(argv: list[str] | None = None) -> None:
     config = PreTrainedConfig.from_pretrained(out)
     served = ", ".join(f"{subtask}: {name}" for subtask, name in config.subtask_policies.items())
     print(f"Chain written to {out} ({served}).")
-    env_state = config.input_features[OBS_ENV_STATE]
-    flags = " ".join(f"--env.{name}=true" for name in state_parts(int(np.prod(env_state.shape))))
+    flags = " ".join(f"--env.{name}=true" for name in state_parts(env_state_size(config)))
     print(f"Run it: lerobot-eval --policy.path={out} --env.type=suture --env.task=running_suture {flags}")

@@ -3,17 +3,25 @@ subtask above a LeRobot policy for each subtask."""
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass, field
 
 from lerobot.configs.policies import PreTrainedConfig
 from lerobot.optim.optimizers import AdamWConfig
+from lerobot.utils.constants import OBS_ENV_STATE
 
 from lerobot_suture.sim.subtasks import SUBTASKS, SubtaskRulesConfig
 
 POLICIES_DIR = "policies"
 """The folder of a chain's directory that holds its subtask policies, one ``pretrained_model`` folder each."""
 _NAME = re.compile(r"^[A-Za-z0-9_.-]+$")
+
+
+def env_state_size(config: PreTrainedConfig) -> int:
+    """Entries of the ``observation.environment_state`` a policy reads (0: none)."""
+    feature = (config.input_features or {}).get(OBS_ENV_STATE)
+    return math.prod(feature.shape) if feature is not None else 0
 
 
 @PreTrainedConfig.register_subclass("suture_chain")

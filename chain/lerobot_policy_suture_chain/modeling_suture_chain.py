@@ -24,10 +24,10 @@ from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import OBS_ENV_STATE, OBS_STATE
 from torch import Tensor, nn
 
-from lerobot_suture.sim.state_layout import LAYOUTS, part_slices, state_parts
+from lerobot_suture.sim.state_layout import LAYOUTS, registered_parts, state_parts
 from lerobot_suture.sim.subtasks import SubtaskRules, subtask_vector
 
-from .configuration_suture_chain import POLICIES_DIR, SutureChainConfig
+from .configuration_suture_chain import POLICIES_DIR, SutureChainConfig, env_state_size
 
 POSE_DIM = 10
 """Entries of the measured pose (``observation.state`` on the env path)."""
@@ -153,17 +153,14 @@ class SutureChainPolicy(PreTrainedPolicy):
 
     def _registered(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
         """The registered parts the observation's environment state holds (the chain's input layout)."""
-        env_state = batch.get(OBS_ENV_STATE)
-        if env_state is None:
-            return {}
-        layout = state_parts(env_state.shape[-1])
-        if layout is None:
+        parts = registered_parts(batch.get(OBS_ENV_STATE))
+        if parts is None:
             raise ValueError(
                 f"The chain reads the registered wound, and observation.environment_state holds "
-                f"{env_state.shape[-1]} entries, the privileged state: run the env with obs_type=pixels_agent_pos "
-                "and `--env.marks=true`."
+                f"{batch[OBS_ENV_STATE].shape[-1]} entries, the privileged state: run the env with "
+                "obs_type=pixels_agent_pos and `--env.marks=true`."
             )
-        return {name: env_state[..., where] for name, where in part_slices(layout).items()}
+        return parts
 
     def _read_subtasks(self, batch: dict[str, Tensor], marks: Tensor | None) -> set[str]:
         """Update each environment's subtask; the policies some environment entered."""
@@ -184,8 +181,7 @@ class SutureChainPolicy(PreTrainedPolicy):
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
-        env_feature = self.config.input_features.get(OBS_ENV_STATE)
-        batch = state_apart(batch, int(np.prod(env_feature.shape)) if env_feature is not None else 0)
+        batch = state_apart(batch, env_state_size(self.config))
         parts = self._registered(batch)
         entered = self._read_subtasks(batch, parts.get("marks"))
         for name in entered:
@@ -196,10 +192,8 @@ class SutureChainPolicy(PreTrainedPolicy):
         for name in dict.fromkeys(serving):
             policy = self.policies[name]
             preprocessor, postprocessor = self._processors[name]
-            feature = policy.config.input_features.get(OBS_ENV_STATE)
-            size = int(np.prod(feature.shape)) if feature is not None else 0
             sub_batch = {k: v for k, v in batch.items() if k != OBS_ENV_STATE}
-            env_state = environment_state_for(size, parts)
+            env_state = environment_state_for(env_state_size(policy.config), parts)
             if env_state is not None:
                 sub_batch[OBS_ENV_STATE] = env_state
             action = postprocessor(policy.select_action(preprocessor(sub_batch)))

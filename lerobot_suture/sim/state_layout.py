@@ -59,10 +59,18 @@ def part_slices(parts) -> dict[str, slice]:
     return slices
 
 
-def registered_marks(env_state):
-    """The marks (..., 6) in a registered ``environment_state`` (parts along its last axis), or None where it holds
-    none (or is the privileged state, or None)."""
+def registered_parts(env_state) -> dict | None:
+    """Name -> the part (..., n) of a registered ``environment_state`` (parts along its last axis; an array or a
+    tensor): ``{}`` for None, None for the privileged state."""
     if env_state is None:
+        return {}
+    parts = state_parts(np.shape(env_state)[-1])
+    if parts is None:
         return None
-    parts = state_parts(np.shape(env_state)[-1]) or ()
-    return env_state[..., part_slices(parts)["marks"]] if "marks" in parts else None
+    return {name: env_state[..., where] for name, where in part_slices(parts).items()}
+
+
+def registered_marks(env_state):
+    """The marks (..., 6) in a registered ``environment_state``, or None where it holds none (or is the privileged
+    state, or None)."""
+    return (registered_parts(env_state) or {}).get("marks")
