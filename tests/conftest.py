@@ -13,8 +13,15 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
+from hypothesis import settings  # noqa: E402
 
 import lerobot_suture  # noqa: E402,F401  - registers the env ids
+
+# Property tests draw the same examples on every run, so that a failure reproduces and CI does not fail by chance.
+# HYPOTHESIS_PROFILE=explore draws new ones on each run, to search for counterexamples.
+settings.register_profile("seeded", derandomize=True, print_blob=True)
+settings.register_profile("explore", derandomize=False, print_blob=True)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "seeded"))
 
 
 @pytest.fixture(scope="session")

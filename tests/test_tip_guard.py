@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from lerobot_suture.experiments.attack_episodes import CONDITIONS, conditions_for, run_attack
@@ -108,11 +108,12 @@ def test_phase_follows_the_measured_jaw_and_begins_only_inside_the_tightened_set
     assert guard.phase == PHASE_ACTIVE
 
 
-def in_tightened_union(points: np.ndarray, cbf: CBFConfig) -> np.ndarray:
-    """Which of ``points`` (n, 3) lie above the surface by the margin, or in the tightened ellipsoid."""
+def in_tightened_union(points: np.ndarray, margin: float, cbf: CBFConfig) -> np.ndarray:
+    """Which of ``points`` (n, 3) lie above the surface by ``margin`` (m), or in the ellipsoid tightened by it."""
     center, rotation = WOUND.ellipsoid_frame()
-    above = points @ NORMAL >= cbf.margin - 1e-9
-    inside = np.asarray(ellipsoid_h(points, center, cbf.semi_axes, rotation)) >= cbf.margin_level - 1e-9
+    above = points @ NORMAL >= margin - 1e-9
+    level = float(margin_level(margin, cbf.semi_axes))
+    inside = np.asarray(ellipsoid_h(points, center, cbf.semi_axes, rotation)) >= level - 1e-9
     return above | inside
 
 
@@ -122,42 +123,79 @@ def harmed(points: np.ndarray, cbf: CBFConfig) -> np.ndarray:
     return (points @ NORMAL < 0.0) & (np.asarray(ellipsoid_h(points, center, cbf.semi_axes, rotation)) < 0.0)
 
 
-def start_in_union(kind: int, direction, scale: float, cbf: CBFConfig) -> np.ndarray:
-    """A tip in the tightened ellipsoid (kind 0) or above the surface by the margin (kind 1)."""
+def start_in_union(kind: int, direction, scale: float, margin: float, cbf: CBFConfig) -> np.ndarray:
+    """A tip in the ellipsoid tightened by ``margin`` (kind 0) or above the surface by it (kind 1); ``scale``
+    in (0, 1] from its boundary (near 0) inwards."""
     direction = np.asarray(direction, dtype=np.float64)
     if np.linalg.norm(direction) < 1e-6:
         direction = np.array([1.0, 0.0, 0.0])
     direction = direction / np.linalg.norm(direction)
     if kind == 0:
         center, rotation = WOUND.ellipsoid_frame()
-        tight_axes = cbf.semi_axes * np.sqrt(1.0 - cbf.margin_level)
+        tight_axes = cbf.semi_axes * np.sqrt(1.0 - float(margin_level(margin, cbf.semi_axes)))
         return center + rotation @ (tight_axes * direction * 0.999 * scale)
-    return np.array([0.05 * direction[0], 0.05 * direction[1], cbf.margin + 0.04 * scale * abs(direction[2])])
+    return np.array([0.05 * direction[0], 0.05 * direction[1], margin + 0.04 * scale * abs(direction[2])])
+
+
+TARGETS = {
+    "kind": st.integers(0, 1),
+    "start": st.tuples(*[st.floats(-1.0, 1.0)] * 3),
+    "rotvec": st.tuples(*[st.floats(-3.0, 3.0)] * 3),
+    "target_pos": st.tuples(*[st.floats(-5.0, 5.0)] * 3),
+    "target_rotvec": st.tuples(*[st.floats(-3.1, 3.1)] * 3),
+    "scale": st.floats(1e-4, 1.0),
+}
+
+
+def commanded_tip_segment(tip, rotvec, target_pos, target_rotvec, cbf: CBFConfig) -> np.ndarray:
+    """(51, 3) points of the tip's straight segment to the end point the guard commands for a random target."""
+    pose = jaw_pose_with_tip_at(tip, matrix_from_rotvec(np.asarray(rotvec)))
+    target = pose_vector(np.asarray(target_pos) * 0.01, matrix_from_rotvec(np.asarray(target_rotvec)), 1.0)
+    out, result = TipGuard(cbf).filter_target(pose, target, WOUND, GRASP, DT)
+    assert result.guarding
+    return tip + np.linspace(0.0, 1.0, 51)[:, None] * (tip_of(out) - tip)
 
 
 @settings(max_examples=400, deadline=None)
-@given(
-    kind=st.integers(0, 1),
-    start=st.tuples(*[st.floats(-1.0, 1.0)] * 3),
-    rotvec=st.tuples(*[st.floats(-3.0, 3.0)] * 3),
-    target_pos=st.tuples(*[st.floats(-5.0, 5.0)] * 3),
-    target_rotvec=st.tuples(*[st.floats(-3.1, 3.1)] * 3),
-    scale=st.floats(1e-4, 1.0),
+@given(**TARGETS)
+# Found by a random search: a tip 1.15 mm above the tissue, in the ellipsoid, lies in the band between the
+# configured margin (1 mm) and the guard's own tightening at DT (1.2 mm); the set is the guard's.
+@example(
+    kind=1,
+    start=(0.28125, 0.0, 0.875),
+    rotvec=(0.0,) * 3,
+    target_pos=(0.0,) * 3,
+    target_rotvec=(0.0,) * 3,
+    scale=0.00390625,
 )
 def test_the_commanded_tip_segment_stays_in_the_tightened_union(
     kind, start, rotvec, target_pos, target_rotvec, scale
 ):
-    """Any target, from any tip in the tightened union (above the surface, or in the ellipsoid): the tip's
-    whole commanded segment stays in it, so it never crosses tissue outside the ellipsoid."""
+    """Any target, from any tip in the union tightened by the guard's margin at the control period (above the
+    surface, or in the ellipsoid): the tip's whole commanded segment stays in it, so it never crosses tissue
+    outside the ellipsoid."""
     cbf = CBFConfig(enabled=True)
-    tip = start_in_union(kind, start, scale, cbf)
-    pose = jaw_pose_with_tip_at(tip, matrix_from_rotvec(np.asarray(rotvec)))
-    target = pose_vector(np.asarray(target_pos) * 0.01, matrix_from_rotvec(np.asarray(target_rotvec)), 1.0)
-    guard = TipGuard(cbf)
-    out, result = guard.filter_target(pose, target, WOUND, GRASP, DT)
-    assert result.guarding
-    segment = tip + np.linspace(0.0, 1.0, 51)[:, None] * (tip_of(out) - tip)
-    assert in_tightened_union(segment, cbf).all()
+    margin = TipGuard(cbf).margin(DT)
+    tip = start_in_union(kind, start, scale, margin, cbf)
+    segment = commanded_tip_segment(tip, rotvec, target_pos, target_rotvec, cbf)
+    assert in_tightened_union(segment, margin, cbf).all()
+
+
+@settings(max_examples=300, deadline=None)
+@given(**TARGETS, band=st.floats(0.0, 1.0))
+def test_from_the_margin_band_the_commanded_tip_segment_never_enters_tissue_outside_the_wound(
+    kind, start, rotvec, target_pos, target_rotvec, scale, band
+):
+    """A tip in neither tightened set (the margin band: less than the margin above the surface, or within it
+    of the ellipsoid's boundary) but not in harm's way is recovered: any target, and its commanded segment
+    stays out of the tissue outside the ellipsoid."""
+    cbf = CBFConfig(enabled=True)
+    margin = TipGuard(cbf).margin(DT)
+    tip = start_in_union(kind, start, scale, band * margin, cbf)
+    if harmed(tip[None], cbf).any():
+        return
+    segment = commanded_tip_segment(tip, rotvec, target_pos, target_rotvec, cbf)
+    assert not harmed(segment, cbf).any()
 
 
 def closed_loop_harms(
