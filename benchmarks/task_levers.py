@@ -11,7 +11,8 @@ next, so that data scale and an added camera are told apart; the training steps 
 
 Every stage is resumable: a finished recording, training or evaluation is read back, so an interrupted run
 goes on where it stopped. Each stage's wall time is reported. ``--figure`` draws each line's success rate
-with its Wilson interval.
+with its Wilson interval. ``--scenarios`` also evaluates each line on the task's perturbation scenarios (the
+board's other cells of the task, their own test seeds).
 """
 
 from __future__ import annotations
@@ -166,19 +167,35 @@ def chained(pretrained: Path, chain_dir: Path) -> Path:
     return chain_dir
 
 
-def evaluate(task: str, pretrained: Path, episodes: int, seed: int, batch_envs: int) -> dict:
-    """The checkpoint on the board's nominal test seeds of ``task``: the leaderboard's cell. A checkpoint
-    trained on relative actions composes them with the measured pose in its own post-processor, so every
-    line runs on the same env."""
+def evaluate(
+    task: str, pretrained: Path, episodes: int, seed: int, batch_envs: int, condition: str = "nominal"
+) -> dict:
+    """The checkpoint on the board's test seeds of ``task`` in one ``condition`` (a scenario): the leaderboard's
+    cell. A checkpoint trained on relative actions composes them with the measured pose in its own
+    post-processor, so every line runs on the same env."""
     from lerobot_suture.leaderboard import cells
     from lerobot_suture.runtime.policy import GateMode, PolicyRunner, env_kwargs_for_policy
     from lerobot_suture.sim.tasks import task_spec
 
     runner = PolicyRunner.from_pretrained(pretrained, GateMode.REPORT, "cpu", {})
-    seeds = cells.condition_seeds(seed, task, "nominal", episodes)
+    seeds = cells.condition_seeds(seed, task, condition, episodes)
     env_kwargs = env_kwargs_for_policy(runner.policy.config)
-    logs, seconds = cells.cell_episodes(runner, env_kwargs, task, "nominal", seeds, batch_envs)
+    logs, seconds = cells.cell_episodes(runner, env_kwargs, task, condition, seeds, batch_envs)
     return cells.summarize_cell(logs, seconds, throws=task_spec(task).throws)
+
+
+def _reported(cell: dict) -> dict:
+    """The part of a cell a line reports."""
+    keys = (
+        "episodes",
+        "successes",
+        "success_rate",
+        "success_interval",
+        "mean_steps",
+        "seconds",
+        "per_episode",
+    )
+    return {k: cell[k] for k in (*keys, "per_throw") if k in cell}
 
 
 def _with_earlier_lines(lines: list[dict], output: Path | None, task: str, members: int) -> list[dict]:
@@ -234,7 +251,7 @@ def figure(report: dict, path: Path) -> None:
 
 
 def main() -> None:
-    from lerobot_suture.sim.tasks import TASK_NAMES
+    from lerobot_suture.sim.tasks import TASK_NAMES, task_spec
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--task", required=True, choices=TASK_NAMES)
@@ -246,6 +263,11 @@ def main() -> None:
     parser.add_argument("--work-dir", type=Path, default=ROOT / "outputs" / "levers")
     parser.add_argument("--output", type=Path)
     parser.add_argument("--figure", type=Path)
+    parser.add_argument(
+        "--scenarios",
+        action="store_true",
+        help="each line also on the task's perturbation scenarios (the board's other cells), --episodes each",
+    )
     args = parser.parse_args()
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # a stage's time is kept when the run is stopped
     unknown = sorted(set(args.levers) - {lever.name for lever in LEVERS})
@@ -265,14 +287,19 @@ def main() -> None:
         pretrained, train_s = train(args.task, root, work / "train" / f"{slug}_n{args.members}", args.members)
         if lever.subtask:  # the subtask comes from the chain's high level, as lerobot-eval runs it
             pretrained = chained(pretrained, work / "chains" / f"{slug}_n{args.members}")
-        cell_path = work / "cells" / f"{slug}_n{args.members}.json"
-        if cell_path.is_file():
-            cell = json.loads(cell_path.read_text())
-        else:
-            print(f"[{lever.name}] evaluating {args.episodes} test episodes ...", flush=True)
-            cell = evaluate(args.task, pretrained, args.episodes, args.seed, args.batch_envs)
+        conditions = task_spec(args.task).scenarios if args.scenarios else ("nominal",)
+        by_condition = {}
+        for condition in conditions:
+            name = f"{slug}_n{args.members}" + ("" if condition == "nominal" else f".{condition}")
+            cell_path = work / "cells" / f"{name}.json"
+            if cell_path.is_file():
+                by_condition[condition] = json.loads(cell_path.read_text())
+                continue
+            print(f"[{lever.name}] evaluating {args.episodes} test episodes, {condition} ...", flush=True)
+            cell = evaluate(args.task, pretrained, args.episodes, args.seed, args.batch_envs, condition)
             cell_path.parent.mkdir(parents=True, exist_ok=True)
             cell_path.write_text(json.dumps(cell))
+            by_condition[condition] = cell
         lines.append(
             {
                 "lever": lever.name,
@@ -286,23 +313,16 @@ def main() -> None:
                 "regrasp_target": lever.regrasp_target,
                 "record_s": recorded["record_s"],
                 "train_s": round(train_s, 1),
-                "nominal": {
-                    k: cell[k]
-                    for k in (
-                        "episodes",
-                        "successes",
-                        "success_rate",
-                        "success_interval",
-                        "mean_steps",
-                        "seconds",
-                        "per_episode",
-                        "per_throw",
-                    )
-                    if k in cell
-                },
+                "nominal": _reported(by_condition["nominal"]),
+                **(
+                    {"scenarios": {c: _reported(cell) for c, cell in by_condition.items() if c != "nominal"}}
+                    if len(by_condition) > 1
+                    else {}
+                ),
             }
         )
-        print(f"[{lever.name}] {cell['successes']}/{cell['episodes']} successes", flush=True)
+        for condition, cell in by_condition.items():
+            print(f"[{lever.name}] {condition}: {cell['successes']}/{cell['episodes']} successes", flush=True)
     lines = _with_earlier_lines(lines, args.output, args.task, args.members)
     report = {"task": args.task, "members": args.members, "machine": machine(), "levers": lines}
     if args.figure is not None:
