@@ -27,15 +27,20 @@ from _lockstep import emit, machine, roll_out_lockstep  # noqa: E402
 import lerobot_suture  # noqa: E402,F401
 from lerobot_suture.runtime.policy import env_kwargs_for_policy, reporting_runner  # noqa: E402
 from lerobot_suture.sim.extraction import planned_regrasp  # noqa: E402
-from lerobot_suture.sim.geometry import NEEDLE_RADIUS  # noqa: E402
+from lerobot_suture.sim.geometry import NEEDLE_ARC, NEEDLE_RADIUS  # noqa: E402
 
 NEEDS = "a trained running-suture chain (--policy-path) and the seeds to study (--seeds)"
 
 
 def wire_distance(point: np.ndarray, needle_position: np.ndarray, needle_rotation: np.ndarray) -> float:
-    """Distance (m) from ``point`` to the needle's circle (its wire, radius ``NEEDLE_RADIUS``, in its xy-plane)."""
+    """Distance (m) from ``point`` to the needle's wire: the arc of radius ``NEEDLE_RADIUS`` in its xy-plane,
+    from the tip (angle 0) to the tail (``NEEDLE_ARC``)."""
     local = needle_rotation.T @ (point - needle_position)
-    return float(np.hypot(np.hypot(local[0], local[1]) - NEEDLE_RADIUS, local[2]))
+    angle = float(np.arctan2(local[1], local[0]) % (2.0 * np.pi))
+    # Off the arc, the nearer end: the tip past the middle of the gap, else the tail.
+    angle = 0.0 if angle > 0.5 * (NEEDLE_ARC + 2.0 * np.pi) else min(angle, NEEDLE_ARC)
+    nearest = NEEDLE_RADIUS * np.array([np.cos(angle), np.sin(angle), 0.0])
+    return float(np.linalg.norm(local - nearest))
 
 
 def _reported(value):
