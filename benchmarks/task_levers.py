@@ -185,7 +185,7 @@ def evaluate(
 
 
 def _reported(cell: dict) -> dict:
-    """The part of a cell a line reports."""
+    """The part of a cell a line reports (``per_throw`` where the task has throws)."""
     keys = (
         "episodes",
         "successes",
@@ -194,8 +194,9 @@ def _reported(cell: dict) -> dict:
         "mean_steps",
         "seconds",
         "per_episode",
+        "per_throw",
     )
-    return {k: cell[k] for k in (*keys, "per_throw") if k in cell}
+    return {k: cell[k] for k in keys if k in cell}
 
 
 def _with_earlier_lines(lines: list[dict], output: Path | None, task: str, members: int) -> list[dict]:
