@@ -8,7 +8,8 @@ policy trained on relative actions composes them in its own processors, so polic
 
     .venv/bin/python benchmarks/chain_cell.py --policy DIR --extract DIR --work-dir outputs/chain_cell/NAME
 
-The chain and the finished cell are kept in ``--work-dir``: a rerun reads them back.
+A policy that reads the planned regrasp gets it from the env; ``--regrasp-from release`` plans it from where the
+jaw let go of the needle instead of through the marks (``sim.regrasp_target``). The chain and the finished cell are kept in ``--work-dir``: a rerun reads them back.
 """
 
 from __future__ import annotations
@@ -37,6 +38,12 @@ def main() -> None:
     parser.add_argument("--batch-envs", type=int, default=8)
     parser.add_argument("--work-dir", type=Path, required=True, help="the chain and its cell (rerun: resume)")
     parser.add_argument("--output", type=Path)
+    parser.add_argument(
+        "--regrasp-from",
+        choices=("marks", "release"),
+        default="marks",
+        help="where the env plans the regrasp",
+    )
     args = parser.parse_args()
 
     policies = {"policy": args.policy, **{name: getattr(args, name) for name in SUBTASK_FLAGS}}
@@ -48,13 +55,17 @@ def main() -> None:
     else:
         start = time.perf_counter()
         print(f"evaluating the chain on {args.episodes} test episodes ...", flush=True)
-        cell = evaluate("running_suture", chain_dir, args.episodes, args.seed, args.batch_envs)
+        overrides = {} if args.regrasp_from == "marks" else {"regrasp_from": args.regrasp_from}
+        cell = evaluate(
+            "running_suture", chain_dir, args.episodes, args.seed, args.batch_envs, env_overrides=overrides
+        )
         cell["evaluation_s"] = round(time.perf_counter() - start, 1)
         cell_path.write_text(json.dumps(cell))
     report = {
         "task": "running_suture",
         "policies": {name: str(path) for name, path in policies.items() if path is not None},
         "chain": str(chain_dir),
+        "regrasp_from": args.regrasp_from,
         "nominal": cell,
         "machine": machine(),
     }

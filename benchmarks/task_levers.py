@@ -38,8 +38,10 @@ class Lever:
     high level's subtask and throw are recorded (a policy trained on them reads them); whether the actions
     are relative to the jaw's measured pose (the policy then runs in an env that takes them); how far (m)
     the expert's first regrasp of each extraction misses before it recovers (0: it never misses); the
-    noise (m) executed but not recorded while it reaches for a regrasp (DART; 0: none); and whether the regrasp
-    planned through the marks is recorded as an observation, with the expert's regrasps aimed at it."""
+    noise (m) executed but not recorded while it reaches for a regrasp (DART; 0: none); whether the regrasp
+    planned through the marks is recorded as an observation, with the expert's regrasps aimed at it; where the
+    evaluation's env plans that regrasp from (``regrasp_from``: ``marks`` or ``release``); and the lever whose
+    recording and checkpoint a line evaluates instead of its own (``checkpoint_of``: one checkpoint, two envs)."""
 
     name: str
     episodes: int | None  # None: the task recipe's own count
@@ -50,6 +52,8 @@ class Lever:
     regrasp_miss: float = 0.0
     regrasp_noise: float = 0.0
     regrasp_target: bool = False
+    regrasp_from: str = "marks"
+    checkpoint_of: str | None = None
 
 
 LEVERS = (
@@ -65,6 +69,21 @@ LEVERS = (
     Lever("relative actions + missed regrasps recovered", None, relative_actions=True, regrasp_miss=0.001),
     Lever("relative actions + DART regrasps", None, relative_actions=True, regrasp_noise=0.0004),
     Lever("relative actions + planned regrasp", None, relative_actions=True, regrasp_target=True),
+    Lever(
+        "relative actions + planned regrasp, evaluated with the plan from the release",
+        None,
+        relative_actions=True,
+        regrasp_target=True,
+        regrasp_from="release",
+        checkpoint_of="relative actions + planned regrasp",
+    ),
+    Lever(
+        "relative actions + regrasp planned from the release",
+        None,
+        relative_actions=True,
+        regrasp_target=True,
+        regrasp_from="release",
+    ),
 )
 
 
@@ -105,8 +124,9 @@ def record(task: str, lever: Lever, root: Path, log: Path) -> dict:
         command.append(f"--regrasp_miss={lever.regrasp_miss:g}")
     if lever.regrasp_noise:
         command.append(f"--regrasp_noise={lever.regrasp_noise:g}")
-    if lever.regrasp_target:
-        command += ["--regrasp_target=true", "--regrasp_aim=marks"]
+    if lever.regrasp_target:  # the expert's regrasps go where the plan says
+        aim = lever.regrasp_from
+        command += ["--regrasp_target=true", f"--regrasp_from={aim}", f"--regrasp_aim={aim}"]
     seconds = _timed(root.parent / f"{root.name}.record_s.json", "record_s", lambda: _run(command, log))
     episodes = json.loads(info.read_text())["total_episodes"]
     result = {"episodes": episodes, "record_s": round(seconds, 1)}
@@ -168,18 +188,25 @@ def chained(pretrained: Path, chain_dir: Path) -> Path:
 
 
 def evaluate(
-    task: str, pretrained: Path, episodes: int, seed: int, batch_envs: int, condition: str = "nominal"
+    task: str,
+    pretrained: Path,
+    episodes: int,
+    seed: int,
+    batch_envs: int,
+    condition: str = "nominal",
+    env_overrides: dict | None = None,
 ) -> dict:
     """The checkpoint on the board's test seeds of ``task`` in one ``condition`` (a scenario): the leaderboard's
     cell. A checkpoint trained on relative actions composes them with the measured pose in its own
-    post-processor, so every line runs on the same env."""
+    post-processor, so every line runs on the same env. ``env_overrides``: env arguments on top of those the
+    checkpoint's inputs name (``regrasp_from``)."""
     from lerobot_suture.leaderboard import cells
     from lerobot_suture.runtime.policy import GateMode, PolicyRunner, env_kwargs_for_policy
     from lerobot_suture.sim.tasks import task_spec
 
     runner = PolicyRunner.from_pretrained(pretrained, GateMode.REPORT, "cpu", {})
     seeds = cells.condition_seeds(seed, task, condition, episodes)
-    env_kwargs = env_kwargs_for_policy(runner.policy.config)
+    env_kwargs = env_kwargs_for_policy(runner.policy.config) | (env_overrides or {})
     logs, seconds = cells.cell_episodes(runner, env_kwargs, task, condition, seeds, batch_envs)
     return cells.summarize_cell(logs, seconds, throws=task_spec(task).throws)
 
@@ -251,6 +278,11 @@ def figure(report: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def _slug(name: str) -> str:
+    """A lever's folder name."""
+    return name.replace(" + ", "_").replace(", ", "_").replace(" ", "_")
+
+
 def main() -> None:
     from lerobot_suture.sim.tasks import TASK_NAMES, task_spec
 
@@ -280,12 +312,14 @@ def main() -> None:
     lines = []
     by_name = {lever.name: lever for lever in LEVERS}
     for lever in (by_name[name] for name in dict.fromkeys(args.levers)):  # in the order asked
-        slug = lever.name.replace(" + ", "_").replace(" ", "_")
-        root, log = work / "data" / slug, work / f"{slug}.log"
+        slug = _slug(lever.name)
+        trained = by_name[lever.checkpoint_of] if lever.checkpoint_of else lever
+        root, log = work / "data" / _slug(trained.name), work / f"{_slug(trained.name)}.log"
         print(f"[{lever.name}] recording ...", flush=True)
-        recorded = record(args.task, lever, root, log)
+        recorded = record(args.task, trained, root, log)
         print(f"[{lever.name}] training {args.members} member(s) ...", flush=True)
-        pretrained, train_s = train(args.task, root, work / "train" / f"{slug}_n{args.members}", args.members)
+        out = work / "train" / f"{_slug(trained.name)}_n{args.members}"
+        pretrained, train_s = train(args.task, root, out, args.members)
         if lever.subtask:  # the subtask comes from the chain's high level, as lerobot-eval runs it
             pretrained = chained(pretrained, work / "chains" / f"{slug}_n{args.members}")
         conditions = task_spec(args.task).scenarios if args.scenarios else ("nominal",)
@@ -297,7 +331,10 @@ def main() -> None:
                 by_condition[condition] = json.loads(cell_path.read_text())
                 continue
             print(f"[{lever.name}] evaluating {args.episodes} test episodes, {condition} ...", flush=True)
-            cell = evaluate(args.task, pretrained, args.episodes, args.seed, args.batch_envs, condition)
+            overrides = {} if lever.regrasp_from == "marks" else {"regrasp_from": lever.regrasp_from}
+            cell = evaluate(
+                args.task, pretrained, args.episodes, args.seed, args.batch_envs, condition, overrides
+            )
             cell_path.parent.mkdir(parents=True, exist_ok=True)
             cell_path.write_text(json.dumps(cell))
             by_condition[condition] = cell
@@ -312,6 +349,8 @@ def main() -> None:
                 "regrasp_miss": lever.regrasp_miss,
                 "regrasp_noise": lever.regrasp_noise,
                 "regrasp_target": lever.regrasp_target,
+                "regrasp_from": lever.regrasp_from,
+                **({"checkpoint_of": lever.checkpoint_of} if lever.checkpoint_of else {}),
                 "record_s": recorded["record_s"],
                 "train_s": round(train_s, 1),
                 "nominal": _reported(by_condition["nominal"]),

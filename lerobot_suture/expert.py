@@ -49,7 +49,7 @@ from lerobot_suture.sim.geometry import (
 from lerobot_suture.sim.relative_actions import env_action
 
 PHASES = ("detour", "approach", "descend", "drive", "hold")
-REGRASP_AIMS = ("needle", "marks")
+REGRASP_AIMS = ("needle", "marks", "release")
 """What an extraction's regrasp may aim at (``ExpertConfig.regrasp_aim``)."""
 _SIDE_STREAM = 0x51DE  # mixed with the env's seed: the detour side's own stream, apart from the env's draws
 _NOISE_STREAM = 0xDA27  # mixed with the env's seed: the executed noise's own stream
@@ -79,7 +79,9 @@ class ExpertConfig:
             (``expert_plans.extraction``).
         regrasp_aim: what an extraction's regrasp aims at: ``"needle"`` (the default), the needle's true pose;
             ``"marks"``, the grasp planned through the registered marks (``extraction.planned_regrasp``), which
-            a policy with the ``regrasp_target`` observation is given, so its labels follow from what it reads.
+            a policy with the ``regrasp_target`` observation is given, so its labels follow from what it reads;
+            ``"release"``, the grasp planned from where the jaw let go of the needle
+            (``regrasp_target.released_regrasp``), what that observation gives with ``regrasp_from="release"``.
         assume_nominal_grasp: plan with the env's nominal grasp of the needle instead of the true one, as a
             policy that cannot see how the needle sits in the jaw must: an upper bound on such a policy's
             success, a lower bound on its entry error (``benchmarks/expert_quality.py

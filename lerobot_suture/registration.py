@@ -20,6 +20,7 @@ def make_suture_env(
     marks: bool = False,
     subtask: bool = False,
     regrasp_target: bool = False,
+    regrasp_from: str = "marks",
     relative_actions: bool = False,
     **kwargs,
 ) -> gym.Env:
@@ -37,12 +38,15 @@ def make_suture_env(
             (:class:`~lerobot_suture.sim.subtasks.SubtaskObservation`).
         regrasp_target: add the regrasp planned through the marks, in the jaw frame, to ``environment_state``,
             after the marks and the subtask (:class:`~lerobot_suture.sim.regrasp_target.RegraspTarget`).
+        regrasp_from: where that plan comes from: ``"marks"`` (the arc through them) or ``"release"`` (the needle
+            where the jaw let go of it at the end of the insert); only with ``regrasp_target``.
         relative_actions: take actions relative to the jaw's measured pose, in the jaw frame
             (:class:`~lerobot_suture.sim.relative_actions.RelativeActions`).
         **kwargs: the env's own arguments (see its docstring), ``task`` among them.
 
     Raises:
-        ValueError: ``task`` is not the id's task: Gymnasium would cut its episodes at the id's length.
+        ValueError: ``task`` is not the id's task: Gymnasium would cut its episodes at the id's length; or
+            ``regrasp_from`` is given without ``regrasp_target``.
     """
     from lerobot_suture.sim.suture_env import SutureEnv
 
@@ -55,6 +59,11 @@ def make_suture_env(
             f"({wanted.max_episode_steps} steps; max_episode_steps=N changes it)."
         )
 
+    if regrasp_from != "marks" and not regrasp_target:
+        raise ValueError(
+            f"`regrasp_from={regrasp_from!r}` says where the planned regrasp comes from, and no plan is asked "
+            "for: pass regrasp_target=True too."
+        )
     env = SutureEnv(**kwargs)
     if relative_actions:
         from lerobot_suture.sim.relative_actions import RelativeActions
@@ -71,7 +80,7 @@ def make_suture_env(
     if regrasp_target:
         from lerobot_suture.sim.regrasp_target import RegraspTarget
 
-        env = RegraspTarget(env)
+        env = RegraspTarget(env, regrasp_from)
     if cbf is None:
         return env
     from lerobot_suture.safety.cbf_config import CBFConfig

@@ -150,3 +150,5 @@ def main(argv: list[str] | None = None) -> None:
     print(f"Chain written to {out} ({served}).")
     flags = " ".join(f"--env.{name}=true" for name in state_parts(env_state_size(config)))
     print(f"Run it: lerobot-eval --policy.path={out} --env.type=suture --env.task=running_suture {flags}")
+    if "regrasp_target" in flags:
+        print("The regrasp is planned through the marks; --env.regrasp_from=release plans it from where the jaw let go.")

@@ -11,6 +11,7 @@ from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 
 from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.sim.appearance import AppearanceConfig
+from lerobot_suture.sim.regrasp_target import REGRASP_SOURCES
 from lerobot_suture.sim.scenarios import SCENARIOS
 from lerobot_suture.sim.state_layout import PRIVILEGED_STATE_DIM, STATE_PARTS, state_size
 from lerobot_suture.sim.suture_env import OBS_TYPES, check_image_side
@@ -53,6 +54,8 @@ class SutureEnvConfig(EnvConfig):
         regrasp_target: add the regrasp planned through the registered marks, in the jaw frame
             (``observation.environment_state``, (9,) after the marks and the subtask;
             ``lerobot_suture.sim.regrasp_target``); needs ``obs_type=pixels_agent_pos``.
+        regrasp_from: where that plan comes from: ``marks`` (the arc through them) or ``release`` (the needle
+            where the jaw let go of it at the end of the insert: the throw as it was made).
     """
 
     task: str | None = DEFAULT_TASK
@@ -70,6 +73,7 @@ class SutureEnvConfig(EnvConfig):
     marks: bool = False
     subtask: bool = False
     regrasp_target: bool = False
+    regrasp_from: str = "marks"
     features: dict[str, PolicyFeature] = field(
         default_factory=lambda: {
             ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(10,)),
@@ -102,6 +106,13 @@ class SutureEnvConfig(EnvConfig):
             raise ValueError(f"`episode_length` must be >= 1. Got {self.episode_length}.")
         check_image_side("image_size", self.image_size)
         check_image_side("render_size", self.render_size)
+        if self.regrasp_from not in REGRASP_SOURCES:
+            raise ValueError(f"`regrasp_from` must be one of {REGRASP_SOURCES}. Got {self.regrasp_from!r}.")
+        if self.regrasp_from != "marks" and not self.regrasp_target:
+            raise ValueError(
+                f"`regrasp_from={self.regrasp_from}` says where the planned regrasp comes from: pass "
+                "--env.regrasp_target=true too."
+            )
         if self.wrist_camera and "pixels" not in self.obs_type:
             raise ValueError(
                 f"`wrist_camera` adds an image; `obs_type`={self.obs_type!r} has none. Pass "
@@ -159,4 +170,6 @@ class SutureEnvConfig(EnvConfig):
             kwargs["subtask"] = True
         if self.regrasp_target:
             kwargs["regrasp_target"] = True
+        if self.regrasp_from != "marks":
+            kwargs["regrasp_from"] = self.regrasp_from
         return kwargs

@@ -46,7 +46,8 @@ _SUBTASK_DESCRIPTION = (
     "(`--subtask=true`)"
 )
 _REGRASP_TARGET_DESCRIPTION = (
-    "the regrasp planned through the marks, in the jaw frame (m, rotation columns) (`--regrasp_target=true`)"
+    "the planned regrasp, in the jaw frame (m, rotation columns) (`--regrasp_target=true`; through the marks, or "
+    "from where the jaw let go of the needle with `--regrasp_from=release`)"
 )
 
 

@@ -118,6 +118,7 @@ def make_env(
     subtask: bool = False,
     relative_actions: bool = False,
     regrasp_target: bool = False,
+    regrasp_from: str = "marks",
 ):
     """The env the dataset is recorded in (``gym.make`` of the task's gym id); ``appearance`` the fields of
     an :class:`~lerobot_suture.sim.appearance.AppearanceConfig` (None: all off)."""
@@ -134,6 +135,7 @@ def make_env(
         **({"subtask": True} if subtask else {}),
         **({"relative_actions": True} if relative_actions else {}),
         **({"regrasp_target": True} if regrasp_target else {}),
+        **({"regrasp_from": regrasp_from} if regrasp_from != "marks" else {}),
     )
 
 

@@ -202,6 +202,7 @@ def record(cfg: RecordConfig) -> RecordSummary:
         log["env_kwargs"].get("subtask", False),
         log["env_kwargs"].get("relative_actions", False),
         log["env_kwargs"].get("regrasp_target", False),
+        log["env_kwargs"].get("regrasp_from", "marks"),
     )
     bars_were_enabled = hf_datasets.is_progress_bar_enabled()
     hf_datasets.disable_progress_bars()  # a "Map" bar per saved episode otherwise

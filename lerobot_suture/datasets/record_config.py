@@ -13,6 +13,7 @@ from lerobot_suture.datasets.split import split_episodes
 from lerobot_suture.expert import ExpertConfig
 from lerobot_suture.sim import suture_env, task
 from lerobot_suture.sim.appearance import AppearanceConfig
+from lerobot_suture.sim.regrasp_target import REGRASP_SOURCES
 from lerobot_suture.sim.scenarios import SCENARIOS
 from lerobot_suture.sim.state_layout import STATE_PARTS
 from lerobot_suture.sim.tasks import check_scenario
@@ -51,6 +52,8 @@ class RecordConfig:
             (``lerobot_suture.sim.regrasp_target``: (9,), after the marks and the subtask in
             ``observation.environment_state``); needs ``obs_type=pixels_agent_pos``. With
             ``--regrasp_aim=marks`` the expert's regrasps go where it says.
+        regrasp_from: where that plan comes from: ``marks`` (the arc through them) or ``release`` (the needle where
+            the jaw let go of it; record it with ``--regrasp_aim=release``).
         relative_actions: record each action as the motion from the jaw's measured pose, in the jaw frame
             (``lerobot_suture.sim.relative_actions``): an ``ensemble_diffusion`` policy trained on it composes
             its actions with the measured pose in its post-processor, and runs on the plain env.
@@ -112,6 +115,9 @@ class RecordConfig:
     marks: bool = False  # also record the wound's marks (observation.environment_state, (6,) m)
     subtask: bool = False  # also record the high level's subtask and throw (observation.environment_state)
     regrasp_target: bool = False  # also record the planned regrasp, in the jaw frame (environment_state)
+    regrasp_from: str = (
+        "marks"  # where the planned regrasp comes from: marks | release (where the jaw let go)
+    )
     relative_actions: bool = False  # actions as the motion from the jaw's measured pose, in the jaw frame
     scenario: str = "nominal"  # perturbation scenario the expert is recorded in
     grasp: str = "narrow"  # grasp randomization: narrow (the test scenes) | wide
@@ -119,7 +125,9 @@ class RecordConfig:
     approach_detour: float = 0.0  # m; > 0: the expert approaches via either side, drawn per episode
     regrasp_miss: float = 0.0  # m; > 0: each extraction's first regrasp misses by this much, then recovers
     regrasp_noise: float = 0.0  # m; > 0: noise executed, not recorded, while the expert reaches to regrasp
-    regrasp_aim: str = "needle"  # what the expert's regrasps aim at: needle (its true pose) | marks (planned)
+    regrasp_aim: str = (
+        "needle"  # what the expert's regrasps aim at: needle (its pose) | marks | release (planned)
+    )
     seed: int = 0  # env seed of the first attempt; attempt k uses seed + k
     steps_after_success: int = 0  # control steps recorded past success, the expert driving on
     appearance: AppearanceConfig = field(default_factory=AppearanceConfig)  # endoscope view randomization
@@ -168,6 +176,13 @@ class RecordConfig:
                         f"`{name}` shapes an extraction's regrasp; task {self.task!r} has none. Use it with "
                         "--task=extraction or --task=running_suture."
                     )
+        if self.regrasp_from not in REGRASP_SOURCES:
+            raise ValueError(f"`regrasp_from` must be one of {REGRASP_SOURCES}. Got {self.regrasp_from!r}.")
+        if self.regrasp_from != "marks" and not self.regrasp_target:
+            raise ValueError(
+                f"`regrasp_from={self.regrasp_from}` says where the planned regrasp comes from: pass "
+                "--regrasp_target=true too."
+            )
         if self.checkpoint_every < 1:
             raise ValueError(f"`checkpoint_every` must be >= 1. Got {self.checkpoint_every}.")
         if not 0 <= self.steps_after_success <= MAX_STEPS_AFTER_SUCCESS:
@@ -209,6 +224,8 @@ class RecordConfig:
             flags.append("--subtask=true")
         if self.regrasp_target:
             flags.append("--regrasp_target=true")
+        if self.regrasp_from != "marks":
+            flags.append(f"--regrasp_from={self.regrasp_from}")
         if self.relative_actions:
             flags.append("--relative_actions=true")
         if self.grasp_blind_expert:

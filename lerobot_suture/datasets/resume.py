@@ -50,6 +50,8 @@ def new_episode_log(cfg: RecordConfig) -> dict:
         env_kwargs["relative_actions"] = True  # absent when off
     if cfg.regrasp_target:
         env_kwargs["regrasp_target"] = True  # absent when off
+    if cfg.regrasp_from != "marks":
+        env_kwargs["regrasp_from"] = cfg.regrasp_from  # absent for the plan through the marks
     if cfg.appearance.enabled:
         # Absent when off: the logs of datasets recorded without it read the same as before it existed.
         env_kwargs["appearance"] = dataclasses.asdict(cfg.appearance)
@@ -99,6 +101,7 @@ _RESUME_FIELDS = (
     "subtask",
     "relative_actions",
     "regrasp_target",
+    "regrasp_from",
 )
 
 
@@ -111,6 +114,7 @@ def _check_resumable(cfg: RecordConfig, log: dict, root: Path) -> None:
         "subtask": False,  # absent when off
         "relative_actions": False,  # absent when off
         "regrasp_target": False,  # absent when off
+        "regrasp_from": "marks",  # absent for the plan through the marks
         **{k: v for k, v in log["env_kwargs"].items() if k != "appearance"},
         "video": log["video"],
         "seed": log["seed"],

@@ -17,7 +17,8 @@ step re-reads the phantom, so the pull follows a phantom that moves. With ``regr
 reach aims that far beside the needle, across the jaw (the side drawn from the episode's seed and the
 throw), so the jaw closes beside the lodged needle and the plan shows its recovery. With ``regrasp_aim``
 ``"marks"`` every reach aims at the grasp planned through the registered marks
-(``sim.extraction.planned_regrasp``) instead of the needle's true pose.
+(``sim.extraction.planned_regrasp``) instead of the needle's true pose; with ``"release"`` at the grasp planned
+from the jaw's pose when it let go (``sim.regrasp_target.released_regrasp``), which is the plan's first act.
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from lerobot_suture.sim.geometry import (
     pose_vector,
     step_towards,
 )
+from lerobot_suture.sim.regrasp_target import released_regrasp
 
 EXTRACTION_PHASES = ("release", "back_off", "reach", "advance", "close", "pull", "hold")
 _MISS_STREAM = 0x3155  # mixed with the env's seed: the miss side's own stream, apart from the env's draws
@@ -57,6 +59,7 @@ class ExtractionPlan:
         self.drive_angle = 0.0
         self._goal: np.ndarray | None = None
         self._aim_beside: float | None = None  # m across the jaw; None until the first act draws it
+        self._release: tuple[np.ndarray, np.ndarray] | None = None  # the jaw's pose when it let go
 
     @property
     def regrasping(self) -> bool:
@@ -90,6 +93,7 @@ class ExtractionPlan:
         elif self.phase in ("pull", "hold") and not u.needle_grasped:
             self.phase, self._goal = "back_off", None  # lost it: reach for it where it lies
         if self.phase == "release":
+            self._release = (jaw_pos, jaw_rot)
             self.phase = "back_off"
             return pose_vector(jaw_pos, jaw_rot, 0.0).astype(np.float32)
         if self.phase == "back_off":
@@ -103,6 +107,8 @@ class ExtractionPlan:
         if self.phase in ("reach", "advance"):
             if cfg.regrasp_aim == "marks":
                 grasp_pos, grasp_rot = planned_regrasp(u.entry_point, u.exit_point, u.phantom_rotation[:, 2])
+            elif cfg.regrasp_aim == "release":
+                grasp_pos, grasp_rot = released_regrasp(*self._release)
             else:
                 grasp_pos, grasp_rot = jaw_holding(
                     *u.needle_pose(), *grasp_transform(REGRASP_ANGLE, 0.0, 0.0)

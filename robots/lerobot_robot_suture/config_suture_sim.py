@@ -10,7 +10,7 @@ from lerobot.robots.config import RobotConfig
 from lerobot_suture.datasets.features import POSE_NAMES
 from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.sim.appearance import AppearanceConfig
-from lerobot_suture.sim.regrasp_target import REGRASP_TARGET_NAMES
+from lerobot_suture.sim.regrasp_target import REGRASP_SOURCES, REGRASP_TARGET_NAMES
 from lerobot_suture.sim.scenarios import SAFETY_SCENARIOS, SCENARIOS
 from lerobot_suture.sim.suture_env import check_image_side
 from lerobot_suture.sim.task import GRASP_RANGES
@@ -58,6 +58,8 @@ class SutureSimConfig(RobotConfig):
         regrasp_target: report the regrasp planned through the current throw's marks, seen from the measured
             pose in the jaw frame (:data:`REGRASP_TARGET_FEATURES`; the env's ``regrasp_target=True``), as a
             system with the registered wound and the needle's geometry plans it: the policy's input.
+        regrasp_from: where that plan comes from: ``marks`` (the arc through them) or ``release`` (the needle
+            where the jaw let go of it at the end of the insert; the env's ``regrasp_from``).
         scenario: perturbation scenario, one of ``lerobot_suture.sim.scenarios.SCENARIOS`` (or, in a task with a
             throw, ``SAFETY_SCENARIOS``: tissue that breathes).
         scenario_onset_step: onset (control steps); None takes the scenario's default.
@@ -95,6 +97,7 @@ class SutureSimConfig(RobotConfig):
     wrist_camera: bool = False
     marks: bool = False
     regrasp_target: bool = False
+    regrasp_from: str = "marks"
     scenario: str = "nominal"
     scenario_onset_step: int | None = None
     scenario_magnitude: float | None = None
@@ -125,6 +128,13 @@ class SutureSimConfig(RobotConfig):
         if self.seed < 0:
             raise ValueError(f"`seed` must be >= 0. Got {self.seed}.")
         check_image_side("image_size", self.image_size)
+        if self.regrasp_from not in REGRASP_SOURCES:
+            raise ValueError(f"`regrasp_from` must be one of {REGRASP_SOURCES}. Got {self.regrasp_from!r}.")
+        if self.regrasp_from != "marks" and not self.regrasp_target:
+            raise ValueError(
+                f"`regrasp_from={self.regrasp_from}` says where the planned regrasp comes from: pass "
+                "--robot.regrasp_target=true too."
+            )
 
     @property
     def gym_id(self) -> str:
@@ -148,4 +158,5 @@ class SutureSimConfig(RobotConfig):
             **({"wrist_camera": True} if self.wrist_camera else {}),
             **({"marks": True} if self.marks else {}),
             **({"regrasp_target": True} if self.regrasp_target else {}),
+            **({"regrasp_from": self.regrasp_from} if self.regrasp_from != "marks" else {}),
         }
