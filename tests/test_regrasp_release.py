@@ -149,3 +149,22 @@ def test_a_recording_names_the_source_and_refuses_it_without_the_plan():
     assert "--regrasp_from=release" in cfg.command() and "--regrasp_aim=release" in cfg.command()
     with pytest.raises(ValueError, match="--regrasp_target=true"):
         RecordConfig(repo_id="local/x", task="extraction", regrasp_from="release")
+
+
+def test_the_robot_reports_the_plan_from_the_release():
+    from lerobot_robot_suture.config_suture_sim import POSE_FEATURES, REGRASP_TARGET_FEATURES, SutureSimConfig
+    from lerobot_robot_suture.suture_sim import SutureSim
+
+    robot = SutureSim(
+        SutureSimConfig(task="extraction", regrasp_target=True, regrasp_from="release", clock="fast", seed=3)
+    )
+    robot.connect()
+    try:
+        first = robot.get_observation()
+        release = np.array([first[key] for key in POSE_FEATURES], dtype=np.float64)  # the jaw holds the needle
+        held = robot.get_observation()  # the arm has not moved: the same plan
+        assert [held[key] for key in REGRASP_TARGET_FEATURES] == pytest.approx(
+            released_regrasp_target(*measured_jaw(release), *measured_jaw(release)).tolist(), abs=1e-6
+        )
+    finally:
+        robot.disconnect()
