@@ -22,6 +22,7 @@ import json
 import signal
 import subprocess
 import sys
+import textwrap
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -247,7 +248,7 @@ def figure(report: dict, path: Path) -> None:
     from lerobot_suture.plotting import save_figure
 
     lines = report["levers"]
-    fig, ax = plt.subplots(figsize=(7, 1.2 + 0.5 * len(lines)))
+    fig, ax = plt.subplots(figsize=(8, 1.2 + 0.6 * len(lines)))
     throws = all(
         "per_throw" in line["nominal"] for line in lines
     )  # a long task: its first throw on the marks
@@ -266,7 +267,8 @@ def figure(report: dict, path: Path) -> None:
             color="C0",
             capsize=3,
         )
-    ax.set_yticks(range(len(lines)), [f"{line['lever']} ({line['episodes']} ep.)" for line in lines])
+    labels = [textwrap.fill(f"{line['lever']} ({line['episodes']} ep.)", 40) for line in lines]
+    ax.set_yticks(range(len(lines)), labels, fontsize=8)
     ax.invert_yaxis()
     ax.set_xlim(0, 1)
     what = "first throws on the marks" if throws else "success"

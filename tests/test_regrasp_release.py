@@ -161,7 +161,9 @@ def test_the_robot_reports_the_plan_from_the_release():
     robot.connect()
     try:
         first = robot.get_observation()
-        release = np.array([first[key] for key in POSE_FEATURES], dtype=np.float64)  # the jaw holds the needle
+        release = np.array(
+            [first[key] for key in POSE_FEATURES], dtype=np.float64
+        )  # the jaw holds the needle
         held = robot.get_observation()  # the arm has not moved: the same plan
         assert [held[key] for key in REGRASP_TARGET_FEATURES] == pytest.approx(
             released_regrasp_target(*measured_jaw(release), *measured_jaw(release)).tolist(), abs=1e-6

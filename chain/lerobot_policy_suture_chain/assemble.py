@@ -151,4 +151,6 @@ def main(argv: list[str] | None = None) -> None:
     flags = " ".join(f"--env.{name}=true" for name in state_parts(env_state_size(config)))
     print(f"Run it: lerobot-eval --policy.path={out} --env.type=suture --env.task=running_suture {flags}")
     if "regrasp_target" in flags:
-        print("The regrasp is planned through the marks; --env.regrasp_from=release plans it from where the jaw let go.")
+        print(
+            "The regrasp is planned through the marks; --env.regrasp_from=release plans it from where the jaw let go."
+        )

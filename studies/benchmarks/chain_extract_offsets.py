@@ -7,7 +7,10 @@ tolerance but not on the plan. For the given seeds of the running suture's nomin
 the CBF on), a ``suture_chain`` runs, and at every step of the first throw's extract (the env's own phase,
 privileged) this reads the simulator: the distance from the planned grasp's jaw point to the needle's wire
 (across it, the one a closing cannot absorb), the closest the jaw came to the plan and to the wire, and how
-often the jaw closed. Prints one JSON object.
+often the jaw closed. The same for the regrasp planned from the release (``sim.regrasp_target.released_regrasp``
+of the jaw's pose at the extract's first step, the needle still held): ``release_plan_to_wire_mm``,
+``closest_jaw_to_release_plan_mm``. ``--regrasp-from release`` gives a chain that reads the plan that one.
+Prints one JSON object.
 
     .venv/bin/python studies/benchmarks/chain_extract_offsets.py --policy-path CHAIN_DIR --seeds 37000004 ...
 """
@@ -28,6 +31,7 @@ import lerobot_suture  # noqa: E402,F401
 from lerobot_suture.runtime.policy import env_kwargs_for_policy, reporting_runner  # noqa: E402
 from lerobot_suture.sim.extraction import planned_regrasp  # noqa: E402
 from lerobot_suture.sim.geometry import NEEDLE_ARC, NEEDLE_RADIUS  # noqa: E402
+from lerobot_suture.sim.regrasp_target import released_regrasp  # noqa: E402
 
 NEEDS = "a trained running-suture chain (--policy-path) and the seeds to study (--seeds)"
 
@@ -54,21 +58,27 @@ def main() -> None:
     parser.add_argument("--policy-path", type=Path, required=True)
     parser.add_argument("--seeds", type=int, nargs="+", required=True)
     parser.add_argument("--output", type=Path)
+    parser.add_argument("--regrasp-from", choices=("marks", "release"), default="marks")
     args = parser.parse_args()
     runner = reporting_runner(args.policy_path)
     env_kwargs = env_kwargs_for_policy(runner.policy.config)
+    if args.regrasp_from != "marks":
+        env_kwargs["regrasp_from"] = args.regrasp_from
     out = [
         {
             "seed": s,
             "extract_steps": 0,
             "plan_to_wire_mm": None,
+            "release_plan_to_wire_mm": None,
             "closest_jaw_to_plan_mm": np.inf,
+            "closest_jaw_to_release_plan_mm": np.inf,
             "closest_jaw_to_wire_mm": np.inf,
             "closings": 0,
             "_closure": None,
         }
         for s in args.seeds
     ]
+    release_plans: dict[int, np.ndarray] = {}
 
     def on_step(i: int, u, info: dict) -> None:
         ep = out[i]
@@ -77,11 +87,18 @@ def main() -> None:
         needle_position, needle_rotation = u.needle_pose()
         plan_position, _ = planned_regrasp(u.entry_point, u.exit_point, u.phantom_rotation[:, 2])
         jaw_position, _ = u.jaw_pose()
-        if ep["plan_to_wire_mm"] is None:  # the needle as the insert left it
+        if ep["plan_to_wire_mm"] is None:  # the needle as the insert left it, still held
             ep["plan_to_wire_mm"] = 1e3 * wire_distance(plan_position, needle_position, needle_rotation)
+            release_plans[i], _ = released_regrasp(*u.jaw_pose())
+            ep["release_plan_to_wire_mm"] = 1e3 * wire_distance(
+                release_plans[i], needle_position, needle_rotation
+            )
         ep["extract_steps"] += 1
         ep["closest_jaw_to_plan_mm"] = min(
             ep["closest_jaw_to_plan_mm"], 1e3 * np.linalg.norm(jaw_position - plan_position)
+        )
+        ep["closest_jaw_to_release_plan_mm"] = min(
+            ep["closest_jaw_to_release_plan_mm"], 1e3 * np.linalg.norm(jaw_position - release_plans[i])
         )
         ep["closest_jaw_to_wire_mm"] = min(
             ep["closest_jaw_to_wire_mm"], 1e3 * wire_distance(jaw_position, needle_position, needle_rotation)
@@ -99,6 +116,7 @@ def main() -> None:
     report = {
         "benchmark": "chain_extract_offsets",
         "policy": str(args.policy_path),
+        "regrasp_from": args.regrasp_from,
         "episodes": episodes,
         "machine": machine(),
     }
