@@ -9,7 +9,8 @@ policy trained on relative actions composes them in its own processors, so polic
     .venv/bin/python benchmarks/chain_cell.py --policy DIR --extract DIR --work-dir outputs/chain_cell/NAME
 
 A policy that reads the planned regrasp gets it from the env; ``--regrasp-from release`` plans it from where the
-jaw let go of the needle instead of through the marks (``sim.regrasp_target``). The chain and the finished cell are kept in ``--work-dir``: a rerun reads them back.
+jaw let go of the needle instead of through the marks (``sim.regrasp_target``). The chain and the finished cell
+are kept in ``--work-dir``: a rerun reads them back.
 """
 
 from __future__ import annotations

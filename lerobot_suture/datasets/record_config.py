@@ -115,9 +115,7 @@ class RecordConfig:
     marks: bool = False  # also record the wound's marks (observation.environment_state, (6,) m)
     subtask: bool = False  # also record the high level's subtask and throw (observation.environment_state)
     regrasp_target: bool = False  # also record the planned regrasp, in the jaw frame (environment_state)
-    regrasp_from: str = (
-        "marks"  # where the planned regrasp comes from: marks | release (where the jaw let go)
-    )
+    regrasp_from: str = "marks"  # the planned regrasp's source: marks | release (where the jaw let go)
     relative_actions: bool = False  # actions as the motion from the jaw's measured pose, in the jaw frame
     scenario: str = "nominal"  # perturbation scenario the expert is recorded in
     grasp: str = "narrow"  # grasp randomization: narrow (the test scenes) | wide
@@ -125,9 +123,7 @@ class RecordConfig:
     approach_detour: float = 0.0  # m; > 0: the expert approaches via either side, drawn per episode
     regrasp_miss: float = 0.0  # m; > 0: each extraction's first regrasp misses by this much, then recovers
     regrasp_noise: float = 0.0  # m; > 0: noise executed, not recorded, while the expert reaches to regrasp
-    regrasp_aim: str = (
-        "needle"  # what the expert's regrasps aim at: needle (its pose) | marks | release (planned)
-    )
+    regrasp_aim: str = "needle"  # what the expert's regrasps aim at: needle (its pose) | marks | release
     seed: int = 0  # env seed of the first attempt; attempt k uses seed + k
     steps_after_success: int = 0  # control steps recorded past success, the expert driving on
     appearance: AppearanceConfig = field(default_factory=AppearanceConfig)  # endoscope view randomization
