@@ -46,7 +46,7 @@ def make_suture_env(
 
     Raises:
         ValueError: ``task`` is not the id's task: Gymnasium would cut its episodes at the id's length; or
-            ``regrasp_from`` is given without ``regrasp_target``.
+            ``regrasp_from`` is none of its sources, or given without ``regrasp_target``.
     """
     from lerobot_suture.sim.suture_env import SutureEnv
 
@@ -59,11 +59,9 @@ def make_suture_env(
             f"({wanted.max_episode_steps} steps; max_episode_steps=N changes it)."
         )
 
-    if regrasp_from != "marks" and not regrasp_target:
-        raise ValueError(
-            f"`regrasp_from={regrasp_from!r}` says where the planned regrasp comes from, and no plan is asked "
-            "for: pass regrasp_target=True too."
-        )
+    from lerobot_suture.sim.regrasp_target import check_regrasp_source
+
+    check_regrasp_source(regrasp_from, regrasp_target, "regrasp_target=True")
     env = SutureEnv(**kwargs)
     if relative_actions:
         from lerobot_suture.sim.relative_actions import RelativeActions

@@ -11,7 +11,7 @@ from lerobot.utils.constants import ACTION, OBS_ENV_STATE, OBS_IMAGES, OBS_STATE
 
 from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.sim.appearance import AppearanceConfig
-from lerobot_suture.sim.regrasp_target import REGRASP_SOURCES
+from lerobot_suture.sim.regrasp_target import check_regrasp_source
 from lerobot_suture.sim.scenarios import SCENARIOS
 from lerobot_suture.sim.state_layout import PRIVILEGED_STATE_DIM, STATE_PARTS, state_size
 from lerobot_suture.sim.suture_env import OBS_TYPES, check_image_side
@@ -106,13 +106,7 @@ class SutureEnvConfig(EnvConfig):
             raise ValueError(f"`episode_length` must be >= 1. Got {self.episode_length}.")
         check_image_side("image_size", self.image_size)
         check_image_side("render_size", self.render_size)
-        if self.regrasp_from not in REGRASP_SOURCES:
-            raise ValueError(f"`regrasp_from` must be one of {REGRASP_SOURCES}. Got {self.regrasp_from!r}.")
-        if self.regrasp_from != "marks" and not self.regrasp_target:
-            raise ValueError(
-                f"`regrasp_from={self.regrasp_from}` says where the planned regrasp comes from: pass "
-                "--env.regrasp_target=true too."
-            )
+        check_regrasp_source(self.regrasp_from, self.regrasp_target, "--env.regrasp_target=true")
         if self.wrist_camera and "pixels" not in self.obs_type:
             raise ValueError(
                 f"`wrist_camera` adds an image; `obs_type`={self.obs_type!r} has none. Pass "

@@ -13,7 +13,7 @@ from lerobot_suture.datasets.split import split_episodes
 from lerobot_suture.expert import ExpertConfig
 from lerobot_suture.sim import suture_env, task
 from lerobot_suture.sim.appearance import AppearanceConfig
-from lerobot_suture.sim.regrasp_target import REGRASP_SOURCES
+from lerobot_suture.sim.regrasp_target import check_regrasp_source
 from lerobot_suture.sim.scenarios import SCENARIOS
 from lerobot_suture.sim.state_layout import STATE_PARTS
 from lerobot_suture.sim.tasks import check_scenario
@@ -172,13 +172,7 @@ class RecordConfig:
                         f"`{name}` shapes an extraction's regrasp; task {self.task!r} has none. Use it with "
                         "--task=extraction or --task=running_suture."
                     )
-        if self.regrasp_from not in REGRASP_SOURCES:
-            raise ValueError(f"`regrasp_from` must be one of {REGRASP_SOURCES}. Got {self.regrasp_from!r}.")
-        if self.regrasp_from != "marks" and not self.regrasp_target:
-            raise ValueError(
-                f"`regrasp_from={self.regrasp_from}` says where the planned regrasp comes from: pass "
-                "--regrasp_target=true too."
-            )
+        check_regrasp_source(self.regrasp_from, self.regrasp_target, "--regrasp_target=true")
         if self.checkpoint_every < 1:
             raise ValueError(f"`checkpoint_every` must be >= 1. Got {self.checkpoint_every}.")
         if not 0 <= self.steps_after_success <= MAX_STEPS_AFTER_SUCCESS:

@@ -53,6 +53,22 @@ REGRASP_SOURCES = ("marks", "release")
 """Where the planned regrasp comes from (module docstring)."""
 
 
+def check_regrasp_source(source: str, planned: bool, fix: str) -> None:
+    """Refuse a ``regrasp_from`` that is none of :data:`REGRASP_SOURCES`, or one other than ``"marks"`` when no plan
+    is asked for (``planned`` False); ``fix`` is how the caller's user asks for it (``--env.regrasp_target=true``).
+
+    Raises:
+        ValueError: naming the sources, or ``fix``.
+    """
+    if source not in REGRASP_SOURCES:
+        raise ValueError(f"`regrasp_from` must be one of {REGRASP_SOURCES}. Got {source!r}.")
+    if source != "marks" and not planned:
+        raise ValueError(
+            f"`regrasp_from={source}` says where the planned regrasp comes from, and no plan is asked for: pass "
+            f"{fix} too."
+        )
+
+
 def released_regrasp(release_pos: np.ndarray, release_rot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The jaw pose (position (3,) m, rotation (3, 3), world) that grasps near its tip the needle a jaw at
     ``release_pos`` (3,) m, ``release_rot`` (3, 3) let go of, the needle held with the nominal grasp."""
@@ -102,8 +118,7 @@ class RegraspTarget(gym.Wrapper):
     """
 
     def __init__(self, env: gym.Env, source: str = "marks"):
-        if source not in REGRASP_SOURCES:
-            raise ValueError(f"`regrasp_from` must be one of {REGRASP_SOURCES}. Got {source!r}.")
+        check_regrasp_source(source, True, "regrasp_target=True")
         self.source = source
         self._rules = SubtaskRules()
         self._release: tuple[np.ndarray, np.ndarray] | None = None

@@ -10,7 +10,7 @@ from lerobot.robots.config import RobotConfig
 from lerobot_suture.datasets.features import POSE_NAMES
 from lerobot_suture.safety.cbf_config import CBFConfig
 from lerobot_suture.sim.appearance import AppearanceConfig
-from lerobot_suture.sim.regrasp_target import REGRASP_SOURCES, REGRASP_TARGET_NAMES
+from lerobot_suture.sim.regrasp_target import REGRASP_TARGET_NAMES, check_regrasp_source
 from lerobot_suture.sim.scenarios import SAFETY_SCENARIOS, SCENARIOS
 from lerobot_suture.sim.suture_env import check_image_side
 from lerobot_suture.sim.task import GRASP_RANGES
@@ -128,13 +128,7 @@ class SutureSimConfig(RobotConfig):
         if self.seed < 0:
             raise ValueError(f"`seed` must be >= 0. Got {self.seed}.")
         check_image_side("image_size", self.image_size)
-        if self.regrasp_from not in REGRASP_SOURCES:
-            raise ValueError(f"`regrasp_from` must be one of {REGRASP_SOURCES}. Got {self.regrasp_from!r}.")
-        if self.regrasp_from != "marks" and not self.regrasp_target:
-            raise ValueError(
-                f"`regrasp_from={self.regrasp_from}` says where the planned regrasp comes from: pass "
-                "--robot.regrasp_target=true too."
-            )
+        check_regrasp_source(self.regrasp_from, self.regrasp_target, "--robot.regrasp_target=true")
 
     @property
     def gym_id(self) -> str:
