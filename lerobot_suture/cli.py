@@ -20,6 +20,10 @@ from draccus.utils import DecodingError, DraccusException, ParsingError
 SUBCOMMANDS = {
     "demo": ("lerobot_suture.commands.demo", "run the main job at a small default and write figures"),
     "record": ("lerobot_suture.commands.record", "record expert insertions as a LeRobotDataset"),
+    "segment": (
+        "lerobot_suture.commands.segment",
+        "cut recorded running sutures into one subtask's segments, each an episode of a new dataset",
+    ),
     "push": ("lerobot_suture.commands.push", "push a recorded dataset to the Hugging Face Hub"),
     "calibrate": (
         "lerobot_suture.commands.calibrate",

@@ -10,6 +10,8 @@
 - :mod:`~lerobot_suture.datasets.card`: the dataset card from ``recipes/card_template.md``.
 - :mod:`~lerobot_suture.datasets.hub`: ``push_dataset`` and ``lerobot-suture push``.
 - :mod:`~lerobot_suture.datasets.metadata`: ``meta/suture_episodes.json`` and the recording checkpoint.
+- :mod:`~lerobot_suture.datasets.segment`: ``lerobot-suture segment``, one subtask of recorded running sutures,
+  each segment an episode.
 - :mod:`~lerobot_suture.datasets.merge`: LeRobot's ``merge_datasets`` with the run labels' NaN kept (``merge_runs``).
 """
 

@@ -84,6 +84,12 @@ def regenerate_episode(root: str | Path, episode_index: int) -> dict[str, np.nda
         RuntimeError: if the episode does not reproduce (a different length or no success).
     """
     log = metadata.read_episode_log(root)
+    if "segment" in log:
+        raise ValueError(
+            f"{root} holds {log['segment']['subtask']} segments cut from the sutures of "
+            f"{log['segment']['source_root']}: regenerate episode {log['episodes'][episode_index]['source_episode']} "
+            "of that dataset instead."
+        )
     entry = log["episodes"][episode_index]
     env = make_env(**log["env_kwargs"])
     try:
