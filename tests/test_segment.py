@@ -86,15 +86,20 @@ def test_a_recorded_suture_is_cut_into_its_four_inserts_with_the_frames_as_recor
         first = int(whole.meta.episodes[entry["source_episode"]]["dataset_from_index"]) + entry["from_frame"]
         start = int(cut.meta.episodes[k]["dataset_from_index"])
         assert int(cut.meta.episodes[k]["length"]) == entry["length"] > 1
-        for t in (0, entry["length"] - 1):
+        if entry["throw"] == 3:  # the suture ends with its last insert: nothing follows it
+            tail = entry["length"]
+            assert entry["from_frame"] + tail == int(whole.meta.episodes[entry["source_episode"]]["length"])
+        else:
+            tail = entry["length"] - 4  # the first of the four frames of the extract that follows
+            # The insert ends on the action that opens the jaw, outside the last 4 frames
+            # (drop_n_last_frames), so a training sample starts on it.
+            assert float(cut[start + tail - 1]["action"][9]) < 0.5
+        for t in sorted({0, tail - 1, min(tail, entry["length"] - 1), entry["length"] - 1}):
             a, b = cut[start + t], whole[first + t]
             for key in ("observation.state", ENV_STATE_KEY, "action"):
                 np.testing.assert_array_equal(a[key].numpy(), b[key].numpy())
-            assert (
-                a["task"] == b["task"]
-                and a[ENV_STATE_KEY][6] == 1.0
-                and a[ENV_STATE_KEY][-1] == entry["throw"]
-            )
+            assert a["task"] == b["task"] and a[ENV_STATE_KEY][-1] == entry["throw"]
+            assert a[ENV_STATE_KEY][6 if t < tail else 7] == 1.0  # insert, then the extract's first frames
             # Encoded a second time: close to the recording, not bit for bit.
             assert float((a[IMAGE_KEY] - b[IMAGE_KEY]).abs().mean()) < 0.03
 

@@ -3,7 +3,8 @@
 A running suture recorded with ``--subtask=true`` carries the high level's subtask and throw in every frame
 (``observation.environment_state``, after the marks: the rules of :mod:`lerobot_suture.sim.subtasks` on the
 measured pose, the labels the chain acts on). This cuts every suture into the runs of one subtask
-(``--subtask=insert``: each throw's insert) and writes each run as an episode of a new LeRobotDataset (v3.0,
+(``--subtask=insert``: each throw's insert, with the first frames of what follows: ``tail_frames``) and writes
+each run as an episode of a new LeRobotDataset (v3.0,
 the same features and fps; videos decoded and encoded again by LeRobot's own recorder), so a policy for that
 subtask alone trains on it with ``lerobot-train`` and joins the chain (``lerobot-suture chain --insert=DIR``).
 A policy trained on whole sutures draws most of its batches from the subtasks that last longest; one trained on
@@ -49,6 +50,10 @@ class SegmentConfig:
     repo_id: the new dataset's id (default: the source's with ``_SUBTASK`` appended).
     root: where to write it; must not exist (default: ``source_root`` with ``_SUBTASK`` appended).
     min_frames: shorter segments are left out, >= 1.
+    tail_frames: frames of what follows kept after each segment, >= 0. A subtask ends on an action whose effect
+        the rules read a frame later (the insert's last action opens the jaw); LeRobot starts no training sample
+        in an episode's last ``drop_n_last_frames`` (4 in the presets), so without a tail of as many frames the
+        action that ends the subtask is never a sample's first action, and the policy never takes it.
     """
 
     source_root: str = ""
@@ -56,6 +61,7 @@ class SegmentConfig:
     repo_id: str | None = None
     root: str | None = None
     min_frames: int = 1
+    tail_frames: int = 4
 
     def __post_init__(self) -> None:
         if not self.source_root:
@@ -67,6 +73,8 @@ class SegmentConfig:
             raise ValueError(f"`subtask` must be one of {list(SUBTASKS)}. Got {self.subtask!r}.")
         if self.min_frames < 1:
             raise ValueError(f"`min_frames` must be >= 1. Got {self.min_frames}.")
+        if self.tail_frames < 0:
+            raise ValueError(f"`tail_frames` must be >= 0. Got {self.tail_frames}.")
 
     def output_root(self) -> Path:
         return Path(self.root if self.root is not None else f"{self.source_root.rstrip('/')}_{self.subtask}")
@@ -82,6 +90,8 @@ class SegmentConfig:
             flags.append(f"--repo_id={self.repo_id}")
         if self.min_frames != 1:
             flags.append(f"--min_frames={self.min_frames}")
+        if self.tail_frames != 4:
+            flags.append(f"--tail_frames={self.tail_frames}")
         return "lerobot-suture segment " + " ".join(flags)
 
 
@@ -213,6 +223,7 @@ def segment_dataset(cfg: SegmentConfig) -> SegmentSummary:
         for start, stop, throw in subtask_runs(columns[ENV_STATE_KEY], names, cfg.subtask):
             if stop - start < cfg.min_frames:
                 continue
+            stop = min(stop + cfg.tail_frames, len(columns[ENV_STATE_KEY]))
             frames = {key: values[start:stop] for key, values in columns.items()}
             for key in video_keys:
                 timestamps = [
@@ -262,7 +273,12 @@ def segment_dataset(cfg: SegmentConfig) -> SegmentSummary:
         discarded=[],
         val_fraction=eval_split_fraction(len(splits[VAL]), len(episodes)),
         command=cfg.command(),
-        segment={"subtask": cfg.subtask, "source_root": str(source_root), "source_repo_id": log["repo_id"]},
+        segment={
+            "subtask": cfg.subtask,
+            "tail_frames": cfg.tail_frames,
+            "source_root": str(source_root),
+            "source_repo_id": log["repo_id"],
+        },
     )
     metadata.write_episode_log(partial, segment_log)
     write_dataset_card(partial)
