@@ -4,9 +4,9 @@ A running suture recorded with ``--subtask=true`` carries the high level's subta
 (``observation.environment_state``, after the marks: the rules of :mod:`lerobot_suture.sim.subtasks` on the
 measured pose, the labels the chain acts on). This cuts every suture into the runs of one subtask
 (``--subtask=insert``: each throw's insert, with the first frames of what follows: ``tail_frames``) and writes
-each run as an episode of a new LeRobotDataset (v3.0,
-the same features and fps; videos decoded and encoded again by LeRobot's own recorder), so a policy for that
-subtask alone trains on it with ``lerobot-train`` and joins the chain (``lerobot-suture chain --insert=DIR``).
+each run as an episode of a new LeRobotDataset (v3.0, the same features and fps; videos decoded and encoded again
+by LeRobot's own recorder), so a policy for that subtask alone trains on it with ``lerobot-train`` and joins the
+chain (``lerobot-suture chain --insert=DIR``).
 A policy trained on whole sutures draws most of its batches from the subtasks that last longest; one trained on
 the segments spends its whole budget on its subtask::
 
