@@ -21,6 +21,7 @@ and the source is only read: an interrupted run loses nothing and a rerun starts
 from __future__ import annotations
 
 import copy
+import itertools
 import logging
 import math
 import os
@@ -118,16 +119,14 @@ def subtask_runs(environment_state: np.ndarray, names: list[str], subtask: str) 
     columns = [names.index(name) for name in SUBTASK_NAMES]
     labels = np.asarray(environment_state)[:, columns]
     inside = labels[:, SUBTASKS.index(subtask)] > 0.5
-    throws = np.rint(labels[:, -1]).astype(int)
-    runs, start = [], None
-    for t in range(len(inside) + 1):
-        # A run ends where the subtask does, or where the throw changes under it.
-        same = t < len(inside) and inside[t] and (start is None or throws[t] == throws[start])
-        if start is not None and not same:
-            runs.append((start, t, int(throws[start])))
-            start = None
-        if start is None and t < len(inside) and inside[t]:
-            start = t
+    # A run ends where the subtask does, or where the throw changes under it: -1 marks frames outside it.
+    throw_inside = np.where(inside, np.rint(labels[:, -1]).astype(int), -1)
+    runs, start = [], 0
+    for throw, frames in itertools.groupby(throw_inside):
+        stop = start + len(list(frames))
+        if throw >= 0:
+            runs.append((start, stop, int(throw)))
+        start = stop
     return runs
 
 
