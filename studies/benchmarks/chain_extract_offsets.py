@@ -7,7 +7,9 @@ tolerance but not on the plan. For the given seeds of the running suture's nomin
 the CBF on), a ``suture_chain`` runs, and at every step of the first throw's extract (the env's own phase,
 privileged) this reads the simulator: the distance from the planned grasp's jaw point to the needle's wire
 (across it, the one a closing cannot absorb), the closest the jaw came to the plan and to the wire, and how
-often the jaw closed. The same for the regrasp planned from the release (``sim.regrasp_target.released_regrasp``
+often the jaw closed, which rule of the capture let the needle go at each closing (``grasp.CaptureVerdict``:
+not between the faces, the jaw too closed, lodged, into the pad; with how far the seat would move the needle, mm),
+whether a closing caught it and how far the jaw then travelled (``pulled_mm``). The same for the regrasp planned from the release (``sim.regrasp_target.released_regrasp``
 of the jaw's pose at the extract's first step, the needle still held): ``release_plan_to_wire_mm``,
 ``closest_jaw_to_release_plan_mm``. ``--regrasp-from release`` gives a chain that reads the plan that one.
 Prints one JSON object.
@@ -74,7 +76,12 @@ def main() -> None:
             "closest_jaw_to_release_plan_mm": np.inf,
             "closest_jaw_to_wire_mm": np.inf,
             "closings": 0,
+            "closing_verdicts": [],
+            "caught": False,
+            "pulled_mm": None,
             "_closure": None,
+            "_verdict": None,
+            "_caught_at": None,
         }
         for s in args.seeds
     ]
@@ -106,7 +113,16 @@ def main() -> None:
         closure = u.jaw_closure_command
         if ep["_closure"] is not None and ep["_closure"] < 0.5 <= closure:
             ep["closings"] += 1
+            if ep["_verdict"] is not None:  # judged on the state the step started from, as the env judged it
+                shift = ep["_verdict"].shift
+                ep["closing_verdicts"].append([ep["_verdict"].rule, None if np.isnan(shift) else 1e3 * shift])
         ep["_closure"] = closure
+        held = bool(u.needle_grasped)
+        if held and ep["_caught_at"] is None and ep["closings"]:
+            ep["caught"], ep["_caught_at"] = True, jaw_position.copy()
+        if ep["_caught_at"] is not None:
+            ep["pulled_mm"] = 1e3 * float(np.linalg.norm(jaw_position - ep["_caught_at"]))
+        ep["_verdict"] = None if held else u.capture_verdict()
 
     roll_out_lockstep(runner, env_kwargs, "running_suture", args.seeds, on_step)
     episodes = [
