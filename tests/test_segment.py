@@ -61,6 +61,7 @@ def test_a_recorded_suture_is_cut_into_its_four_inserts_with_the_frames_as_recor
     from lerobot_suture.datasets.metadata import read_episode_log
     from lerobot_suture.datasets.record import record, regenerate_episode
     from lerobot_suture.datasets.record_config import RecordConfig
+    from lerobot_suture.datasets.segment import subtask_durations
 
     source = tmp_path / "running"
     common = dict(task="running_suture", image_size=32, val_fraction=0.5, marks=True)
@@ -78,6 +79,12 @@ def test_a_recorded_suture_is_cut_into_its_four_inserts_with_the_frames_as_recor
     assert info["splits"] == {"train": "0:4", "val": "4:8"} and info["total_episodes"] == 8
     assert math.ceil(8 * log["val_fraction"]) == 4
     assert "lerobot-suture segment --source_root=" in log["command"]
+    durations = subtask_durations(source)  # the training suture's (episode 0) subtasks, for the stage budgets
+    assert (
+        len(durations["insert"]) == 4 and len(durations["extract"]) == 3
+    )  # the last throw ends on its insert
+    inserts = [e["length"] - 4 for e in log["episodes"][:3]]  # without the tail of what follows
+    assert durations["insert"][:3] == inserts
 
     whole = LeRobotDataset("suture-tests/running", root=source)
     cut = LeRobotDataset("suture-tests/running_insert", root=root)

@@ -42,6 +42,38 @@ def test_with_the_wound_s_marks_a_needle_lost_on_the_way_is_picked_up_again_in_t
     )  # let go 5 mm from the entry: the insert is done
 
 
+def test_a_jaw_closed_beside_the_needle_neither_pulls_it_out_nor_picks_it_up():
+    """An empty jaw closes fully (1); the needle's wire stops it short. A closing beside the tip starts no pull,
+    however far the jaw then travels, and a closing beside the needle on the phantom ends no pick-up."""
+    rules = SubtaskRules(SubtaskRulesConfig(pulled_out_travel=0.01))
+    rules.reset(pose(0.0, 0.88))
+    assert rules.update(pose(0.0, 0.1)) == ("extract", 0)
+    assert rules.update(pose(0.005, 1.0)) == ("extract", 0)  # closed on nothing
+    assert rules.update(pose(0.030, 1.0)) == ("extract", 0)  # 25 mm of travel, no needle in the jaw
+    assert rules.update(pose(0.030, 0.0)) == ("extract", 0)  # opens to try again
+    assert rules.update(pose(0.030, 0.86)) == ("extract", 0)  # catches the tip: the pull starts here
+    assert rules.update(pose(0.041, 0.86)) == ("lay_down", 0)
+    assert rules.update(pose(0.041, 0.0)) == ("pick_up", 1)
+    assert rules.update(pose(0.041, 1.0)) == ("pick_up", 1)  # missed the needle on the phantom
+    assert rules.update(pose(0.041, 0.0)) == ("pick_up", 1)
+    assert rules.update(pose(0.041, 0.88)) == ("insert", 1)
+    assert SubtaskRules().reset(pose(0.0, 1.0)) == ("pick_up", 0)  # an empty jaw holds no needle to insert
+    every_closing = SubtaskRules(SubtaskRulesConfig(holding_below=1.5))
+    every_closing.reset(pose(0.0, 1.0))
+    assert every_closing.subtask == "insert"
+
+
+def test_a_reading_is_the_vector_it_was_made_into():
+    from lerobot_suture.sim.subtasks import SUBTASKS, subtask_reading, subtask_vector
+
+    for subtask in SUBTASKS:
+        for throw in range(4):
+            assert subtask_reading(subtask_vector(subtask, throw)) == (subtask, throw)
+    for bad in (np.zeros(5), np.array([1, 1, 0, 0, 0.0]), np.array([1, 0, 0, 0, 0.5]), np.ones(4)):
+        with pytest.raises(ValueError, match="one-hot"):
+            subtask_reading(bad)
+
+
 def test_a_suture_from_a_needle_on_the_phantom_starts_with_its_pick_up():
     rules = SubtaskRules()
     assert rules.reset(pose(0.0, 0.0)) == ("pick_up", 0)
@@ -53,6 +85,8 @@ def test_bad_settings_and_poses_are_refused():
         SubtaskRulesConfig(closed_above=1.0)
     with pytest.raises(ValueError, match="pulled_out_travel"):
         SubtaskRulesConfig(pulled_out_travel=float("nan"))
+    with pytest.raises(ValueError, match="holding_below"):
+        SubtaskRulesConfig(holding_below=0.4)
     with pytest.raises(ValueError, match="measured pose"):
         SubtaskRules().reset(np.zeros(7))
 
@@ -279,3 +313,52 @@ def test_a_recording_with_the_subtask_stores_it_and_a_policy_that_reads_it_gets_
         state = {ENV_STATE_KEY: PolicyFeature(type=FeatureType.ENV, shape=(size,))}
         kwargs = env_kwargs_for_policy(SimpleNamespace(input_features={**features, **state}))
         assert kwargs == {"obs_type": "pixels_agent_pos", "image_size": 32, **extra}
+
+
+def test_a_stage_that_outlasts_its_time_budget_is_flagged_and_the_next_starts_afresh(tmp_path):
+    """The budget is the conformal quantile of successful segments' durations; a segment flags on the step that
+    takes it past its subtask's budget, through the stage gates of a rollout, and a subtask without one never."""
+    from lerobot_suture.runtime.gates import SilentGates, StageGates
+    from lerobot_suture.safety.ood.stage_gate import StageBudgets, fit_stage_budgets
+
+    budgets = fit_stage_budgets(
+        {"insert": list(range(60, 160)), "extract": [3] * 100}, alpha=0.01, source="test"
+    )
+    assert budgets.budgets == {"insert": 159, "extract": 3} and budgets.segments == {
+        "insert": 100,
+        "extract": 100,
+    }
+    budgets.save(tmp_path)
+    assert StageBudgets.load(tmp_path) == budgets
+    with pytest.raises(ValueError, match="at least 99 successful segments"):
+        fit_stage_budgets({"insert": [70] * 98})
+    with pytest.raises(ValueError, match="whole number"):
+        StageBudgets({"insert": 0}, {"insert": 100}, 0.01)
+
+    gates = StageGates(SilentGates(), None, budgets=budgets)
+    gates.reset(1)
+    released = []
+    jaws = [
+        0.88,
+        0.1,
+        0.1,
+        0.1,
+        0.1,
+        0.1,
+        0.86,
+    ]  # insert, then an extract that waits four steps with the jaw open
+    for jaw in jaws:
+        gates.observe(0, {"agent_pos": pose(0.0, jaw)})
+        released.append(gates.status(0)["released"])
+    assert released == [
+        False,
+        False,
+        False,
+        False,
+        True,
+        True,
+        True,
+    ]  # the extract's fourth step is one too many
+    assert gates.context(0) == {"subtask": "extract", "throw": 0}
+    gates.observe(0, {"agent_pos": pose(0.03, 0.86)})  # pulled out: lay down, which has no budget
+    assert not gates.status(0)["released"]

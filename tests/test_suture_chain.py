@@ -26,6 +26,8 @@ from lerobot_suture.sim.regrasp_target import REGRASP_TARGET_DIM
 from lerobot_suture.sim.subtasks import SUBTASK_DIM, subtask_vector
 from lerobot_suture.sim.wound_marks import MARKS_DIM
 
+HELD = 0.87
+"""The jaw's closure on the needle's wire (an empty jaw closes to 1)."""
 CONDITIONED_FEATURES = {
     **SUTURE_INPUT_FEATURES,
     OBS_ENV_STATE: PolicyFeature(type=FeatureType.ENV, shape=(MARKS_DIM + SUBTASK_DIM,)),
@@ -165,12 +167,12 @@ def test_each_env_takes_the_action_of_its_own_subtasks_policy(tmp_path, subtask_
             sub.pop(OBS_ENV_STATE)
         return ref_post(ref.select_action(ref_pre(sub)))
 
-    first = _batch([1.0, 1.0], entry, rng)
+    first = _batch([HELD, HELD], entry, rng)
     action = post(chain.select_action(pre(dict(first))))
     assert chain.readings == [("insert", 0), ("insert", 0)]
     assert torch.allclose(action, reference("insert", first, chain.readings), atol=1e-6)
 
-    second = _batch([0.0, 1.0], entry, rng)  # env 0 lets go at the entry mark
+    second = _batch([0.0, HELD], entry, rng)  # env 0 lets go at the entry mark
     action = post(chain.select_action(pre(dict(second))))
     assert chain.readings == [("extract", 0), ("insert", 0)]
     refs["extract"][0].reset()  # the chain starts the policy an env enters afresh
@@ -181,7 +183,7 @@ def test_each_env_takes_the_action_of_its_own_subtasks_policy(tmp_path, subtask_
     assert not torch.allclose(action[0], expected_insert[0], atol=1e-4)
 
     chain.reset()  # a new episode: the rules start over from the first measured pose
-    post(chain.select_action(pre(_batch([0.0, 1.0], entry, rng))))
+    post(chain.select_action(pre(_batch([0.0, HELD], entry, rng))))
     assert chain.readings == [("pick_up", 0), ("insert", 0)]
 
 
@@ -235,7 +237,7 @@ def test_the_robot_reports_the_marks_after_the_pose_and_the_chain_splits_them(tm
     out = write_chain(ChainCommandConfig(output_dir=tmp_path / "chain", policy=conditioned, extract=plain))
     rng = np.random.default_rng(1)
     entry = np.array([-0.008, 0.003, 0.0], dtype=np.float32)
-    split = [_batch([1.0], entry, rng), _batch([0.0], entry, rng)]
+    split = [_batch([HELD], entry, rng), _batch([0.0], entry, rng)]
     stacked = [{**b, OBS_STATE: torch.cat([b[OBS_STATE], b[OBS_ENV_STATE]], dim=-1)} for b in split]
     for b in stacked:
         b.pop(OBS_ENV_STATE)
@@ -325,7 +327,7 @@ def test_a_policy_that_reads_the_planned_regrasp_gets_it_from_the_env_and_the_ro
     rng = np.random.default_rng(2)
     entry = np.array([-0.008, 0.003, 0.0], dtype=np.float32)
     target = torch.from_numpy(rng.normal(0, 0.01, (1, REGRASP_TARGET_DIM)).astype(np.float32))
-    split = [_batch([1.0], entry, rng), _batch([0.0], entry, rng)]  # the second lets go: extract
+    split = [_batch([HELD], entry, rng), _batch([0.0], entry, rng)]  # the second lets go: extract
     for b in split:
         b[OBS_ENV_STATE] = torch.cat([b[OBS_ENV_STATE], target], dim=-1)
     stacked = [
@@ -347,3 +349,51 @@ def test_a_policy_that_reads_the_planned_regrasp_gets_it_from_the_env_and_the_ro
         actions = [post(chain.select_action(pre(dict(b)))) for b in batches]
         assert chain.readings == [("extract", 0)]
         assert torch.allclose(actions[1], expected, atol=1e-6)
+
+
+def test_a_chain_that_reads_the_subtask_from_the_env_resumes_where_the_arm_is_after_a_reset(
+    tmp_path, subtask_policies
+):
+    """Written with `subtask_from_env`, the chain takes each step's subtask and throw from the env's reading (after
+    the marks), so a reset mid-suture (a surgeon's hand-back) leaves it at the arm's subtask and throw, where its
+    own rules would start over at the first throw's insert; the robot path and other thresholds are refused."""
+    conditioned, plain = subtask_policies
+    out = write_chain(
+        ChainCommandConfig(
+            output_dir=tmp_path / "chain", policy=conditioned, extract=plain, subtask_from_env=True
+        )
+    )
+    chain, pre, post = load_policy(out)
+    assert env_kwargs_for_policy(chain.config)["subtask"] is True
+    rng = np.random.default_rng(0)
+    batch = _batch([HELD], np.array([-0.008, -0.009, 0.0], dtype=np.float32), rng)
+    marks = batch[OBS_ENV_STATE]
+    chain.reset()
+    batch[OBS_ENV_STATE] = torch.cat([marks, torch.from_numpy(subtask_vector("lay_down", 2))[None]], dim=-1)
+    post(chain.select_action(pre(dict(batch))))
+    assert chain.readings == [
+        ("lay_down", 2)
+    ]  # the rules, from this pose (the needle held), would say insert 0
+
+    chain.reset()  # a surgeon did the third throw's extract and hands back
+    batch[OBS_ENV_STATE] = torch.cat([marks, torch.from_numpy(subtask_vector("extract", 2))[None]], dim=-1)
+    action = post(chain.select_action(pre(dict(batch))))
+    assert chain.readings == [("extract", 2)]
+    ref, ref_pre, ref_post = load_policy(out / "policies" / "extract")
+    ref.reset()
+    plain_batch = {k: v for k, v in batch.items() if k != OBS_ENV_STATE}
+    assert torch.allclose(action, ref_post(ref.select_action(ref_pre(plain_batch))), atol=1e-6)
+
+    robot_batch = {
+        OBS_STATE: torch.cat([batch[OBS_STATE], batch[OBS_ENV_STATE]], dim=-1),
+        IMAGE_KEY: batch[IMAGE_KEY],
+    }
+    with pytest.raises(ValueError, match="subtask_from_env=true"):
+        chain.select_action(pre(robot_batch))
+    with pytest.raises(ValueError, match="default thresholds"):
+        ChainCommandConfig(
+            output_dir=tmp_path / "c2", policy=conditioned, subtask_from_env=True, release_radius=0.02
+        )
+    bad = dict(batch, **{OBS_ENV_STATE: torch.cat([marks, torch.zeros(1, 5)], dim=-1)})
+    with pytest.raises(ValueError, match="one-hot"):
+        chain.select_action(pre(bad))

@@ -21,7 +21,7 @@ from lerobot.utils.import_utils import register_third_party_plugins
 
 from lerobot_suture.datasets.features import PRIVILEGED_FEATURES
 from lerobot_suture.sim.state_layout import state_parts, state_size
-from lerobot_suture.sim.subtasks import SUBTASKS
+from lerobot_suture.sim.subtasks import SUBTASKS, SubtaskRulesConfig
 
 from .configuration_suture_chain import POLICIES_DIR, SutureChainConfig, env_state_size
 from .processor_suture_chain import make_suture_chain_pre_post_processors
@@ -39,7 +39,12 @@ class ChainCommandConfig:
     closed_above: the high level's jaw threshold (``SubtaskRulesConfig``).
     pulled_out_travel: the high level's pull (m) that ends an extract.
     release_radius: the high level's radius (m) around the entry mark that ends an insert.
+    holding_below: the high level's jaw closure below which a closed jaw holds the needle.
     device: the device the chain runs its policies on.
+    subtask_from_env: read the subtask and throw from the env's observation (``--env.subtask=true``, the same
+        rules run by the env at every step) instead of running the rules in the chain: a surgeon's takeover and
+        hand-back then leave the chain where the arm is. The env path only (a robot reports no subtask), with
+        the rules' default thresholds.
     """
 
     output_dir: Path | None = None
@@ -51,11 +56,19 @@ class ChainCommandConfig:
     closed_above: float = 0.5
     pulled_out_travel: float = 0.019
     release_radius: float = 0.010
+    holding_below: float = 0.95
     device: str = "cpu"
+    subtask_from_env: bool = False
 
     def __post_init__(self):
         if self.output_dir is None:
             raise ValueError("Pass --output_dir=DIR: where to write the chain.")
+        if self.subtask_from_env and self.rules != SubtaskRulesConfig():
+            raise ValueError(
+                "With --subtask_from_env=true the env's rules name the subtask, at their default thresholds: drop "
+                "--closed_above, --pulled_out_travel, --release_radius and --holding_below, or read the subtask in "
+                "the chain."
+            )
         if self.output_dir.exists() and any(self.output_dir.iterdir()):
             raise ValueError(f"{self.output_dir} is not empty: pass a new --output_dir, or remove it first.")
         missing = [s for s in SUBTASKS if self.policy_of(s) is None]
@@ -70,14 +83,23 @@ class ChainCommandConfig:
                     "the `pretrained_model` directory of a lerobot-train checkpoint."
                 )
 
+    @property
+    def rules(self) -> SubtaskRulesConfig:
+        """The high level's thresholds (``SubtaskRulesConfig`` checks them)."""
+        return SubtaskRulesConfig(
+            self.closed_above, self.pulled_out_travel, self.release_radius, self.holding_below
+        )
+
     def policy_of(self, subtask: str) -> Path | None:
         return getattr(self, subtask) or self.policy
 
 
-def chain_input_features(configs: list[PreTrainedConfig]) -> dict[str, PolicyFeature]:
+def chain_input_features(
+    configs: list[PreTrainedConfig], subtask_from_env: bool = False
+) -> dict[str, PolicyFeature]:
     """What the chain reads: every subtask policy's inputs but the privileged ones, and as the environment state
-    the wound's marks (the high level reads them), then the planned regrasp where a subtask policy reads it; each
-    policy gets its own environment state from them.
+    the wound's marks (the high level reads them), then the env's subtask and throw with ``subtask_from_env``,
+    then the planned regrasp where a subtask policy reads it; each policy gets its own environment state from them.
 
     Raises:
         ValueError: two policies read one key at different shapes, or their actions differ.
@@ -95,8 +117,12 @@ def chain_input_features(configs: list[PreTrainedConfig]) -> dict[str, PolicyFea
             features[key] = feature
     read = {name for c in configs for name in state_parts(env_state_size(c)) or ()}
     # The high level reads the marks; the planned regrasp comes from the env where a subtask policy reads it,
-    # the subtask from the chain itself.
-    parts = ("marks", *(["regrasp_target"] if "regrasp_target" in read else []))
+    # the subtask from the chain itself, or from the env where it is asked to read it there.
+    parts = (
+        "marks",
+        *(["subtask"] if subtask_from_env else []),
+        *(["regrasp_target"] if "regrasp_target" in read else []),
+    )
     features[OBS_ENV_STATE] = PolicyFeature(type=FeatureType.ENV, shape=(state_size(parts),))
     actions = {tuple(c.output_features[ACTION].shape) for c in configs}
     if len(actions) != 1:
@@ -127,7 +153,8 @@ def write_chain(cfg: ChainCommandConfig) -> Path:
         closed_above=cfg.closed_above,
         pulled_out_travel=cfg.pulled_out_travel,
         release_radius=cfg.release_radius,
-        input_features=chain_input_features(list(configs.values())),
+        holding_below=cfg.holding_below,
+        input_features=chain_input_features(list(configs.values()), cfg.subtask_from_env),
         output_features={ACTION: first.output_features[ACTION]},
         device=cfg.device,
     )

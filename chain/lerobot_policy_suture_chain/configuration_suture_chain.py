@@ -39,12 +39,14 @@ class SutureChainConfig(PreTrainedConfig):
         closed_above: jaw closure above which the jaw counts as closed, in (0, 1) (``SubtaskRulesConfig``).
         pulled_out_travel: jaw travel (m) after closing on the tip beyond which the needle is out, > 0.
         release_radius: distance (m) from the entry mark within which a release ends an insert, > 0.
+        holding_below: jaw closure below which a closed jaw holds the needle, above ``closed_above``.
     """
 
     subtask_policies: dict[str, str] = field(default_factory=dict)
     closed_above: float = 0.5
     pulled_out_travel: float = 0.019
     release_radius: float = 0.010
+    holding_below: float = 0.95
     n_obs_steps: int = 1
 
     def __post_init__(self):
@@ -72,7 +74,9 @@ class SutureChainConfig(PreTrainedConfig):
     @property
     def rules(self) -> SubtaskRulesConfig:
         """The high level's thresholds."""
-        return SubtaskRulesConfig(self.closed_above, self.pulled_out_travel, self.release_radius)
+        return SubtaskRulesConfig(
+            self.closed_above, self.pulled_out_travel, self.release_radius, self.holding_below
+        )
 
     @property
     def policy_names(self) -> list[str]:

@@ -7,6 +7,12 @@ planned regrasp (9,) where a subtask policy reads it; on the robot path, after t
 the action. A subtask policy sees the environment state it was trained on: any combination of the marks (6,),
 the subtask and throw (5,) and the planned regrasp (9,) (``lerobot_suture.sim.state_layout``), or none.
 
+A chain written with ``--subtask_from_env=true`` reads the subtask and throw from the observation instead
+(``observation.environment_state`` then holds the marks and the same rules' reading, ``--env.subtask=true``): the
+env runs the rules at every step, whoever acts, so a surgeon who takes a subtask over and hands back (which resets
+the policy, as LeRobot's DAgger does) leaves the chain at the subtask and throw the arm is in, not at the first
+throw's insert where its own rules would start again.
+
 Subtask policies keep their own observation and action queues, one row per environment. A policy that an
 environment enters is reset first, so its first action is predicted from the new subtask's observation and not
 taken from a chunk queued before the switch; the other environments it serves then predict afresh too (a
@@ -25,7 +31,7 @@ from lerobot.utils.constants import OBS_ENV_STATE, OBS_STATE
 from torch import Tensor, nn
 
 from lerobot_suture.sim.state_layout import LAYOUTS, registered_parts, state_parts
-from lerobot_suture.sim.subtasks import SubtaskRules, subtask_vector
+from lerobot_suture.sim.subtasks import SubtaskRules, subtask_reading, subtask_vector
 
 from .configuration_suture_chain import POLICIES_DIR, SutureChainConfig, env_state_size
 
@@ -41,6 +47,11 @@ def state_apart(batch: dict[str, Tensor], env_state_size: int) -> dict[str, Tens
     state = batch[OBS_STATE]
     if OBS_ENV_STATE in batch or state.shape[-1] == POSE_DIM:
         return batch
+    if "subtask" in (state_parts(env_state_size) or ()):
+        raise ValueError(
+            "This chain reads the subtask from the env (written with --subtask_from_env=true), and a robot reports "
+            "none: write the chain again without it for the robot path."
+        )
     if state.shape[-1] != POSE_DIM + env_state_size:
         flags = " ".join(f"--robot.{name}=true" for name in state_parts(env_state_size) or ())
         raise ValueError(
@@ -162,16 +173,23 @@ class SutureChainPolicy(PreTrainedPolicy):
             )
         return parts
 
-    def _read_subtasks(self, batch: dict[str, Tensor], marks: Tensor | None) -> set[str]:
-        """Update each environment's subtask; the policies some environment entered."""
-        poses = batch[OBS_STATE].detach().float().cpu().numpy().reshape(len(batch[OBS_STATE]), -1)
-        marks_np = marks.detach().float().cpu().numpy() if marks is not None else [None] * len(poses)
-        if len(self._rules) != len(poses):  # the episode's first step (lerobot-eval resets before it)
-            self._rules = [SubtaskRules(self.config.rules) for _ in poses]
-            self.readings = [rules.reset(pose) for rules, pose in zip(self._rules, poses, strict=True)]
-            return set()
+    def _read_subtasks(self, batch: dict[str, Tensor], parts: dict[str, Tensor]) -> set[str]:
+        """Update each environment's subtask (the env's reading where the observation holds it, else the rules');
+        the policies some environment entered."""
         before = self.readings
-        self.readings = [r.update(p, m) for r, p, m in zip(self._rules, poses, marks_np, strict=True)]
+        if "subtask" in parts:
+            self.readings = [subtask_reading(v) for v in parts["subtask"].detach().float().cpu().numpy()]
+            if len(before) != len(self.readings):  # the episode's first step, or the first after a reset
+                return set()
+        else:
+            poses = batch[OBS_STATE].detach().float().cpu().numpy().reshape(len(batch[OBS_STATE]), -1)
+            marks = parts.get("marks")
+            marks_np = marks.detach().float().cpu().numpy() if marks is not None else [None] * len(poses)
+            if len(self._rules) != len(poses):  # the episode's first step (lerobot-eval resets before it)
+                self._rules = [SubtaskRules(self.config.rules) for _ in poses]
+                self.readings = [rules.reset(pose) for rules, pose in zip(self._rules, poses, strict=True)]
+                return set()
+            self.readings = [r.update(p, m) for r, p, m in zip(self._rules, poses, marks_np, strict=True)]
         entered = {
             self.config.subtask_policies[new[0]]
             for old, new in zip(before, self.readings, strict=True)
@@ -183,7 +201,7 @@ class SutureChainPolicy(PreTrainedPolicy):
     def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
         batch = state_apart(batch, env_state_size(self.config))
         parts = self._registered(batch)
-        entered = self._read_subtasks(batch, parts.get("marks"))
+        entered = self._read_subtasks(batch, parts)
         for name in entered:
             self.policies[name].reset()
         parts["subtask"] = torch.from_numpy(np.stack([subtask_vector(*reading) for reading in self.readings]))

@@ -130,6 +130,35 @@ def subtask_runs(environment_state: np.ndarray, names: list[str], subtask: str) 
     return runs
 
 
+def subtask_durations(source_root: str | Path, split: str = TRAIN) -> dict[str, list[int]]:
+    """Each subtask's run lengths (frames, one per control step) in the ``split`` sutures of a running suture
+    recorded with ``--subtask=true``: every recorded suture is the expert's and succeeded, so these are the
+    successful segments a stage's time budget is fitted on (``stage_gate.fit_stage_budgets``).
+
+    Raises:
+        FileNotFoundError: ``source_root`` holds no dataset recorded by ``lerobot-suture record``.
+        ValueError: the dataset does not record the subtask.
+    """
+    import pandas as pd
+
+    root = Path(source_root).expanduser()
+    log = metadata.read_episode_log(root)
+    names = _check_source(root, metadata.read_json(root / metadata.INFO_PATH)["features"])
+    wanted = set(log["splits"][split])
+    frames = pd.concat(
+        pd.read_parquet(path, columns=["episode_index", "frame_index", ENV_STATE_KEY])
+        for path in sorted((root / "data").glob("*/*.parquet"))
+    )
+    durations: dict[str, list[int]] = {subtask: [] for subtask in SUBTASKS}
+    for episode, rows in frames.groupby("episode_index"):
+        if int(episode) not in wanted:
+            continue
+        state = np.stack(rows.sort_values("frame_index")[ENV_STATE_KEY].to_numpy())
+        for subtask in SUBTASKS:
+            durations[subtask] += [stop - start for start, stop, _ in subtask_runs(state, names, subtask)]
+    return {subtask: values for subtask, values in durations.items() if values}
+
+
 def eval_split_fraction(n_val: int, n: int) -> float:
     """A ``--dataset.eval_split`` fraction that holds out exactly the last ``n_val`` of ``n`` episodes (LeRobot
     holds out the last ``ceil(n * fraction)``), to four decimals."""

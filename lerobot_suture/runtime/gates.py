@@ -10,8 +10,8 @@ calibration and the robot path's ``gated_dagger``.
 - ``none`` (:class:`SilentGates`): no gate.
 - :class:`StageGates`: a gate per stage of the running suture over either's scores: the high level
   (:mod:`lerobot_suture.sim.subtasks`) names each env's subtask from its measured pose, and each segment is tested
-  against its subtask's threshold (:mod:`lerobot_suture.safety.ood.stage_gate`). A flag releases control for the
-  rest of its segment.
+  against its subtask's threshold (:mod:`lerobot_suture.safety.ood.stage_gate`), and, with budgets, each segment's
+  length against its subtask's time budget. A flag releases control for the rest of its segment.
 
 Each has ``reset(rows)`` at the start of a batch of episodes, ``observe(row, observation)`` once per control step
 and row with the observation the step acts from, ``status(row)`` after the policy has acted (the keys of
@@ -28,7 +28,7 @@ import numpy as np
 from lerobot_suture.safety.ood.calibration_file import STAC_CALIBRATION_FILE, StacCalibration
 from lerobot_suture.safety.ood.chunk_consistency import ChunkCapture, ChunkConsistencyMonitor, chunk_source
 from lerobot_suture.safety.ood.gate import ChunkGate, silent_status
-from lerobot_suture.safety.ood.stage_gate import StageGate, StageThresholds
+from lerobot_suture.safety.ood.stage_gate import StageBudgets, StageGate, StageThresholds
 from lerobot_suture.sim.state_layout import registered_marks
 from lerobot_suture.sim.subtasks import SubtaskRules, SubtaskRulesConfig
 from lerobot_suture.sim.wound_marks import MARKS_KEY
@@ -150,20 +150,25 @@ class StageGates(SilentGates):
         base: the gates whose scores are tested (the policy's own, or STAC), reporting only.
         thresholds: each subtask's threshold, or None to record scores only (while calibrating).
         rules: the high level's thresholds.
+        budgets: each subtask's time budget (control steps), or None.
     """
 
     kind = "stage"
 
     def __init__(
-        self, base: SilentGates, thresholds: StageThresholds | None, rules: SubtaskRulesConfig | None = None
+        self,
+        base: SilentGates,
+        thresholds: StageThresholds | None,
+        rules: SubtaskRulesConfig | None = None,
+        budgets: StageBudgets | None = None,
     ):
-        self.base, self.thresholds, self.rules_config = base, thresholds, rules
+        self.base, self.thresholds, self.rules_config, self.budgets = base, thresholds, rules, budgets
         self.reset(1)
 
     def reset(self, rows: int) -> None:
         self.base.reset(rows)
         self.rules = [SubtaskRules(self.rules_config) for _ in range(rows)]
-        self.gates = [StageGate(self.thresholds) for _ in range(rows)]
+        self.gates = [StageGate(self.thresholds, self.budgets) for _ in range(rows)]
         self._started = [False] * rows
 
     def observe(self, row: int, observation: dict) -> None:
@@ -173,6 +178,7 @@ class StageGates(SilentGates):
         subtask, throw = rules.update(pose, marks) if self._started[row] else rules.reset(pose)
         self._started[row] = True
         self.gates[row].enter(subtask, throw)
+        self.gates[row].tick()
 
     def status(self, row: int) -> dict:
         status, gate = self.base.status(row), self.gates[row]

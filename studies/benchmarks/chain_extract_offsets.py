@@ -7,7 +7,8 @@ tolerance but not on the plan. For the given seeds of the running suture's nomin
 the CBF on), a ``suture_chain`` runs, and at every step of the first throw's extract (the env's own phase,
 privileged) this reads the simulator: the distance from the planned grasp's jaw point to the needle's wire
 (across it, the one a closing cannot absorb), the closest the jaw came to the plan and to the wire, and how
-often the jaw closed, which rule of the capture let the needle go at each closing (``grasp.CaptureVerdict``:
+often the jaw closed; how long the insert held on after the throw was over (``steps_to_release``) and how far
+it strained the tissue meanwhile (``strain_before_release_mm``, against the extraction's 2 mm bound); which rule of the capture let the needle go at each closing (``grasp.CaptureVerdict``:
 not between the faces, the jaw too closed, lodged, into the pad; with how far the seat would move the needle, mm),
 whether a closing caught it and how far the jaw then travelled (``pulled_mm``). The same for the regrasp planned from the release (``sim.regrasp_target.released_regrasp``
 of the jaw's pose at the extract's first step, the needle still held): ``release_plan_to_wire_mm``,
@@ -79,8 +80,11 @@ def main() -> None:
             "closing_verdicts": [],
             "caught": False,
             "pulled_mm": None,
+            "steps_to_release": None,
+            "strain_before_release_mm": None,
             "_closure": None,
             "_verdict": None,
+            "_strain_over": None,
             "_caught_at": None,
         }
         for s in args.seeds
@@ -91,6 +95,13 @@ def main() -> None:
         ep = out[i]
         if u.throw_index != 0 or u.throw_phase != "extract":
             return
+        strain = 1e3 * float(info["tissue_strain"])
+        if ep["_strain_over"] is None:  # the throw is over; the insert has yet to let go
+            ep["_strain_over"] = strain
+        if ep["steps_to_release"] is None and u.needle_grasped:
+            ep["strain_before_release_mm"] = strain - ep["_strain_over"]
+        elif ep["steps_to_release"] is None:
+            ep["steps_to_release"] = ep["extract_steps"]
         needle_position, needle_rotation = u.needle_pose()
         plan_position, _ = planned_regrasp(u.entry_point, u.exit_point, u.phantom_rotation[:, 2])
         jaw_position, _ = u.jaw_pose()

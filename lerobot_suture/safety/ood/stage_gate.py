@@ -11,6 +11,12 @@ at 1% needs at least 99 successful segments of each subtask (:func:`~lerobot_sut
 
 :class:`StageGate` tests each segment's running maximum against its subtask's threshold and latches the first
 flag with the segment it fell in, so a surgeon can take that segment over and hand back for the next.
+
+A stage can also fail without a surprising score: a policy that closes its jaw beside the needle and never opens
+it again stalls in its extract, every prediction in distribution. A time budget per subtask
+(:class:`StageBudgets`) flags a segment that runs longer than the same conformal quantile of successful segments'
+durations (:func:`fit_stage_budgets`): the number of control steps is the score, and its maximum is the segment's
+length.
 """
 
 from __future__ import annotations
@@ -32,6 +38,7 @@ from lerobot_suture.safety.ood.calibration import (
 from lerobot_suture.safety.ood.gate import OODGate
 
 STAGE_CALIBRATION_FILE = "stage_calibration.json"
+STAGE_BUDGETS_FILE = "stage_budgets.json"
 
 
 @dataclass(frozen=True)
@@ -74,6 +81,71 @@ class StageThresholds:
         if not path.is_file():
             raise FileNotFoundError(f"No stage calibration at {path}: fit one with `fit_stage_thresholds`.")
         return cls(**json.loads(path.read_text()))
+
+
+@dataclass(frozen=True)
+class StageBudgets:
+    """Each subtask's time budget, fitted on the durations of successful segments.
+
+    Args:
+        budgets: subtask -> the control steps a segment may run; one step more flags it.
+        segments: subtask -> successful segments it was fitted on.
+        alpha: the per-segment false-alarm rate it was fitted for, in (0, 0.5).
+        source: where the segments came from (a dataset's path, the policy's rollouts).
+    """
+
+    budgets: dict[str, int]
+    segments: dict[str, int]
+    alpha: float
+    source: str = ""
+
+    def __post_init__(self):
+        if not 0 < self.alpha < 0.5:
+            raise ValueError(f"`alpha` must be in (0, 0.5). Got {self.alpha!r}.")
+        bad = {s: b for s, b in self.budgets.items() if not (isinstance(b, int) and b >= 1)}
+        if bad:
+            raise ValueError(f"Every budget must be a whole number of control steps >= 1. Got {bad}.")
+
+    def save(self, directory: str | os.PathLike) -> Path:
+        path = Path(directory) / STAGE_BUDGETS_FILE
+        path.write_text(json.dumps(asdict(self), indent=2) + "\n")
+        return path
+
+    @classmethod
+    def load(cls, directory: str | os.PathLike) -> StageBudgets:
+        path = Path(directory) / STAGE_BUDGETS_FILE
+        if not path.is_file():
+            raise FileNotFoundError(f"No stage budgets at {path}: fit them with `fit_stage_budgets`.")
+        return cls(**json.loads(path.read_text()))
+
+
+def fit_stage_budgets(
+    durations: dict[str, Sequence[int]], alpha: float = 0.01, source: str = ""
+) -> StageBudgets:
+    """Each subtask's budget: the split-conformal quantile at ``alpha`` of its successful segments' durations
+    (control steps), rounded up.
+
+    Raises:
+        ValueError: a subtask has fewer segments than the quantile at ``alpha`` needs, or a duration < 1.
+    """
+    needed = min_calibration_episodes(alpha)
+    short = {stage: len(values) for stage, values in durations.items() if len(values) < needed}
+    if short or not durations:
+        raise ValueError(
+            f"A budget at alpha={alpha} needs at least {needed} successful segments per subtask. Got {short or 'none'}; "
+            "record more sutures or raise alpha."
+        )
+    if any(int(d) < 1 for values in durations.values() for d in values):
+        raise ValueError("Every segment lasts at least one control step.")
+    return StageBudgets(
+        budgets={
+            stage: math.ceil(conformal_episode_threshold(np.asarray(values, dtype=np.float64), alpha))
+            for stage, values in durations.items()
+        },
+        segments={stage: len(values) for stage, values in durations.items()},
+        alpha=float(alpha),
+        source=source,
+    )
 
 
 def segment_maxima(
@@ -138,11 +210,13 @@ class StageGate:
 
     Args:
         thresholds: the fitted :class:`StageThresholds`, or None to record scores only (while calibrating); a
-            subtask without a threshold is never flagged.
+            subtask without a threshold is never flagged on its scores.
+        budgets: the fitted :class:`StageBudgets`, or None: a segment that outlasts its subtask's budget
+            (:meth:`tick` once per control step) is flagged too.
     """
 
-    def __init__(self, thresholds: StageThresholds | None):
-        self.thresholds = thresholds
+    def __init__(self, thresholds: StageThresholds | None, budgets: StageBudgets | None = None):
+        self.thresholds, self.budgets = thresholds, budgets
         self.reset()
 
     def reset(self) -> None:
@@ -150,6 +224,8 @@ class StageGate:
         self.segment: tuple[str, int] | None = None
         self.flags: list[tuple[str, int]] = []
         self.gate = OODGate()
+        self.steps = 0
+        """Control steps of the current segment so far."""
 
     def threshold(self, subtask: str) -> float:
         """``subtask``'s threshold (NaN without one)."""
@@ -162,7 +238,18 @@ class StageGate:
         if segment != self.segment:
             threshold = self.threshold(subtask)
             self.gate = OODGate(calibration=None if math.isnan(threshold) else SegmentThreshold(threshold))
-            self.segment = segment
+            self.segment, self.steps = segment, 0
+
+    def tick(self) -> bool:
+        """One control step of the current segment; returns whether the segment is flagged (over its budget now,
+        or before)."""
+        if self.segment is None:
+            raise RuntimeError("`enter` a segment before its first step.")
+        self.steps += 1
+        budget = None if self.budgets is None else self.budgets.budgets.get(self.segment[0])
+        if budget is not None and self.steps > budget and self.segment not in self.flags:
+            self.flags.append(self.segment)
+        return self.flagged_here
 
     def update(self, score: float) -> bool:
         """One prediction's score in the current segment; returns whether this segment is flagged."""
