@@ -9,7 +9,8 @@ policy trained on relative actions composes them in its own processors, so polic
     .venv/bin/python benchmarks/chain_cell.py --policy DIR --extract DIR --work-dir outputs/chain_cell/NAME
 
 A policy that reads the planned regrasp gets it from the env; ``--regrasp-from release`` plans it from where the
-jaw let go of the needle instead of through the marks (``sim.regrasp_target``). The chain and the finished cell
+jaw let go of the needle instead of through the marks (``sim.regrasp_target``); ``--arc-guard`` holds a needle
+in tissue to its arc (``safety.arc_guard``). The chain and the finished cell
 are kept in ``--work-dir``: a rerun reads them back.
 """
 
@@ -45,6 +46,9 @@ def main() -> None:
         default="marks",
         help="where the env plans the regrasp",
     )
+    parser.add_argument(
+        "--arc-guard", action="store_true", help="hold the needle in tissue to its arc (safety.arc_guard)"
+    )
     args = parser.parse_args()
 
     policies = {"policy": args.policy, **{name: getattr(args, name) for name in SUBTASK_FLAGS}}
@@ -57,6 +61,8 @@ def main() -> None:
         start = time.perf_counter()
         print(f"evaluating the chain on {args.episodes} test episodes ...", flush=True)
         overrides = {} if args.regrasp_from == "marks" else {"regrasp_from": args.regrasp_from}
+        if args.arc_guard:
+            overrides["arc_guard"] = True
         cell = evaluate(
             "running_suture", chain_dir, args.episodes, args.seed, args.batch_envs, env_overrides=overrides
         )
@@ -67,6 +73,7 @@ def main() -> None:
         "policies": {name: str(path) for name, path in policies.items() if path is not None},
         "chain": str(chain_dir),
         "regrasp_from": args.regrasp_from,
+        "arc_guard": args.arc_guard,
         "nominal": cell,
         "machine": machine(),
     }

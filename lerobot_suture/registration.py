@@ -22,6 +22,7 @@ def make_suture_env(
     regrasp_target: bool = False,
     regrasp_from: str = "marks",
     relative_actions: bool = False,
+    arc_guard: bool = False,
     **kwargs,
 ) -> gym.Env:
     """A :class:`~lerobot_suture.sim.suture_env.SutureEnv`, behind the CBF safety filter when asked.
@@ -42,6 +43,8 @@ def make_suture_env(
             where the jaw let go of it at the end of the insert); only with ``regrasp_target``.
         relative_actions: take actions relative to the jaw's measured pose, in the jaw frame
             (:class:`~lerobot_suture.sim.relative_actions.RelativeActions`).
+        arc_guard: while the needle is held in tissue, let it only turn about its own centre
+            (:class:`~lerobot_suture.safety.arc_guard.NeedleArcGuard`).
         **kwargs: the env's own arguments (see its docstring), ``task`` among them.
 
     Raises:
@@ -63,6 +66,10 @@ def make_suture_env(
 
     check_regrasp_source(regrasp_from, regrasp_target, "regrasp_target=True")
     env = SutureEnv(**kwargs)
+    if arc_guard:
+        from lerobot_suture.safety.arc_guard import NeedleArcGuard
+
+        env = NeedleArcGuard(env)
     if relative_actions:
         from lerobot_suture.sim.relative_actions import RelativeActions
 

@@ -180,3 +180,19 @@ def test_the_subtask_flag_adds_the_high_level_s_reading_after_the_marks(suture_c
         vec.close()
     with pytest.raises(ValueError, match="--env.obs_type=pixels_agent_pos"):
         suture_config_cls(obs_type="state", subtask=True)
+
+
+def test_the_arc_guard_flag_reaches_the_env_and_the_robot(suture_config_cls):
+    """``--env.arc_guard=true`` through LeRobot's factory, ``--robot.arc_guard=true`` through the simulated arm's
+    env; both off by default."""
+    from lerobot_robot_suture.config_suture_sim import SutureSimConfig
+
+    cfg = _parse_env("--env.arc_guard=true", "--env.image_size=32", "--env.episode_length=2")
+    assert "arc_guard" not in suture_config_cls().gym_kwargs
+    vec = make_env(cfg, n_envs=1, use_async_envs=False)["suture"][0]
+    try:
+        assert vec.envs[0].unwrapped.drive.needle_on_arc is True
+    finally:
+        vec.close()
+    assert SutureSimConfig(arc_guard=True).env_kwargs()["arc_guard"] is True
+    assert "arc_guard" not in SutureSimConfig().env_kwargs()

@@ -56,6 +56,8 @@ class SutureEnvConfig(EnvConfig):
             ``lerobot_suture.sim.regrasp_target``); needs ``obs_type=pixels_agent_pos``.
         regrasp_from: where that plan comes from: ``marks`` (the arc through them) or ``release`` (the needle
             where the jaw let go of it at the end of the insert: the throw as it was made).
+        arc_guard: while the needle is held in tissue, let it only turn about its own centre, the motion that
+            strains no tissue (``lerobot_suture.safety.arc_guard``).
     """
 
     task: str | None = DEFAULT_TASK
@@ -74,6 +76,7 @@ class SutureEnvConfig(EnvConfig):
     subtask: bool = False
     regrasp_target: bool = False
     regrasp_from: str = "marks"
+    arc_guard: bool = False
     features: dict[str, PolicyFeature] = field(
         default_factory=lambda: {
             ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(10,)),
@@ -166,4 +169,6 @@ class SutureEnvConfig(EnvConfig):
             kwargs["regrasp_target"] = True
         if self.regrasp_from != "marks":
             kwargs["regrasp_from"] = self.regrasp_from
+        if self.arc_guard:
+            kwargs["arc_guard"] = True
         return kwargs

@@ -27,6 +27,9 @@ from lerobot_suture.sim.psm import (
     TIME_TO_TARGET,
 )
 
+MAX_TURN_RATE_IN_TISSUE = 1.0
+"""The fastest turn (rad/s) the arc guard passes: the arm's twist is solved once per control step, and the path of a
+faster turn strays further from the arc (the expert drives at 0.6)."""
 TipVelocityFilter = Callable[[np.ndarray, np.ndarray], np.ndarray]
 """f(needle_tip_pos (3,) m, v_nominal (3,) m/s) -> v_safe (3,) m/s."""
 
@@ -56,6 +59,13 @@ class InstrumentDrive:
         grasp: The needle in the jaw.
         tip_local: (3,) m the needle tip in the needle frame.
         n_substeps: Physics steps per control step.
+
+    Attributes:
+        needle_on_arc: while the held needle is in tissue, replace each step's target by the pose on the
+            needle's arc nearest to it (``tissue.arc_target``: the jaw turned about the needle's own centre, by
+            at most ``MAX_TURN_RATE_IN_TISSUE`` over the step), before any tip velocity filter: the guard of
+            ``safety.arc_guard.NeedleArcGuard``. In the world frame: a moving phantom's own motion is not taken
+            out.
     """
 
     def __init__(
@@ -72,6 +82,7 @@ class InstrumentDrive:
         self._tip_local = tip_local
         self._n_substeps = n_substeps
         self._physics_dt = float(model.opt.timestep)
+        self.needle_on_arc = False
 
     def step(
         self,
@@ -102,15 +113,25 @@ class InstrumentDrive:
             mujoco.mj_kinematics(m, d)
             mujoco.mj_comPos(m, d)
         jaw_pos, jaw_rot = self._arm.jaw_pose(d)
-        target_rot = matrix_from_rot6(target[3:9])
+        target_pos, target_rot = target[:3], matrix_from_rot6(target[3:9])
+        if self.needle_on_arc and in_tissue and grasp.held:
+            target_pos, target_rot = tissue.arc_target(
+                jaw_pos + jaw_rot @ grasp.position,
+                jaw_rot @ grasp.rotation[:, 2],
+                jaw_pos,
+                jaw_rot,
+                self._held_tip(jaw_pos, jaw_rot),
+                self._held_tip(target_pos, target_rot),
+                MAX_TURN_RATE_IN_TISSUE * TIME_TO_TARGET,
+            )
         linear, angular = controller.pose_velocity_command(
-            jaw_pos, jaw_rot, target[:3], target_rot, TIME_TO_TARGET, MAX_LINEAR_SPEED, MAX_ANGULAR_SPEED
+            jaw_pos, jaw_rot, target_pos, target_rot, TIME_TO_TARGET, MAX_LINEAR_SPEED, MAX_ANGULAR_SPEED
         )
         if grasp.held:
             point = self._held_tip(jaw_pos, jaw_rot)
             if tip_tracking:
                 v_nominal = controller.limit_speed(
-                    (self._held_tip(target[:3], target_rot) - point) / TIME_TO_TARGET, MAX_LINEAR_SPEED
+                    (self._held_tip(target_pos, target_rot) - point) / TIME_TO_TARGET, MAX_LINEAR_SPEED
                 )
             else:
                 v_nominal = controller.point_velocity(linear, angular, jaw_pos, point)

@@ -265,7 +265,7 @@ class SutureEnv(TaskScenes, PrivilegedState, gym.Env):
         self._arc_local = needle_arc_points(_N_ARC_POINTS)
         self._tip_local = self._arc_local[0]
         self._keypoints_local = needle_arc_points(NEEDLE_KEYPOINTS)
-        self._drive = InstrumentDrive(m, self.data, self._arm, self._grasp, self._tip_local, self.n_substeps)
+        self.drive = InstrumentDrive(m, self.data, self._arm, self._grasp, self._tip_local, self.n_substeps)
 
         self.action_space = spaces.Box(
             low=np.concatenate([WORKSPACE_LOW, -np.ones(6), [0.0]]).astype(np.float32),
@@ -396,7 +396,7 @@ class SutureEnv(TaskScenes, PrivilegedState, gym.Env):
                 self.set_phantom_pose(*self.scenario.phantom_pose(start + elapsed))
                 phantom_trace.append((self._phantom_pos.copy(), self._phantom_rot.copy()))
 
-        drive = self._drive.step(
+        drive = self.drive.step(
             target,
             self.tip_velocity_filter,
             self._progress.in_tissue,

@@ -15,7 +15,7 @@ import math
 import numpy as np
 
 from lerobot_suture.sim.controller import point_velocity
-from lerobot_suture.sim.geometry import rotation_angle_of
+from lerobot_suture.sim.geometry import matrix_from_rotvec, rotation_angle_of
 
 PAD_HALF_SIZE = np.array([0.03, 0.02, 0.005])
 """Half extents of the tissue pad (m), as ``tissue_pad`` in ``assets/scene.xml``; top at z = 0."""
@@ -77,6 +77,41 @@ def off_arc_motion(
 def _skew(v: np.ndarray) -> np.ndarray:
     """Matrix of ``w -> cross(v, w)``."""
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def arc_target(
+    centre: np.ndarray,
+    axis: np.ndarray,
+    jaw_pos: np.ndarray,
+    jaw_rot: np.ndarray,
+    point: np.ndarray,
+    target_point: np.ndarray,
+    max_angle: float = math.pi,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The jaw pose, on the needle's arc, nearest to a target: the jaw turned about the needle's own axis through
+    its centre, the one motion that cuts no tissue, by the angle that brings the driven ``point`` (the needle tip)
+    closest to where the target would put it (``target_point``), at most ``max_angle``. World frame; m, rad.
+
+    Args:
+        centre: (3,) m the needle's centre; axis: (3,) its axis (any length > 0).
+        jaw_pos, jaw_rot: (3,) m, (3, 3) the jaw's pose now.
+        point, target_point: (3,) m the driven point now, and where the target pose puts it.
+        max_angle: the largest turn (rad) towards it.
+
+    Returns:
+        ``(position, rotation)``: the jaw's target on the arc; the pose now where ``point`` lies on the axis.
+    """
+    n = np.asarray(axis, dtype=np.float64)
+    n = n / np.linalg.norm(n)
+    now = np.asarray(point, dtype=np.float64) - centre
+    wanted = np.asarray(target_point, dtype=np.float64) - centre
+    now, wanted = now - (now @ n) * n, wanted - (wanted @ n) * n  # both in the plane of the turn
+    if now @ now < 1e-18 or wanted @ wanted < 1e-18:
+        return np.array(jaw_pos, dtype=np.float64), np.array(jaw_rot, dtype=np.float64)
+    angle = math.atan2(float(np.cross(now, wanted) @ n), float(now @ wanted))
+    angle = float(np.clip(angle, -max_angle, max_angle))
+    turn = matrix_from_rotvec(angle * n)
+    return centre + turn @ (np.asarray(jaw_pos, dtype=np.float64) - centre), turn @ jaw_rot
 
 
 def resistance_joint_forces(

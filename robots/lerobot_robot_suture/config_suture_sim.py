@@ -60,6 +60,8 @@ class SutureSimConfig(RobotConfig):
             system with the registered wound and the needle's geometry plans it: the policy's input.
         regrasp_from: where that plan comes from: ``marks`` (the arc through them) or ``release`` (the needle
             where the jaw let go of it at the end of the insert; the env's ``regrasp_from``).
+        arc_guard: while the needle is held in tissue, let it only turn about its own centre
+            (``lerobot_suture.safety.arc_guard``; the env's ``arc_guard=True``).
         scenario: perturbation scenario, one of ``lerobot_suture.sim.scenarios.SCENARIOS`` (or, in a task with a
             throw, ``SAFETY_SCENARIOS``: tissue that breathes).
         scenario_onset_step: onset (control steps); None takes the scenario's default.
@@ -98,6 +100,7 @@ class SutureSimConfig(RobotConfig):
     marks: bool = False
     regrasp_target: bool = False
     regrasp_from: str = "marks"
+    arc_guard: bool = False
     scenario: str = "nominal"
     scenario_onset_step: int | None = None
     scenario_magnitude: float | None = None
@@ -153,4 +156,5 @@ class SutureSimConfig(RobotConfig):
             **({"marks": True} if self.marks else {}),
             **({"regrasp_target": True} if self.regrasp_target else {}),
             **({"regrasp_from": self.regrasp_from} if self.regrasp_from != "marks" else {}),
+            **({"arc_guard": True} if self.arc_guard else {}),
         }

@@ -62,11 +62,14 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, nargs="+", required=True)
     parser.add_argument("--output", type=Path)
     parser.add_argument("--regrasp-from", choices=("marks", "release"), default="marks")
+    parser.add_argument("--arc-guard", action="store_true", help="hold the needle in tissue to its arc")
     args = parser.parse_args()
     runner = reporting_runner(args.policy_path)
     env_kwargs = env_kwargs_for_policy(runner.policy.config)
     if args.regrasp_from != "marks":
         env_kwargs["regrasp_from"] = args.regrasp_from
+    if args.arc_guard:
+        env_kwargs["arc_guard"] = True
     out = [
         {
             "seed": s,
@@ -144,6 +147,7 @@ def main() -> None:
         "benchmark": "chain_extract_offsets",
         "policy": str(args.policy_path),
         "regrasp_from": args.regrasp_from,
+        "arc_guard": args.arc_guard,
         "episodes": episodes,
         "machine": machine(),
     }
