@@ -4,7 +4,7 @@ A curved needle slides through the holes it made only while it turns about its o
 other motion of a needle in tissue (its centre moving, or a turn about another axis) cuts and stretches the tissue,
 which the env measures as strain (``sim.tissue.off_arc_motion``). The extraction's bound is 2 mm of it. A learned
 insert that drives the needle on after its throw is over, as the expert does, but off the arc, strains the tissue
-4.5-41 mm before it lets go (``docs/results.md``), where the expert's drive strains 0.04 mm.
+4.5-41 mm before it lets go (``docs/results.md``), where the expert's stays within the bound.
 
 :class:`NeedleArcGuard` keeps every action to that motion while the needle is held in tissue: each control step's
 target is replaced by the pose on the needle's arc nearest to it (``sim.tissue.arc_target``: the jaw turned about
