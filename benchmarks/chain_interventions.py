@@ -1,17 +1,18 @@
 """What a chained policy needs from the surgeon to close running sutures: a time budget per stage, enforced.
 
-The chain runs the leaderboard's nominal test seeds of the running suture, the CBF on, one suture at a time. A
-gate per stage (``runtime.gates.StageGates``) gives each subtask a time budget: the conformal quantile (at
-``--alpha``) of that subtask's durations in the recording's training sutures (``datasets.segment.subtask_durations``,
-``safety.ood.stage_gate.fit_stage_budgets``), times ``--slack``. A segment that outlasts its budget is flagged
-and the scripted surgeon (``expert_per_subtask``) takes that subtask over and hands back for the next, so a
-stage that stalls (an extract that closed beside the needle and holds its jaw shut) costs one intervention
-instead of the suture. The chain must read the subtask from the env (``lerobot-suture chain
---subtask_from_env=true``): a hand-back resets the policy, and the env's reading carries on through the
-surgeon's steps. STITCH 2.0 closes every wound when up to two interventions are allowed; this counts ours.
+The chain runs the leaderboard's nominal test seeds of the running suture, the CBF on, one suture at a time. A gate
+per stage (``runtime.gates.StageGates``) gives each subtask a time budget: the conformal quantile (at ``--alpha``)
+of that subtask's durations in the recording's training sutures (``datasets.segment.subtask_durations``,
+``safety.ood.stage_gate.fit_stage_budgets``), times ``--slack``. A segment that outlasts its budget is flagged and
+the scripted surgeon (``expert_per_subtask``) takes that subtask over and hands back for the next, so a stage that
+stalls (an extract that closed beside the needle and holds its jaw shut) costs one intervention instead of the
+suture. The chain must read the subtask from the env (``lerobot-suture chain --subtask_from_env=true``): a
+hand-back resets the policy, and the env's reading carries on through the surgeon's steps. STITCH 2.0 closes every
+wound when up to two interventions are allowed; this counts ours.
 
-Prints one JSON object: the budgets, per suture the outcome, the throws on the marks and each intervention (its
-subtask, throw and step), and the sutures closed with at most k interventions; ``--plot`` draws that curve::
+Prints one JSON object: the budgets, per suture the outcome, the throws on the marks and each intervention (the
+step, and the subtask the flag fell in), and the sutures closed with at most k interventions; ``--plot`` draws that
+curve::
 
     .venv/bin/python benchmarks/chain_interventions.py --policy-path CHAIN --dataset DIR [--episodes 50]
 """
@@ -19,6 +20,7 @@ subtask, throw and step), and the sutures closed with at most k interventions; `
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
 import time
 from collections import Counter
@@ -31,7 +33,7 @@ TASK = "running_suture"
 
 
 def interventions(log) -> list[dict]:
-    """Each takeover of the episode ``log``: the step, and the subtask and throw the flag fell in."""
+    """Each takeover of the episode ``log``: the step, and the subtask the flag fell in."""
     from lerobot_suture.runtime.takeover import Actor
 
     taken = [step for step, _, to, _ in log.handovers if to is Actor.SURGEON]
@@ -86,15 +88,12 @@ def main() -> None:
     from lerobot_suture.runtime.policy import GateMode, PolicyRunner, env_kwargs_for_policy
     from lerobot_suture.runtime.rollout import make_scenario_env, rollout_seeds
     from lerobot_suture.safety.cbf_config import CBFConfig
-    from lerobot_suture.safety.ood.stage_gate import StageBudgets, fit_stage_budgets
+    from lerobot_suture.safety.ood.stage_gate import fit_stage_budgets
     from lerobot_suture.sim.tasks import task_spec
 
     fitted = fit_stage_budgets(subtask_durations(args.dataset), args.alpha, source=str(args.dataset))
-    budgets = StageBudgets(
-        {stage: int(round(args.slack * steps)) for stage, steps in fitted.budgets.items()},
-        fitted.segments,
-        fitted.alpha,
-        fitted.source,
+    budgets = dataclasses.replace(
+        fitted, budgets={stage: int(round(args.slack * steps)) for stage, steps in fitted.budgets.items()}
     )
     runner = PolicyRunner.from_pretrained(args.policy_path, GateMode.REPORT, "cpu", {})
     env_kwargs = env_kwargs_for_policy(runner.policy.config)

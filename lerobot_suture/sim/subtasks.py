@@ -17,20 +17,20 @@ pick_up     grasps the needle again, ready for the next throw  the jaw closes on
                                                               throw's insert
 =========== ================================================= ===========================================
 
-The rules read the measured pose alone (``observation.state``: the jaw tip's position and the jaw's closure),
-never the simulator's contact flags or the needle's pose: the jaw closure is an encoder reading and the travel
-comes from the arm's kinematics, so a real arm has both. Rules rather than a learned classifier: the order of the
-subtasks is fixed, and each boundary but one is a jaw event that a threshold on one encoder reads without error;
-the one that is not (the end of the pull) is a distance. A jaw closed on the needle is told from one closed on
-nothing by the same encoder: the wire between its faces stops it short (0.80-0.88 of its travel in all 72,081
-closed frames of the running-suture recipe's 133 sutures), where an empty jaw closes fully (1). So a closing
-beside the needle neither starts the pull's travel nor ends a pick-up, and the stage goes on. A learned classifier would need labelled rollouts of
-every policy it serves and could misfire where the rules cannot. The order is also their limit: a jaw event the
-plan does not have (the needle dropped and grasped again) would read as the next subtask. Given the registered
-wound's marks (the current throw's entry and exit points, as the ``marks`` observation and the robot path's
-registration give them), the rules tell a release at the wound from a needle lost on the way. The throw counts
-up when a laid-down needle is let go (the next throw's pick-up). ``benchmarks/subtask_rules.py`` measures how
-often the rules agree with the expert's own stage, nominal and under the scenarios.
+The rules read the measured pose alone (``observation.state``: the jaw tip's position and the jaw's closure), never
+the simulator's contact flags or the needle's pose: the jaw closure is an encoder reading and the travel comes from
+the arm's kinematics, so a real arm has both. Rules rather than a learned classifier: the order of the subtasks is
+fixed, and each boundary but one is a jaw event that a threshold on one encoder reads without error; the one that
+is not (the end of the pull) is a distance. A jaw closed on the needle is told from one closed on nothing by the
+same encoder: the wire between its faces stops it short (0.80-0.88 of its travel in all 72,081 closed frames of the
+running-suture recipe's 133 sutures), where an empty jaw closes fully (1). So a closing beside the needle neither
+starts the pull's travel nor ends a pick-up, and the stage goes on. A learned classifier would need labelled
+rollouts of every policy it serves and could misfire where the rules cannot. The order is also their limit: a jaw
+event the plan does not have (the needle dropped and grasped again) would read as the next subtask. Given the
+registered wound's marks (the current throw's entry and exit points, as the ``marks`` observation and the robot
+path's registration give them), the rules tell a release at the wound from a needle lost on the way. The throw
+counts up when a laid-down needle is let go (the next throw's pick-up). ``benchmarks/subtask_rules.py`` measures
+how often the rules agree with the expert's own stage, nominal and under the scenarios.
 """
 
 from __future__ import annotations

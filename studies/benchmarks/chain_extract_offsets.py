@@ -3,16 +3,18 @@
 The planned regrasp (``sim.extraction.planned_regrasp``) assumes the needle of a throw on its marks lies on the
 arc planned through them; the extraction task starts every episode with the expert's own throw, on that arc.
 In the running suture a learned insert leaves the needle wherever its throw ended, on the marks within the 2 mm
-tolerance but not on the plan. For the given seeds of the running suture's nominal cell (the board's seeds,
-the CBF on), a ``suture_chain`` runs, and at every step of the first throw's extract (the env's own phase,
-privileged) this reads the simulator: the distance from the planned grasp's jaw point to the needle's wire
-(across it, the one a closing cannot absorb), the closest the jaw came to the plan and to the wire, and how
-often the jaw closed; how long the insert held on after the throw was over (``steps_to_release``) and how far
-it strained the tissue meanwhile (``strain_before_release_mm``, against the extraction's 2 mm bound); which rule of the capture let the needle go at each closing (``grasp.CaptureVerdict``:
-not between the faces, the jaw too closed, lodged, into the pad; with how far the seat would move the needle, mm),
-whether a closing caught it and how far the jaw then travelled (``pulled_mm``). The same for the regrasp planned from the release (``sim.regrasp_target.released_regrasp``
-of the jaw's pose at the extract's first step, the needle still held): ``release_plan_to_wire_mm``,
-``closest_jaw_to_release_plan_mm``. ``--regrasp-from release`` gives a chain that reads the plan that one.
+tolerance but not on the plan. For the given seeds of the running suture's nominal cell (the board's seeds, the CBF
+on), a ``suture_chain`` runs, and at every step of the first throw's extract (the env's own phase, privileged) this
+reads the simulator: the distance from the planned grasp's jaw point to the needle's wire (across it, the one a
+closing cannot absorb), the closest the jaw came to the plan and to the wire, and how often the jaw closed; how
+long the insert held on after the throw was over (``steps_to_release``) and how far it strained the tissue
+meanwhile (``strain_before_release_mm``, against the extraction's 2 mm bound); which rule of the capture let the
+needle go at each closing (``grasp.CaptureVerdict``: not between the faces, the jaw too closed, lodged, into the
+pad; with how far the seat would move the needle, mm), whether a closing caught it and how far the jaw then
+travelled (``pulled_mm``). The same for the regrasp planned from the release
+(``sim.regrasp_target.released_regrasp`` of the jaw's pose at the extract's first step, the needle still held):
+``release_plan_to_wire_mm``, ``closest_jaw_to_release_plan_mm``. ``--regrasp-from release`` gives a chain that
+reads the plan that one.
 Prints one JSON object.
 
     .venv/bin/python studies/benchmarks/chain_extract_offsets.py --policy-path CHAIN_DIR --seeds 37000004 ...

@@ -27,6 +27,7 @@ import os
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
@@ -49,8 +50,44 @@ class SegmentThreshold:
     mode: str = CalibrationMode.PER_EPISODE.value
 
 
+class _FittedPerSubtask:
+    """What :class:`StageThresholds` and :class:`StageBudgets` share: a per-segment false-alarm rate ``alpha`` in
+    (0, 0.5), and a JSON file of their own in a policy's directory (``FILE``; ``MISSING`` says how to fit one)."""
+
+    FILE: ClassVar[str]
+    MISSING: ClassVar[str]
+
+    def _check_alpha(self) -> None:
+        if not 0 < self.alpha < 0.5:
+            raise ValueError(f"`alpha` must be in (0, 0.5). Got {self.alpha!r}.")
+
+    def save(self, directory: str | os.PathLike) -> Path:
+        path = Path(directory) / self.FILE
+        path.write_text(json.dumps(asdict(self), indent=2) + "\n")
+        return path
+
+    @classmethod
+    def load(cls, directory: str | os.PathLike):
+        path = Path(directory) / cls.FILE
+        if not path.is_file():
+            raise FileNotFoundError(cls.MISSING.format(path=path))
+        return cls(**json.loads(path.read_text()))
+
+
+def _check_enough_segments(counts: dict[str, int], alpha: float, what: str, advice: str) -> None:
+    """Refuse to fit ``what`` at ``alpha`` unless every subtask of ``counts`` (subtask -> successful segments) has as
+    many as the conformal quantile needs; ``advice`` says how to get more."""
+    needed = min_calibration_episodes(alpha)
+    short = {stage: n for stage, n in counts.items() if n < needed}
+    if short or not counts:
+        raise ValueError(
+            f"A {what} at alpha={alpha} needs at least {needed} successful segments per subtask. Got {short or 'none'}; "
+            f"{advice}."
+        )
+
+
 @dataclass(frozen=True)
-class StageThresholds:
+class StageThresholds(_FittedPerSubtask):
     """Each subtask's threshold, fitted on successful segments.
 
     Args:
@@ -62,29 +99,18 @@ class StageThresholds:
     thresholds: dict[str, float]
     segments: dict[str, int]
     alpha: float
+    FILE: ClassVar[str] = STAGE_CALIBRATION_FILE
+    MISSING: ClassVar[str] = "No stage calibration at {path}: fit one with `fit_stage_thresholds`."
 
     def __post_init__(self):
-        if not 0 < self.alpha < 0.5:
-            raise ValueError(f"`alpha` must be in (0, 0.5). Got {self.alpha!r}.")
+        self._check_alpha()
         bad = {s: t for s, t in self.thresholds.items() if not math.isfinite(t)}
         if bad:
             raise ValueError(f"Every threshold must be finite. Got {bad}.")
 
-    def save(self, directory: str | os.PathLike) -> Path:
-        path = Path(directory) / STAGE_CALIBRATION_FILE
-        path.write_text(json.dumps(asdict(self), indent=2) + "\n")
-        return path
-
-    @classmethod
-    def load(cls, directory: str | os.PathLike) -> StageThresholds:
-        path = Path(directory) / STAGE_CALIBRATION_FILE
-        if not path.is_file():
-            raise FileNotFoundError(f"No stage calibration at {path}: fit one with `fit_stage_thresholds`.")
-        return cls(**json.loads(path.read_text()))
-
 
 @dataclass(frozen=True)
-class StageBudgets:
+class StageBudgets(_FittedPerSubtask):
     """Each subtask's time budget, fitted on the durations of successful segments.
 
     Args:
@@ -98,25 +124,14 @@ class StageBudgets:
     segments: dict[str, int]
     alpha: float
     source: str = ""
+    FILE: ClassVar[str] = STAGE_BUDGETS_FILE
+    MISSING: ClassVar[str] = "No stage budgets at {path}: fit them with `fit_stage_budgets`."
 
     def __post_init__(self):
-        if not 0 < self.alpha < 0.5:
-            raise ValueError(f"`alpha` must be in (0, 0.5). Got {self.alpha!r}.")
+        self._check_alpha()
         bad = {s: b for s, b in self.budgets.items() if not (isinstance(b, int) and b >= 1)}
         if bad:
             raise ValueError(f"Every budget must be a whole number of control steps >= 1. Got {bad}.")
-
-    def save(self, directory: str | os.PathLike) -> Path:
-        path = Path(directory) / STAGE_BUDGETS_FILE
-        path.write_text(json.dumps(asdict(self), indent=2) + "\n")
-        return path
-
-    @classmethod
-    def load(cls, directory: str | os.PathLike) -> StageBudgets:
-        path = Path(directory) / STAGE_BUDGETS_FILE
-        if not path.is_file():
-            raise FileNotFoundError(f"No stage budgets at {path}: fit them with `fit_stage_budgets`.")
-        return cls(**json.loads(path.read_text()))
 
 
 def fit_stage_budgets(
@@ -128,13 +143,12 @@ def fit_stage_budgets(
     Raises:
         ValueError: a subtask has fewer segments than the quantile at ``alpha`` needs, or a duration < 1.
     """
-    needed = min_calibration_episodes(alpha)
-    short = {stage: len(values) for stage, values in durations.items() if len(values) < needed}
-    if short or not durations:
-        raise ValueError(
-            f"A budget at alpha={alpha} needs at least {needed} successful segments per subtask. Got {short or 'none'}; "
-            "record more sutures or raise alpha."
-        )
+    _check_enough_segments(
+        {stage: len(values) for stage, values in durations.items()},
+        alpha,
+        "budget",
+        "record more sutures or raise alpha",
+    )
     if any(int(d) < 1 for values in durations.values() for d in values):
         raise ValueError("Every segment lasts at least one control step.")
     return StageBudgets(
@@ -189,13 +203,12 @@ def fit_stage_thresholds(
             names it and how many it needs).
     """
     maxima = segment_maxima(scores, stages, segments, successful)
-    needed = min_calibration_episodes(alpha)
-    short = {stage: len(values) for stage, values in maxima.items() if len(values) < needed}
-    if short or not maxima:
-        raise ValueError(
-            f"A threshold at alpha={alpha} needs at least {needed} successful segments per subtask. Got {short or 'none'}; "
-            "roll out more (successful) episodes or raise alpha."
-        )
+    _check_enough_segments(
+        {stage: len(values) for stage, values in maxima.items()},
+        alpha,
+        "threshold",
+        "roll out more (successful) episodes or raise alpha",
+    )
     return StageThresholds(
         thresholds={stage: conformal_episode_threshold(values, alpha) for stage, values in maxima.items()},
         segments={stage: len(values) for stage, values in maxima.items()},
