@@ -41,7 +41,8 @@ class Lever:
     the expert's first regrasp of each extraction misses before it recovers (0: it never misses); the
     noise (m) executed but not recorded while it reaches for a regrasp (DART; 0: none); whether the regrasp
     planned through the marks is recorded as an observation, with the expert's regrasps aimed at it; where the
-    evaluation's env plans that regrasp from (``regrasp_from``: ``marks`` or ``release``); and the lever whose
+    evaluation's env plans that regrasp from (``regrasp_from``: ``marks`` or ``release``); the control steps the
+    expert holds the open jaw on a regrasp's pose before it closes (``regrasp_settle``); and the lever whose
     recording and checkpoint a line evaluates instead of its own (``checkpoint_of``: one checkpoint, two envs)."""
 
     name: str
@@ -54,6 +55,7 @@ class Lever:
     regrasp_noise: float = 0.0
     regrasp_target: bool = False
     regrasp_from: str = "marks"
+    regrasp_settle: int = 0
     checkpoint_of: str | None = None
 
 
@@ -84,6 +86,13 @@ LEVERS = (
         relative_actions=True,
         regrasp_target=True,
         regrasp_from="release",
+    ),
+    Lever(
+        "relative actions + planned regrasp, settled closing",
+        None,
+        relative_actions=True,
+        regrasp_target=True,
+        regrasp_settle=3,
     ),
 )
 
@@ -125,6 +134,8 @@ def record(task: str, lever: Lever, root: Path, log: Path) -> dict:
         command.append(f"--regrasp_miss={lever.regrasp_miss:g}")
     if lever.regrasp_noise:
         command.append(f"--regrasp_noise={lever.regrasp_noise:g}")
+    if lever.regrasp_settle:
+        command.append(f"--regrasp_settle={lever.regrasp_settle}")
     if lever.regrasp_target:  # the expert's regrasps go where the plan says
         aim = lever.regrasp_from
         command += ["--regrasp_target=true", f"--regrasp_from={aim}", f"--regrasp_aim={aim}"]
@@ -352,6 +363,7 @@ def main() -> None:
                 "regrasp_noise": lever.regrasp_noise,
                 "regrasp_target": lever.regrasp_target,
                 "regrasp_from": lever.regrasp_from,
+                "regrasp_settle": lever.regrasp_settle,
                 **({"checkpoint_of": lever.checkpoint_of} if lever.checkpoint_of else {}),
                 "record_s": recorded["record_s"],
                 "train_s": round(train_s, 1),

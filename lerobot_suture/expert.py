@@ -50,6 +50,8 @@ from lerobot_suture.sim.relative_actions import env_action
 
 PHASES = ("detour", "approach", "descend", "drive", "hold")
 REGRASP_AIMS = ("needle", "marks", "release")
+MAX_REGRASP_SETTLE = 10
+"""The longest the expert holds a regrasp's pose before it closes (control steps)."""
 """What an extraction's regrasp may aim at (``ExpertConfig.regrasp_aim``)."""
 _SIDE_STREAM = 0x51DE  # mixed with the env's seed: the detour side's own stream, apart from the env's draws
 _NOISE_STREAM = 0xDA27  # mixed with the env's seed: the executed noise's own stream
@@ -82,6 +84,9 @@ class ExpertConfig:
             a policy with the ``regrasp_target`` observation is given, so its labels follow from what it reads;
             ``"release"``, the grasp planned from where the jaw let go of the needle
             (``regrasp_target.released_regrasp``), what that observation gives with ``regrasp_from="release"``.
+        regrasp_settle: control steps the open jaw holds the regrasp's pose before it closes (0: it closes as it
+            arrives, within ``position_tolerance``). A settled closing is judged where the jaw stands still on the
+            grasp, so a policy that learns it may close a step late without closing beside the needle.
         assume_nominal_grasp: plan with the env's nominal grasp of the needle instead of the true one, as a
             policy that cannot see how the needle sits in the jaw must: an upper bound on such a policy's
             success, a lower bound on its entry error (``benchmarks/expert_quality.py
@@ -100,6 +105,7 @@ class ExpertConfig:
     regrasp_miss: float = 0.0
     regrasp_noise: float = 0.0
     regrasp_aim: str = "needle"
+    regrasp_settle: int = 0
     assume_nominal_grasp: bool = False
 
     def __post_init__(self):
@@ -129,6 +135,11 @@ class ExpertConfig:
             raise ValueError(
                 f"`regrasp_miss` must be 0 (aim at the needle) or in [0.0006, 0.003] m, beside it by more than "
                 f"the jaw's capture tolerance. Got {self.regrasp_miss}."
+            )
+        if not (isinstance(self.regrasp_settle, int) and 0 <= self.regrasp_settle <= MAX_REGRASP_SETTLE):
+            raise ValueError(
+                f"`regrasp_settle` must be a whole number of control steps in [0, {MAX_REGRASP_SETTLE}] (0: the "
+                f"jaw closes as it arrives). Got {self.regrasp_settle!r}."
             )
         if self.regrasp_aim not in REGRASP_AIMS:
             raise ValueError(f"`regrasp_aim` must be one of {REGRASP_AIMS}. Got {self.regrasp_aim!r}.")

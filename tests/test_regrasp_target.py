@@ -146,3 +146,26 @@ def test_a_policy_s_environment_state_names_the_env_it_runs_in(size, flags):
     env = make(**kwargs)
     obs, _ = env.reset(seed=0)
     assert obs["environment_state"].shape == (size,)
+
+
+def test_a_settled_regrasp_holds_the_open_jaw_still_on_the_plan_before_it_closes():
+    env = make(obs_type="state")
+    for seed in (0, 1):
+        obs, _ = env.reset(seed=seed)
+        expert = ScriptedExpert(ExpertConfig(regrasp_aim="marks", regrasp_settle=3))
+        expert.reset(env)
+        steps = list(iter_expert_steps(env, expert, obs))
+        assert steps[-1].info["is_success"], seed
+        jaw = [s.action[9] for s in steps]
+        close = next(i for i in range(1, len(jaw)) if jaw[i] >= 0.5 > jaw[i - 1])
+        assert sum(now >= 0.5 > before for before, now in itertools.pairwise(jaw)) == 1, seed
+        # The closing and the three steps before it command the same pose, with the jaw open before it.
+        held = np.stack([s.action[:9] for s in steps[close - 3 : close + 1]])
+        np.testing.assert_allclose(held, held[0][None].repeat(4, axis=0), atol=1e-6)
+        assert all(jaw[i] < 0.5 for i in range(close - 3, close))
+
+
+def test_the_settle_is_a_whole_number_of_steps_within_its_range():
+    for bad in (-1, 11, 1.5):
+        with pytest.raises(ValueError, match="regrasp_settle"):
+            ExpertConfig(regrasp_settle=bad)

@@ -73,6 +73,7 @@ def new_episode_log(cfg: RecordConfig) -> dict:
                     cfg.regrasp_miss,
                     cfg.regrasp_noise,
                     cfg.regrasp_aim,
+                    cfg.regrasp_settle,
                 )
             ),
         },

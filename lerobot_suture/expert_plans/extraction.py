@@ -8,7 +8,8 @@ From privileged state (the needle's true pose, lodged in the tissue, and the jaw
 3. ``reach``: carry it to ``BACK_OFF`` short of a grasp at ``extraction.REGRASP_ANGLE`` from the tip, turning
    it about its own axis against the pull's sense (the long way round), so that the instrument's roll has the
    pull's half turn left; ``advance``: onto the wire;
-4. ``close``: close the jaw (``sim.needle_capture`` decides whether it caught the needle);
+4. ``settle``: with ``regrasp_settle`` > 0, hold the open jaw on the grasp for that many control steps;
+   ``close``: close the jaw (``sim.needle_capture`` decides whether it caught the needle);
 5. ``pull``: turn the needle about its own centre at ``drive_rate``, so every point follows the arc out
    through the exit hole, until the tail is ``PULL_MARGIN`` past it; ``hold``: stay there.
 
@@ -38,7 +39,7 @@ from lerobot_suture.sim.geometry import (
 )
 from lerobot_suture.sim.regrasp_target import released_regrasp
 
-EXTRACTION_PHASES = ("release", "back_off", "reach", "advance", "close", "pull", "hold")
+EXTRACTION_PHASES = ("release", "back_off", "reach", "advance", "settle", "close", "pull", "hold")
 _MISS_STREAM = 0x3155  # mixed with the env's seed: the miss side's own stream, apart from the env's draws
 BACK_OFF = 0.006
 """How far the open jaw draws back along its axis from the wire before and after a grasp (m)."""
@@ -60,11 +61,12 @@ class ExtractionPlan:
         self._goal: np.ndarray | None = None
         self._aim_beside: float | None = None  # m across the jaw; None until the first act draws it
         self._release: tuple[np.ndarray, np.ndarray] | None = None  # the jaw's pose when it let go
+        self._settled = 0  # control steps the open jaw has held the grasp
 
     @property
     def regrasping(self) -> bool:
-        """Whether the plan is reaching for the regrasp (``reach`` or ``advance``)."""
-        return self.phase in ("reach", "advance")
+        """Whether the plan is reaching for the regrasp (``reach``, ``advance`` or ``settle``)."""
+        return self.phase in ("reach", "advance", "settle")
 
     def _miss_offset(self, u) -> float:
         """How far across the jaw (m) the current reach aims beside the needle: ``regrasp_miss`` on the
@@ -104,7 +106,7 @@ class ExtractionPlan:
             else:
                 target = step_towards(jaw_pos, jaw_rot, self._goal, jaw_rot, cfg.approach_speed * dt, 0.0)
                 return pose_vector(*target, 0.0).astype(np.float32)
-        if self.phase in ("reach", "advance"):
+        if self.phase in ("reach", "advance", "settle"):
             if cfg.regrasp_aim == "marks":
                 grasp_pos, grasp_rot = planned_regrasp(u.entry_point, u.exit_point, u.phantom_rotation[:, 2])
             elif cfg.regrasp_aim == "release":
@@ -133,8 +135,11 @@ class ExtractionPlan:
                         jaw_pos, jaw_rot, short, grasp_rot, cfg.approach_speed * dt, max_turn
                     )
                     return pose_vector(*target, 0.0).astype(np.float32)
-            if np.linalg.norm(grasp_pos - jaw_pos) < cfg.position_tolerance:
-                self.phase = "close"
+            if self.phase == "settle" or np.linalg.norm(grasp_pos - jaw_pos) < cfg.position_tolerance:
+                if self._settled < cfg.regrasp_settle:
+                    self.phase, self._settled = "settle", self._settled + 1
+                    return pose_vector(grasp_pos, grasp_rot, 0.0).astype(np.float32)
+                self.phase, self._settled = "close", 0
                 return pose_vector(grasp_pos, grasp_rot, 1.0).astype(np.float32)
             target = step_towards(
                 jaw_pos, jaw_rot, grasp_pos, grasp_rot, cfg.descend_speed * dt, cfg.approach_turn_rate * dt
