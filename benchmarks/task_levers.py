@@ -42,7 +42,8 @@ class Lever:
     noise (m) executed but not recorded while it reaches for a regrasp (DART; 0: none); whether the regrasp
     planned through the marks is recorded as an observation, with the expert's regrasps aimed at it; where the
     evaluation's env plans that regrasp from (``regrasp_from``: ``marks`` or ``release``); the control steps the
-    expert holds the open jaw on a regrasp's pose before it closes (``regrasp_settle``); and the lever whose
+    expert holds the open jaw on a regrasp's pose before it closes (``regrasp_settle``); how far (m) its reach
+    may end beside the grasp's line, the advance correcting it (``regrasp_reach_offset``); and the lever whose
     recording and checkpoint a line evaluates instead of its own (``checkpoint_of``: one checkpoint, two envs)."""
 
     name: str
@@ -56,6 +57,7 @@ class Lever:
     regrasp_target: bool = False
     regrasp_from: str = "marks"
     regrasp_settle: int = 0
+    regrasp_reach_offset: float = 0.0
     checkpoint_of: str | None = None
 
 
@@ -93,6 +95,14 @@ LEVERS = (
         relative_actions=True,
         regrasp_target=True,
         regrasp_settle=3,
+    ),
+    Lever(
+        "relative actions + planned regrasp, settled closing, reach corrected",
+        None,
+        relative_actions=True,
+        regrasp_target=True,
+        regrasp_settle=3,
+        regrasp_reach_offset=0.001,
     ),
 )
 
@@ -136,6 +146,8 @@ def record(task: str, lever: Lever, root: Path, log: Path) -> dict:
         command.append(f"--regrasp_noise={lever.regrasp_noise:g}")
     if lever.regrasp_settle:
         command.append(f"--regrasp_settle={lever.regrasp_settle}")
+    if lever.regrasp_reach_offset:
+        command.append(f"--regrasp_reach_offset={lever.regrasp_reach_offset:g}")
     if lever.regrasp_target:  # the expert's regrasps go where the plan says
         aim = lever.regrasp_from
         command += ["--regrasp_target=true", f"--regrasp_from={aim}", f"--regrasp_aim={aim}"]
@@ -364,6 +376,7 @@ def main() -> None:
                 "regrasp_target": lever.regrasp_target,
                 "regrasp_from": lever.regrasp_from,
                 "regrasp_settle": lever.regrasp_settle,
+                "regrasp_reach_offset": lever.regrasp_reach_offset,
                 **({"checkpoint_of": lever.checkpoint_of} if lever.checkpoint_of else {}),
                 "record_s": recorded["record_s"],
                 "train_s": round(train_s, 1),

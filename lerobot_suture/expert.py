@@ -52,6 +52,8 @@ PHASES = ("detour", "approach", "descend", "drive", "hold")
 REGRASP_AIMS = ("needle", "marks", "release")
 MAX_REGRASP_SETTLE = 10
 """The longest the expert holds a regrasp's pose before it closes (control steps)."""
+MAX_REGRASP_REACH_OFFSET = 0.003
+"""The farthest a regrasp's reach may end beside the point short of the grasp (m): the 6 mm advance corrects it."""
 """What an extraction's regrasp may aim at (``ExpertConfig.regrasp_aim``)."""
 _SIDE_STREAM = 0x51DE  # mixed with the env's seed: the detour side's own stream, apart from the env's draws
 _NOISE_STREAM = 0xDA27  # mixed with the env's seed: the executed noise's own stream
@@ -87,6 +89,10 @@ class ExpertConfig:
         regrasp_settle: control steps the open jaw holds the regrasp's pose before it closes (0: it closes as it
             arrives, within ``position_tolerance``). A settled closing is judged where the jaw stands still on the
             grasp, so a policy that learns it may close a step late without closing beside the needle.
+        regrasp_reach_offset: how far (m, at most) the reach for each regrasp ends beside the point short of
+            the grasp, across the jaw and along it (drawn per reach from the episode's seed); the advance
+            then carries the jaw onto the grasp, so the demonstration corrects a reach that ended off, as a
+            policy's does. The closing itself is still on the grasp (unlike ``regrasp_miss``).
         assume_nominal_grasp: plan with the env's nominal grasp of the needle instead of the true one, as a
             policy that cannot see how the needle sits in the jaw must: an upper bound on such a policy's
             success, a lower bound on its entry error (``benchmarks/expert_quality.py
@@ -106,6 +112,7 @@ class ExpertConfig:
     regrasp_noise: float = 0.0
     regrasp_aim: str = "needle"
     regrasp_settle: int = 0
+    regrasp_reach_offset: float = 0.0
     assume_nominal_grasp: bool = False
 
     def __post_init__(self):
@@ -140,6 +147,11 @@ class ExpertConfig:
             raise ValueError(
                 f"`regrasp_settle` must be a whole number of control steps in [0, {MAX_REGRASP_SETTLE}] (0: the "
                 f"jaw closes as it arrives). Got {self.regrasp_settle!r}."
+            )
+        if not (0.0 <= self.regrasp_reach_offset <= MAX_REGRASP_REACH_OFFSET):
+            raise ValueError(
+                f"`regrasp_reach_offset` must be in [0, {MAX_REGRASP_REACH_OFFSET}] m (0: the reach ends in line "
+                f"with the grasp). Got {self.regrasp_reach_offset}."
             )
         if self.regrasp_aim not in REGRASP_AIMS:
             raise ValueError(f"`regrasp_aim` must be one of {REGRASP_AIMS}. Got {self.regrasp_aim!r}.")

@@ -135,6 +135,14 @@ def test_regrasp_miss_and_noise_reach_the_expert_and_only_tasks_that_regrasp(tmp
         _cfg(tmp_path / "ds", task="pickup", regrasp_noise=0.0004)
     with pytest.raises(ValueError, match=r"`regrasp_noise` must be in \[0, 0.002\] m"):
         _cfg(tmp_path / "ds", task="extraction", regrasp_noise=0.01)
+    cfg = _cfg(tmp_path / "ds", task="extraction", regrasp_settle=3, regrasp_reach_offset=0.001)
+    assert "--regrasp_settle=3 --regrasp_reach_offset=0.001" in cfg.command()
+    expert = expert_config(0, regrasp_settle=3, regrasp_reach_offset=0.001)
+    assert (expert.regrasp_settle, expert.regrasp_reach_offset) == (3, 0.001)
+    with pytest.raises(ValueError, match="`regrasp_settle` shapes an extraction's regrasp; task 'insertion'"):
+        _cfg(tmp_path / "ds", regrasp_settle=3)
+    with pytest.raises(ValueError, match=r"`regrasp_reach_offset` must be in \[0, 0.003\] m"):
+        _cfg(tmp_path / "ds", task="extraction", regrasp_reach_offset=0.01)
 
 
 @pytest.mark.parametrize("detour", [-0.001, 0.05, float("nan")])

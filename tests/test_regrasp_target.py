@@ -169,3 +169,22 @@ def test_the_settle_is_a_whole_number_of_steps_within_its_range():
     for bad in (-1, 11, 1.5):
         with pytest.raises(ValueError, match="regrasp_settle"):
             ExpertConfig(regrasp_settle=bad)
+
+
+def test_a_reach_that_ends_beside_the_grasp_is_corrected_by_the_advance():
+    env = make(obs_type="state")
+    for seed in (0, 1, 2):
+        obs, _ = env.reset(seed=seed)
+        expert = ScriptedExpert(ExpertConfig(regrasp_aim="marks", regrasp_settle=3, regrasp_reach_offset=0.001))
+        expert.reset(env)
+        u = env.unwrapped
+        lateral, phases = [], []
+        for step in iter_expert_steps(env, expert, obs):
+            jaw_pos, _ = u.jaw_pose()
+            grasp_pos, grasp_rot = planned_regrasp(u.entry_point, u.exit_point, u.phantom_rotation[:, 2])
+            lateral.append(float(np.linalg.norm(grasp_rot[:, :2].T @ (jaw_pos - grasp_pos))))
+            phases.append(expert._plan.phase)
+        assert step.info["is_success"], seed
+        advance = phases.index("advance")
+        assert 0.0001 < lateral[advance - 1] < 0.0011, seed  # the reach ended beside the line
+        assert lateral[phases.index("close") - 1] < 0.0002, seed  # the closing is on it

@@ -84,6 +84,9 @@ class RecordConfig:
         regrasp_settle: control steps, [0, 10], extraction and running suture only; > 0: the expert holds the
             open jaw on each regrasp's pose that long before it closes (``ExpertConfig.regrasp_settle``), so the
             closing is demonstrated where the jaw stands still.
+        regrasp_reach_offset: m, [0, 0.003], extraction and running suture only; > 0: each regrasp's reach ends
+            up to this far beside the point short of the grasp, and the advance onto the grasp corrects it
+            (``ExpertConfig.regrasp_reach_offset``): demonstrations of the correction a policy's reach needs.
         steps_after_success: control steps recorded after the insertion succeeds, the expert driving on
             (its planned protrusion raised by the arc it turns in them, :func:`expert_config`). A policy's
             episode ends when the throw is over, so the action chunks it predicts there then reach into
@@ -128,6 +131,9 @@ class RecordConfig:
     regrasp_noise: float = 0.0  # m; > 0: noise executed, not recorded, while the expert reaches to regrasp
     regrasp_aim: str = "needle"  # what the expert's regrasps aim at: needle (its pose) | marks | release
     regrasp_settle: int = 0  # control steps the open jaw holds a regrasp's pose before it closes
+    regrasp_reach_offset: float = (
+        0.0  # m; > 0: each regrasp's reach ends beside the line, the advance corrects it
+    )
     seed: int = 0  # env seed of the first attempt; attempt k uses seed + k
     steps_after_success: int = 0  # control steps recorded past success, the expert driving on
     appearance: AppearanceConfig = field(default_factory=AppearanceConfig)  # endoscope view randomization
@@ -168,7 +174,14 @@ class RecordConfig:
             raise ValueError(f"`grasp` must be one of {list(task.GRASP_RANGES)}. Got {self.grasp!r}.")
         if not 0 <= self.seed < 2**32 - 1_000_000:
             raise ValueError(f"`seed` must be in [0, 2**32 - 1e6). Got {self.seed}.")
-        for name in ("approach_detour", "regrasp_miss", "regrasp_noise", "regrasp_aim", "regrasp_settle"):
+        for name in (
+            "approach_detour",
+            "regrasp_miss",
+            "regrasp_noise",
+            "regrasp_aim",
+            "regrasp_settle",
+            "regrasp_reach_offset",
+        ):
             if getattr(self, name) not in (0, "needle"):
                 ExpertConfig(**{name: getattr(self, name)})  # its range, named as the expert's
                 if name != "approach_detour" and self.task not in ("extraction", "running_suture"):
@@ -234,6 +247,8 @@ class RecordConfig:
             flags.append(f"--regrasp_aim={self.regrasp_aim}")
         if self.regrasp_settle:
             flags.append(f"--regrasp_settle={self.regrasp_settle}")
+        if self.regrasp_reach_offset:
+            flags.append(f"--regrasp_reach_offset={self.regrasp_reach_offset:g}")
         if self.steps_after_success:
             flags.append(f"--steps_after_success={self.steps_after_success}")
         for name, value in self.appearance.active().items():
@@ -251,6 +266,7 @@ def expert_config(
     regrasp_noise: float = 0.0,
     regrasp_aim: str = "needle",
     regrasp_settle: int = 0,
+    regrasp_reach_offset: float = 0.0,
 ) -> ExpertConfig:
     """The recording expert: the default one, driving on through ``steps_after_success`` control steps
     past its usual protrusion (at ``drive_rate``), so it still turns the needle in them; with
@@ -258,7 +274,8 @@ def expert_config(
     ``approach_detour`` it approaches via either side of the entry-exit line (two strategies); with
     ``regrasp_miss`` each extraction's first regrasp misses and the expert recovers it; with ``regrasp_noise``
     the reach for a regrasp is executed with noise and recorded without (DART); ``regrasp_aim`` what the
-    regrasps aim at; ``regrasp_settle`` how long the open jaw holds a regrasp's pose before it closes."""
+    regrasps aim at; ``regrasp_settle`` how long the open jaw holds a regrasp's pose before it closes; with
+    ``regrasp_reach_offset`` each reach ends beside the grasp's line and the advance corrects it."""
     default = ExpertConfig()
     extra = steps_after_success * default.drive_rate * task.CONTROL_DT  # rad of arc
     return dataclasses.replace(
@@ -270,6 +287,7 @@ def expert_config(
         regrasp_noise=regrasp_noise,
         regrasp_aim=regrasp_aim,
         regrasp_settle=regrasp_settle,
+        regrasp_reach_offset=regrasp_reach_offset,
     )
 
 

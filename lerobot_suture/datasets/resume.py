@@ -74,6 +74,7 @@ def new_episode_log(cfg: RecordConfig) -> dict:
                     cfg.regrasp_noise,
                     cfg.regrasp_aim,
                     cfg.regrasp_settle,
+                    cfg.regrasp_reach_offset,
                 )
             ),
         },

@@ -13,6 +13,9 @@ From privileged state (the needle's true pose, lodged in the tissue, and the jaw
 5. ``pull``: turn the needle about its own centre at ``drive_rate``, so every point follows the arc out
    through the exit hole, until the tail is ``PULL_MARGIN`` past it; ``hold``: stay there.
 
+With ``regrasp_reach_offset`` > 0 each reach ends beside the point short of the grasp, by an offset across
+and along the jaw drawn per reach, and the advance corrects it on the way onto the grasp.
+
 A jaw that missed, or lost the needle, backs off and reaches again for the needle where it now lies. Every
 step re-reads the phantom, so the pull follows a phantom that moves. With ``regrasp_miss`` > 0 the first
 reach aims that far beside the needle, across the jaw (the side drawn from the episode's seed and the
@@ -41,6 +44,7 @@ from lerobot_suture.sim.regrasp_target import released_regrasp
 
 EXTRACTION_PHASES = ("release", "back_off", "reach", "advance", "settle", "close", "pull", "hold")
 _MISS_STREAM = 0x3155  # mixed with the env's seed: the miss side's own stream, apart from the env's draws
+_REACH_STREAM = 0x3156  # the reach offsets' own stream
 BACK_OFF = 0.006
 """How far the open jaw draws back along its axis from the wire before and after a grasp (m)."""
 PULL_MARGIN = 0.3
@@ -62,6 +66,12 @@ class ExtractionPlan:
         self._aim_beside: float | None = None  # m across the jaw; None until the first act draws it
         self._release: tuple[np.ndarray, np.ndarray] | None = None  # the jaw's pose when it let go
         self._settled = 0  # control steps the open jaw has held the grasp
+        self._reach_rng: np.random.Generator | None = (
+            None  # draws each reach's offset; made at the first reach
+        )
+        self._reach_offset: np.ndarray | None = (
+            None  # (2,) m across (y) and along (x) the jaw; None: draw anew
+        )
 
     @property
     def regrasping(self) -> bool:
@@ -78,6 +88,19 @@ class ExtractionPlan:
             self._aim_beside = self.config.regrasp_miss * (1.0 if rng.integers(2) else -1.0)
         return self._aim_beside
 
+    def _offset_of_reach(self, u) -> np.ndarray:
+        """Where (m, along x and y of the grasp's frame) the current reach ends beside the point short of the
+        grasp: uniform in a disc of radius ``regrasp_reach_offset``, drawn once per reach."""
+        if self._reach_offset is None:
+            if self._reach_rng is None:
+                self._reach_rng = episode_stream(
+                    getattr(u, "np_random_seed", None), _REACH_STREAM, getattr(u, "throw_index", 0)
+                )
+            radius = self.config.regrasp_reach_offset * math.sqrt(self._reach_rng.random())
+            angle = 2.0 * math.pi * self._reach_rng.random()
+            self._reach_offset = radius * np.array([math.cos(angle), math.sin(angle)])
+        return self._reach_offset
+
     def act(self, env) -> np.ndarray:
         u, cfg = env.unwrapped, self.config
         dt = u.control_dt
@@ -92,6 +115,7 @@ class ExtractionPlan:
                 self.phase = "back_off"
                 self._goal = None
             self._aim_beside = 0.0  # a reach after a closing aims at the needle
+            self._reach_offset = None
         elif self.phase in ("pull", "hold") and not u.needle_grasped:
             self.phase, self._goal = "back_off", None  # lost it: reach for it where it lies
         if self.phase == "release":
@@ -117,7 +141,7 @@ class ExtractionPlan:
                 )
             grasp_pos = grasp_pos + self._miss_offset(u) * grasp_rot[:, 1]  # the faces close along y
             if self.phase == "reach":
-                short = grasp_pos - BACK_OFF * grasp_rot[:, 2]
+                short = grasp_pos + grasp_rot[:, :2] @ self._offset_of_reach(u) - BACK_OFF * grasp_rot[:, 2]
                 left = _turn_left(jaw_rot, grasp_rot)
                 if np.linalg.norm(short - jaw_pos) < cfg.position_tolerance and left < cfg.angle_tolerance:
                     self.phase = "advance"
