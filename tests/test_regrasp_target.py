@@ -184,7 +184,8 @@ def test_a_reach_that_ends_beside_the_grasp_is_corrected_by_the_advance():
             grasp_pos, grasp_rot = planned_regrasp(u.entry_point, u.exit_point, u.phantom_rotation[:, 2])
             lateral.append(float(np.linalg.norm(grasp_rot[:, :2].T @ (jaw_pos - grasp_pos))))
             phases.append(expert._plan.phase)
-        assert step.info["is_success"], seed
+            success = step.info["is_success"]
+        assert success, seed
         advance = phases.index("advance")
         assert 0.0001 < lateral[advance - 1] < 0.0011, seed  # the reach ended beside the line
         assert lateral[phases.index("close") - 1] < 0.0002, seed  # the closing is on it

@@ -16,7 +16,9 @@ when the needle came out (the bound is judged then; a needle turned on afterward
 more). A pull whose path is many times its drift strains the tissue by jitter, not by a straight pull. And
 every time the jaw closed before its first regrasp, which rule of the capture let the needle go
 (``grasp.CaptureVerdict``: not between the faces, the jaw too closed, lodged: the seat would move the needle
-in tissue by more than 0.5 mm, or into the pad) and by how much the seat would have moved the needle.
+in tissue by more than 0.5 mm, or into the pad) and by how much the seat would have moved the needle, with
+where the jaw stood then and a chunk (4 control steps) before, off the expert's regrasp pose in that pose's
+frame: along the wire (x), across the faces (y) and along the jaw (z); medians of each axis's size per rule.
 
     .venv/bin/python studies/benchmarks/extraction_failures.py --policy-path DIR [--episodes 50] [--output F.json]
 """
@@ -35,16 +37,24 @@ from _lockstep import jaw_pose_error, roll_out_lockstep, run_nominal_seeds  # no
 import lerobot_suture  # noqa: E402,F401
 from lerobot_suture.experiments.metrics import wilson_interval  # noqa: E402
 from lerobot_suture.sim.extraction import REGRASP_ANGLE, STRAIN_BOUND, TAIL_EXIT_TOLERANCE  # noqa: E402
-from lerobot_suture.sim.geometry import NEEDLE_RADIUS, grasp_transform  # noqa: E402
+from lerobot_suture.sim.geometry import NEEDLE_RADIUS, grasp_transform, jaw_holding  # noqa: E402
 from lerobot_suture.sim.tissue import off_arc_motion  # noqa: E402
 
 NEEDS = "a trained extraction policy (--policy-path)"
 TASK = "extraction"
+CHUNK_STEPS = 4
+"""How many control steps before a closing its earlier offset is read (the board's executed chunk)."""
 
 
 def regrasp_error(u) -> tuple[float, float]:
     """How far the jaw is from the pose that holds the needle where the expert regrasps it (mm, deg)."""
     return jaw_pose_error(u, grasp_transform(REGRASP_ANGLE, 0.0, 0.0))
+
+
+def regrasp_offset(u) -> list[float]:
+    """Where the jaw is off the expert's regrasp pose, in that pose's frame (mm): x, y (across the faces), z."""
+    target_pos, target_rot = jaw_holding(*u.needle_pose(), *grasp_transform(REGRASP_ANGLE, 0.0, 0.0))
+    return [round(1e3 * float(v), 4) for v in target_rot.T @ (u.jaw_pose()[0] - target_pos)]
 
 
 def roll_out(runner, env_kwargs: dict, seeds: list[int]) -> list[dict]:
@@ -61,12 +71,14 @@ def roll_out(runner, env_kwargs: dict, seeds: list[int]) -> list[dict]:
             "strain_parts_mm": {"before_regrasp": [0.0, 0.0], "pull": [0.0, 0.0]},  # [path, turn]
             "pull_drift_mm": None,
             "strain_at_extraction_mm": None,
-            "close_attempts": [],  # [rule, shift mm, off the regrasp mm, deg] of each closing before the first regrasp
+            "close_attempts": [],  # each closing before the first regrasp: [rule, shift mm, off the regrasp mm,
+            # deg, offset (x, y, z mm) then, a chunk before]
             "_pose": None,
             "_pull_start": None,
             "_verdict": None,
             "_closure": 1.0,  # the episode starts holding the needle
             "_regrasp_error": None,
+            "_offsets": [],  # regrasp_offset of the last CHUNK_STEPS + 1 steps
         }
         for s in seeds
     ]
@@ -79,7 +91,10 @@ def roll_out(runner, env_kwargs: dict, seeds: list[int]) -> list[dict]:
         if closing and ep["let_go"] and not ep["regrasp_angles_deg"] and ep["_verdict"] is not None:
             verdict = ep["_verdict"]  # judged on the state the step started from, as the env judged it
             shift = None if math.isnan(verdict.shift) else 1e3 * verdict.shift
-            ep["close_attempts"].append([verdict.rule, shift, *ep["_regrasp_error"]])
+            offsets = ep["_offsets"]
+            ep["close_attempts"].append(
+                [verdict.rule, shift, *ep["_regrasp_error"], offsets[-1], offsets[-1 - CHUNK_STEPS :][0]]
+            )
         ep["_closure"] = closure
         if not held:
             ep["let_go"] = True
@@ -103,6 +118,7 @@ def roll_out(runner, env_kwargs: dict, seeds: list[int]) -> list[dict]:
         ep["_pose"] = (centre.copy(), rotation.copy())
         ep["_verdict"] = None if held else u.capture_verdict()
         ep["_regrasp_error"] = regrasp_error(u)
+        ep["_offsets"] = [*ep["_offsets"][-CHUNK_STEPS:], regrasp_offset(u)]
         if not ep["extracted"] and not u.needle_in_tissue:  # out: what the bound is judged on
             ep["strain_at_extraction_mm"] = 1e3 * float(info["tissue_strain"])
         ep["extracted"] = ep["extracted"] or not u.needle_in_tissue
@@ -114,7 +130,15 @@ def roll_out(runner, env_kwargs: dict, seeds: list[int]) -> list[dict]:
 
     roll_out_lockstep(runner, env_kwargs, TASK, seeds, on_step)
     for ep in out:
-        for scratch in ("was_held", "_pose", "_pull_start", "_verdict", "_closure", "_regrasp_error"):
+        for scratch in (
+            "was_held",
+            "_pose",
+            "_pull_start",
+            "_verdict",
+            "_closure",
+            "_regrasp_error",
+            "_offsets",
+        ):
             del ep[scratch]
         if math.isinf(ep["closest_mm"]):
             ep["closest_mm"] = None
@@ -192,6 +216,17 @@ def summarize(episodes: list[dict]) -> dict:
                 for rule in sorted(set(rules))
             },
         }
+        with_offsets = [a for a in attempts if len(a) > 4]
+        if with_offsets:  # which way the jaw was off as it closed, and a chunk before: x, y (across), z
+            summary["close_attempts"]["offset_median_mm"] = {
+                rule: {
+                    when: [
+                        float(v) for v in np.median(np.abs([a[k] for a in with_offsets if a[0] == rule]), 0)
+                    ]
+                    for when, k in (("at_closing", 4), ("a_chunk_before", 5))
+                }
+                for rule in sorted({a[0] for a in with_offsets})
+            }
         if lodged.size:
             summary["close_attempts"]["lodged_shift_mm"] = {
                 "median": float(np.median(lodged)),
