@@ -175,7 +175,9 @@ def test_a_reach_that_ends_beside_the_grasp_is_corrected_by_the_advance():
     env = make(obs_type="state")
     for seed in (0, 1, 2):
         obs, _ = env.reset(seed=seed)
-        expert = ScriptedExpert(ExpertConfig(regrasp_aim="marks", regrasp_settle=3, regrasp_reach_offset=0.001))
+        expert = ScriptedExpert(
+            ExpertConfig(regrasp_aim="marks", regrasp_settle=3, regrasp_reach_offset=0.001)
+        )
         expert.reset(env)
         u = env.unwrapped
         lateral, phases = [], []
