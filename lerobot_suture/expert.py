@@ -50,11 +50,11 @@ from lerobot_suture.sim.relative_actions import env_action
 
 PHASES = ("detour", "approach", "descend", "drive", "hold")
 REGRASP_AIMS = ("needle", "marks", "release")
+"""What an extraction's regrasp may aim at (``ExpertConfig.regrasp_aim``)."""
 MAX_REGRASP_SETTLE = 10
 """The longest the expert holds a regrasp's pose before it closes (control steps)."""
 MAX_REGRASP_REACH_OFFSET = 0.003
 """The farthest a regrasp's reach may end beside the point short of the grasp (m): the 6 mm advance corrects it."""
-"""What an extraction's regrasp may aim at (``ExpertConfig.regrasp_aim``)."""
 _SIDE_STREAM = 0x51DE  # mixed with the env's seed: the detour side's own stream, apart from the env's draws
 _NOISE_STREAM = 0xDA27  # mixed with the env's seed: the executed noise's own stream
 

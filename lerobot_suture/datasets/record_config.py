@@ -131,9 +131,7 @@ class RecordConfig:
     regrasp_noise: float = 0.0  # m; > 0: noise executed, not recorded, while the expert reaches to regrasp
     regrasp_aim: str = "needle"  # what the expert's regrasps aim at: needle (its pose) | marks | release
     regrasp_settle: int = 0  # control steps the open jaw holds a regrasp's pose before it closes
-    regrasp_reach_offset: float = (
-        0.0  # m; > 0: each regrasp's reach ends beside the line, the advance corrects it
-    )
+    regrasp_reach_offset: float = 0.0  # m; > 0: each regrasp's reach ends off line, the advance corrects it
     seed: int = 0  # env seed of the first attempt; attempt k uses seed + k
     steps_after_success: int = 0  # control steps recorded past success, the expert driving on
     appearance: AppearanceConfig = field(default_factory=AppearanceConfig)  # endoscope view randomization

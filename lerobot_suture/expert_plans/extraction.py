@@ -66,12 +66,9 @@ class ExtractionPlan:
         self._aim_beside: float | None = None  # m across the jaw; None until the first act draws it
         self._release: tuple[np.ndarray, np.ndarray] | None = None  # the jaw's pose when it let go
         self._settled = 0  # control steps the open jaw has held the grasp
-        self._reach_rng: np.random.Generator | None = (
-            None  # draws each reach's offset; made at the first reach
-        )
-        self._reach_offset: np.ndarray | None = (
-            None  # (2,) m across (y) and along (x) the jaw; None: draw anew
-        )
+        # Each reach's offset (2,) m along x and y of the grasp's frame (None: draw anew), and its generator.
+        self._reach_offset: np.ndarray | None = None
+        self._reach_rng: np.random.Generator | None = None
 
     @property
     def regrasping(self) -> bool:
