@@ -216,17 +216,14 @@ def summarize(episodes: list[dict]) -> dict:
                 for rule in sorted(set(rules))
             },
         }
-        with_offsets = [a for a in attempts if len(a) > 4]
-        if with_offsets:  # which way the jaw was off as it closed, and a chunk before: x, y (across), z
-            summary["close_attempts"]["offset_median_mm"] = {
-                rule: {
-                    when: [
-                        float(v) for v in np.median(np.abs([a[k] for a in with_offsets if a[0] == rule]), 0)
-                    ]
-                    for when, k in (("at_closing", 4), ("a_chunk_before", 5))
-                }
-                for rule in sorted({a[0] for a in with_offsets})
+        # Which way the jaw was off as it closed, and a chunk before: x, y (across the faces), z.
+        summary["close_attempts"]["offset_median_mm"] = {
+            rule: {
+                when: [float(v) for v in np.median(np.abs([a[k] for a in attempts if a[0] == rule]), 0)]
+                for when, k in (("at_closing", 4), ("a_chunk_before", 5))
             }
+            for rule in sorted(set(rules))
+        }
         if lodged.size:
             summary["close_attempts"]["lodged_shift_mm"] = {
                 "median": float(np.median(lodged)),
