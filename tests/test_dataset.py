@@ -361,6 +361,7 @@ def _rrd_images(rrd: Path, entity: str) -> dict[int, np.ndarray]:
     return images
 
 
+@pytest.mark.slow
 def test_lerobot_dataset_viz_saves_an_episode_rerun_reads_back(tiny, backend, tmp_path):
     """The real `lerobot-dataset-viz --save 1` writes an .rrd that rerun loads: every frame of the episode."""
     from rerun.experimental import RrdReader

@@ -177,6 +177,7 @@ def test_worker_processes_give_the_same_episodes(tiny_policy_dir, tmp_path):
         rollout_seeds(make_env, in_memory, [5, 6], batch_envs=1, workers=2)
 
 
+@pytest.mark.slow
 def test_config_overrides_reach_the_policy_and_the_workers(tiny_policy_dir):
     """Fewer denoising steps / more samples per member, chosen at load as lerobot-eval's --policy.FIELD."""
     import functools
@@ -192,6 +193,9 @@ def test_config_overrides_reach_the_policy_and_the_workers(tiny_policy_dir):
     for a, b, c in zip(local, spread, plain, strict=True):
         np.testing.assert_allclose(a.scores, b.scores, rtol=1e-4, atol=1e-9)  # the workers load the overrides
         assert not np.allclose(a.scores, c.scores)  # and they change the policy
+
+
+def test_config_overrides_that_name_no_field_or_a_bad_value_are_refused(tiny_policy_dir):
     with pytest.raises(ValueError, match="name no field"):
         PolicyRunner.from_pretrained(tiny_policy_dir, GateMode.REPORT, overrides={"num_denoising_steps": 2})
     with pytest.raises(ValueError, match="num_inference_steps"):

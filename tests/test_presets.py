@@ -155,6 +155,7 @@ def test_a_task_preset_is_the_reference_on_the_task_s_recipe(task, recipe_name, 
     assert recipe.num_episodes - math.ceil(recipe.num_episodes * recipe.val_fraction) == 99
 
 
+@pytest.mark.slow
 def test_latency_benchmark_times_a_preset_with_the_needle_target():
     """`benchmarks/ensemble_latency.py --preset reference` builds the policy although the preset trains an
     auxiliary needle target the benchmark's synthetic observation does not hold (it is no input)."""
