@@ -10,7 +10,9 @@ policy trained on relative actions composes them in its own processors, so polic
 
 A policy that reads the planned regrasp gets it from the env; ``--regrasp-from release`` plans it from where the
 jaw let go of the needle instead of through the marks (``sim.regrasp_target``); ``--arc-guard`` holds a needle
-in tissue to its arc (``safety.arc_guard``). The chain and the finished cell
+in tissue to its arc (``safety.arc_guard``); ``--scripted-regrasp`` scripts the extract's regrasp (a servo on the
+measured pose and the planned regrasp, ``sim.regrasp_servo``), the extract policy pulling once the jaw holds the
+tip. The chain and the finished cell
 are kept in ``--work-dir``: a rerun reads them back.
 """
 
@@ -49,12 +51,17 @@ def main() -> None:
     parser.add_argument(
         "--arc-guard", action="store_true", help="hold the needle in tissue to its arc (safety.arc_guard)"
     )
+    parser.add_argument(
+        "--scripted-regrasp", action="store_true", help="script the extract's regrasp (sim.regrasp_servo)"
+    )
     args = parser.parse_args()
 
     policies = {"policy": args.policy, **{name: getattr(args, name) for name in SUBTASK_FLAGS}}
     chain_dir, cell_path = args.work_dir / "chain", args.work_dir / "cell.json"
     if not (chain_dir / "config.json").is_file():  # the config refuses a subtask without a policy
-        write_chain(ChainCommandConfig(output_dir=chain_dir, **policies))
+        write_chain(
+            ChainCommandConfig(output_dir=chain_dir, scripted_regrasp=args.scripted_regrasp, **policies)
+        )
     if cell_path.is_file():
         cell = json.loads(cell_path.read_text())
     else:
@@ -74,6 +81,7 @@ def main() -> None:
         "chain": str(chain_dir),
         "regrasp_from": args.regrasp_from,
         "arc_guard": args.arc_guard,
+        "scripted_regrasp": args.scripted_regrasp,
         "nominal": cell,
         "machine": machine(),
     }

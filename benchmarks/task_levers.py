@@ -43,8 +43,10 @@ class Lever:
     planned through the marks is recorded as an observation, with the expert's regrasps aimed at it; where the
     evaluation's env plans that regrasp from (``regrasp_from``: ``marks`` or ``release``); the control steps the
     expert holds the open jaw on a regrasp's pose before it closes (``regrasp_settle``); how far (m) its reach
-    may end beside the grasp's line, the advance correcting it (``regrasp_reach_offset``); and the lever whose
-    recording and checkpoint a line evaluates instead of its own (``checkpoint_of``: one checkpoint, two envs)."""
+    may end beside the grasp's line, the advance correcting it (``regrasp_reach_offset``); whether the evaluation
+    scripts the regrasp (``scripted_regrasp``: the checkpoint inside a ``suture_chain`` whose servo takes the tip,
+    the checkpoint pulling); and the lever whose recording and checkpoint a line evaluates instead of its own
+    (``checkpoint_of``: one checkpoint, two envs)."""
 
     name: str
     episodes: int | None  # None: the task recipe's own count
@@ -58,6 +60,7 @@ class Lever:
     regrasp_from: str = "marks"
     regrasp_settle: int = 0
     regrasp_reach_offset: float = 0.0
+    scripted_regrasp: bool = False
     checkpoint_of: str | None = None
 
 
@@ -103,6 +106,14 @@ LEVERS = (
         regrasp_target=True,
         regrasp_settle=3,
         regrasp_reach_offset=0.001,
+    ),
+    Lever(
+        "relative actions + planned regrasp, the regrasp scripted",
+        None,
+        relative_actions=True,
+        regrasp_target=True,
+        scripted_regrasp=True,
+        checkpoint_of="relative actions + planned regrasp",
     ),
 )
 
@@ -201,13 +212,16 @@ def train(task: str, root: Path, out: Path, members: int) -> tuple[Path, float]:
     return done[0], spent
 
 
-def chained(pretrained: Path, chain_dir: Path) -> Path:
-    """A ``suture_chain`` around a subtask-conditioned checkpoint (``lerobot-suture chain --policy``): the high
-    level inside the policy reads each step's subtask from the measured pose and the marks, as on a robot."""
+def chained(pretrained: Path, chain_dir: Path, scripted_regrasp: bool = False) -> Path:
+    """A ``suture_chain`` around a checkpoint (``lerobot-suture chain --policy``): the high level inside the policy
+    reads each step's subtask from the measured pose and the marks, as on a robot; with ``scripted_regrasp`` its
+    servo takes the needle's tip and the checkpoint pulls."""
     from lerobot_policy_suture_chain.assemble import ChainCommandConfig, write_chain
 
     if not (chain_dir / "config.json").is_file():
-        write_chain(ChainCommandConfig(output_dir=chain_dir, policy=pretrained))
+        write_chain(
+            ChainCommandConfig(output_dir=chain_dir, policy=pretrained, scripted_regrasp=scripted_regrasp)
+        )
     return chain_dir
 
 
@@ -345,8 +359,10 @@ def main() -> None:
         print(f"[{lever.name}] training {args.members} member(s) ...", flush=True)
         out = work / "train" / f"{_slug(trained.name)}_n{args.members}"
         pretrained, train_s = train(args.task, root, out, args.members)
-        if lever.subtask:  # the subtask comes from the chain's high level, as lerobot-eval runs it
-            pretrained = chained(pretrained, work / "chains" / f"{slug}_n{args.members}")
+        if lever.subtask or lever.scripted_regrasp:  # the chain's high level, as lerobot-eval runs it
+            pretrained = chained(
+                pretrained, work / "chains" / f"{slug}_n{args.members}", lever.scripted_regrasp
+            )
         conditions = task_spec(args.task).scenarios if args.scenarios else ("nominal",)
         by_condition = {}
         for condition in conditions:
@@ -377,6 +393,7 @@ def main() -> None:
                 "regrasp_from": lever.regrasp_from,
                 "regrasp_settle": lever.regrasp_settle,
                 "regrasp_reach_offset": lever.regrasp_reach_offset,
+                "scripted_regrasp": lever.scripted_regrasp,
                 **({"checkpoint_of": lever.checkpoint_of} if lever.checkpoint_of else {}),
                 "record_s": recorded["record_s"],
                 "train_s": round(train_s, 1),

@@ -45,6 +45,8 @@ class ChainCommandConfig:
         rules run by the env at every step) instead of running the rules in the chain: a surgeon's takeover and
         hand-back then leave the chain where the arm is. The env path only (a robot reports no subtask), with
         the rules' default thresholds.
+    scripted_regrasp: script the extract subtask's regrasp (a servo on the measured pose and the planned regrasp,
+        ``lerobot_suture.sim.regrasp_servo``); the extract policy pulls once the jaw holds the tip.
     """
 
     output_dir: Path | None = None
@@ -59,6 +61,7 @@ class ChainCommandConfig:
     holding_below: float = 0.95
     device: str = "cpu"
     subtask_from_env: bool = False
+    scripted_regrasp: bool = False
 
     def __post_init__(self):
         if self.output_dir is None:
@@ -95,11 +98,12 @@ class ChainCommandConfig:
 
 
 def chain_input_features(
-    configs: list[PreTrainedConfig], subtask_from_env: bool = False
+    configs: list[PreTrainedConfig], subtask_from_env: bool = False, scripted_regrasp: bool = False
 ) -> dict[str, PolicyFeature]:
     """What the chain reads: every subtask policy's inputs but the privileged ones, and as the environment state
     the wound's marks (the high level reads them), then the env's subtask and throw with ``subtask_from_env``,
-    then the planned regrasp where a subtask policy reads it; each policy gets its own environment state from them.
+    then the planned regrasp where a subtask policy or the ``scripted_regrasp`` reads it; each policy gets its
+    own environment state from them.
 
     Raises:
         ValueError: two policies read one key at different shapes, or their actions differ.
@@ -121,7 +125,7 @@ def chain_input_features(
     parts = (
         "marks",
         *(["subtask"] if subtask_from_env else []),
-        *(["regrasp_target"] if "regrasp_target" in read else []),
+        *(["regrasp_target"] if "regrasp_target" in read or scripted_regrasp else []),
     )
     features[OBS_ENV_STATE] = PolicyFeature(type=FeatureType.ENV, shape=(state_size(parts),))
     actions = {tuple(c.output_features[ACTION].shape) for c in configs}
@@ -154,7 +158,10 @@ def write_chain(cfg: ChainCommandConfig) -> Path:
         pulled_out_travel=cfg.pulled_out_travel,
         release_radius=cfg.release_radius,
         holding_below=cfg.holding_below,
-        input_features=chain_input_features(list(configs.values()), cfg.subtask_from_env),
+        scripted_regrasp=cfg.scripted_regrasp,
+        input_features=chain_input_features(
+            list(configs.values()), cfg.subtask_from_env, cfg.scripted_regrasp
+        ),
         output_features={ACTION: first.output_features[ACTION]},
         device=cfg.device,
     )
@@ -174,6 +181,8 @@ def main(argv: list[str] | None = None) -> None:
     out = write_chain(cfg)
     config = PreTrainedConfig.from_pretrained(out)
     served = ", ".join(f"{subtask}: {name}" for subtask, name in config.subtask_policies.items())
+    if config.scripted_regrasp:
+        served += "; the extract's regrasp scripted"
     print(f"Chain written to {out} ({served}).")
     flags = " ".join(f"--env.{name}=true" for name in state_parts(env_state_size(config)))
     print(f"Run it: lerobot-eval --policy.path={out} --env.type=suture --env.task=running_suture {flags}")

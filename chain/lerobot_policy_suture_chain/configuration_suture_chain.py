@@ -11,6 +11,7 @@ from lerobot.configs.policies import PreTrainedConfig
 from lerobot.optim.optimizers import AdamWConfig
 from lerobot.utils.constants import OBS_ENV_STATE
 
+from lerobot_suture.sim.state_layout import state_parts
 from lerobot_suture.sim.subtasks import SUBTASKS, SubtaskRulesConfig
 
 POLICIES_DIR = "policies"
@@ -40,6 +41,9 @@ class SutureChainConfig(PreTrainedConfig):
         pulled_out_travel: jaw travel (m) after closing on the tip beyond which the needle is out, > 0.
         release_radius: distance (m) from the entry mark within which a release ends an insert, > 0.
         holding_below: jaw closure below which a closed jaw holds the needle, above ``closed_above``.
+        scripted_regrasp: the extract subtask's regrasp is scripted, not learned: a servo on the measured pose and
+            the planned regrasp (``lerobot_suture.sim.regrasp_servo``) takes the tip, then the extract policy
+            pulls. The chain then reads the planned regrasp from the env (``--env.regrasp_target=true``).
     """
 
     subtask_policies: dict[str, str] = field(default_factory=dict)
@@ -47,6 +51,7 @@ class SutureChainConfig(PreTrainedConfig):
     pulled_out_travel: float = 0.019
     release_radius: float = 0.010
     holding_below: float = 0.95
+    scripted_regrasp: bool = False
     n_obs_steps: int = 1
 
     def __post_init__(self):
@@ -105,6 +110,11 @@ class SutureChainConfig(PreTrainedConfig):
         if "observation.state" not in self.input_features:
             raise ValueError(
                 "The chain's high level reads the measured pose: `observation.state` must be an input feature."
+            )
+        if self.scripted_regrasp and "regrasp_target" not in (state_parts(env_state_size(self)) or ()):
+            raise ValueError(
+                "A chain with `scripted_regrasp` servos on the planned regrasp: its environment state must hold "
+                "`regrasp_target` (write it with `lerobot-suture chain --scripted_regrasp=true`)."
             )
 
     @staticmethod

@@ -13,6 +13,10 @@ env runs the rules at every step, whoever acts, so a surgeon who takes a subtask
 the policy, as LeRobot's DAgger does) leaves the chain at the subtask and throw the arm is in, not at the first
 throw's insert where its own rules would start again.
 
+A chain written with ``--scripted_regrasp=true`` scripts the extract subtask's regrasp: from the step an
+environment enters ``extract``, a :class:`~lerobot_suture.sim.regrasp_servo.RegraspServo` on its measured pose and
+planned regrasp acts until the jaw holds the tip; the extract policy, reset then, pulls.
+
 Subtask policies keep their own observation and action queues, one row per environment. A policy that an
 environment enters is reset first, so its first action is predicted from the new subtask's observation and not
 taken from a chunk queued before the switch; the other environments it serves then predict afresh too (a
@@ -30,6 +34,7 @@ from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import OBS_ENV_STATE, OBS_STATE
 from torch import Tensor, nn
 
+from lerobot_suture.sim.regrasp_servo import RegraspServo, RegraspServoConfig
 from lerobot_suture.sim.state_layout import LAYOUTS, registered_parts, state_parts
 from lerobot_suture.sim.subtasks import SubtaskRules, subtask_reading, subtask_vector
 
@@ -112,6 +117,8 @@ class SutureChainPolicy(PreTrainedPolicy):
         self._rules: list[SubtaskRules] = []
         self.readings: list[tuple[str, int]] = []
         """Each environment's (subtask, throw) at the last step."""
+        self.servos: list[RegraspServo | None] = []
+        """Each environment's scripted regrasp while it runs (``scripted_regrasp``), else None."""
 
     @classmethod
     def from_pretrained(cls, pretrained_name_or_path, *, config: SutureChainConfig | None = None, **kwargs):
@@ -152,7 +159,7 @@ class SutureChainPolicy(PreTrainedPolicy):
         raise NotImplementedError(self.config._not_trained())
 
     def reset(self):
-        self._rules, self.readings = [], []
+        self._rules, self.readings, self.servos = [], [], []
         for policy in self.policies.values():
             policy.reset()
 
@@ -197,17 +204,55 @@ class SutureChainPolicy(PreTrainedPolicy):
         }
         return entered
 
+    def _servo_actions(
+        self, batch: dict[str, Tensor], parts: dict[str, Tensor], before: list
+    ) -> dict[int, Tensor]:
+        """The scripted regrasp's action of each environment it serves this step (``scripted_regrasp``): a servo
+        starts where an environment enters ``extract`` (or starts in it) and ends when the jaw holds the tip. The
+        extract policy is reset as a servo ends, so its first action comes from that step's observation on."""
+        if not self.config.scripted_regrasp:
+            return {}
+        if len(self.servos) != len(self.readings):
+            self.servos = [None] * len(self.readings)
+            before = [None] * len(self.readings)
+        poses = batch[OBS_STATE].detach().double().cpu().numpy()
+        targets = parts["regrasp_target"].detach().double().cpu().numpy()
+        actions, ended = {}, False
+        for i, (reading, old) in enumerate(zip(self.readings, before, strict=True)):
+            if reading[0] != "extract":
+                self.servos[i] = None
+                continue
+            if old is None or old[0] != "extract":
+                self.servos[i] = RegraspServo(
+                    RegraspServoConfig(
+                        closed_above=self.config.closed_above, holding_below=self.config.holding_below
+                    )
+                )
+            servo = self.servos[i]
+            if servo is None or servo.done:
+                continue
+            actions[i] = torch.from_numpy(servo.act(poses[i], targets[i]))
+            ended |= servo.done
+        if ended:
+            self.policies[self.config.subtask_policies["extract"]].reset()
+        return actions
+
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:
         batch = state_apart(batch, env_state_size(self.config))
         parts = self._registered(batch)
+        before = list(self.readings)
         entered = self._read_subtasks(batch, parts)
         for name in entered:
             self.policies[name].reset()
+        scripted = self._servo_actions(batch, parts, before)
         parts["subtask"] = torch.from_numpy(np.stack([subtask_vector(*reading) for reading in self.readings]))
-        serving = [self.config.subtask_policies[subtask] for subtask, _ in self.readings]
+        serving = [
+            None if i in scripted else self.config.subtask_policies[subtask]
+            for i, (subtask, _) in enumerate(self.readings)
+        ]
         actions = None
-        for name in dict.fromkeys(serving):
+        for name in dict.fromkeys(s for s in serving if s is not None):
             policy = self.policies[name]
             preprocessor, postprocessor = self._processors[name]
             sub_batch = {k: v for k, v in batch.items() if k != OBS_ENV_STATE}
@@ -219,4 +264,9 @@ class SutureChainPolicy(PreTrainedPolicy):
                 actions = torch.empty_like(action)
             rows = torch.tensor([s == name for s in serving])
             actions[rows] = action[rows.to(action.device)]
+        if scripted:
+            if actions is None:
+                actions = torch.empty((len(serving), *next(iter(scripted.values())).shape))
+            for i, action in scripted.items():
+                actions[i] = action.to(actions)
         return actions

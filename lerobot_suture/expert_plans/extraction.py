@@ -32,7 +32,7 @@ import math
 import numpy as np
 
 from lerobot_suture.expert_plans import episode_stream
-from lerobot_suture.sim.extraction import REGRASP_ANGLE, planned_regrasp
+from lerobot_suture.sim.extraction import BACK_OFF, REGRASP_ANGLE, planned_regrasp, turn_left
 from lerobot_suture.sim.geometry import (
     grasp_transform,
     jaw_holding,
@@ -45,8 +45,6 @@ from lerobot_suture.sim.regrasp_target import released_regrasp
 EXTRACTION_PHASES = ("release", "back_off", "reach", "advance", "settle", "close", "pull", "hold")
 _MISS_STREAM = 0x3155  # mixed with the env's seed: the miss side's own stream, apart from the env's draws
 _REACH_STREAM = 0x3156  # the reach offsets' own stream
-BACK_OFF = 0.006
-"""How far the open jaw draws back along its axis from the wire before and after a grasp (m)."""
 PULL_MARGIN = 0.3
 """How far past the exit point the expert drives the tail (rad of arc)."""
 
@@ -139,7 +137,7 @@ class ExtractionPlan:
             grasp_pos = grasp_pos + self._miss_offset(u) * grasp_rot[:, 1]  # the faces close along y
             if self.phase == "reach":
                 short = grasp_pos + grasp_rot[:, :2] @ self._offset_of_reach(u) - BACK_OFF * grasp_rot[:, 2]
-                left = _turn_left(jaw_rot, grasp_rot)
+                left = turn_left(jaw_rot, grasp_rot)
                 if np.linalg.norm(short - jaw_pos) < cfg.position_tolerance and left < cfg.angle_tolerance:
                     self.phase = "advance"
                 else:
@@ -174,11 +172,3 @@ class ExtractionPlan:
                 self.phase = "hold"
         target = jaw_holding(frame.centre, frame.needle_rotation(self.drive_angle), *u.grasp_in_jaw)
         return pose_vector(*target, 1.0).astype(np.float32)
-
-
-def _turn_left(jaw_rot: np.ndarray, goal_rot: np.ndarray) -> float:
-    """How far (rad, in [0, 2 pi)) the jaw must still turn about its own axis, in the positive sense (against
-    the pull's), to reach the goal's heading."""
-    x_goal = jaw_rot.T @ goal_rot[:, 0]
-    angle = math.atan2(x_goal[1], x_goal[0]) % (2.0 * math.pi)
-    return 0.0 if angle > 2.0 * math.pi - 1e-3 else angle

@@ -17,6 +17,8 @@ accumulated off-arc motion in tissue, ``tissue``) stayed within :data:`STRAIN_BO
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from lerobot_suture.sim.geometry import grasp_transform, insertion_frame, jaw_holding
@@ -30,6 +32,8 @@ TAIL_EXIT_TOLERANCE = EXIT_TOLERANCE
 """How far from the exit point the tail may leave the tissue (m)."""
 STRAIN_BOUND = 0.002
 """Largest accumulated off-arc motion of the needle in tissue over an extraction (m)."""
+BACK_OFF = 0.006
+"""How far a regrasping jaw draws back along its axis from the wire before and after a grasp (m)."""
 SWEEP_STEPS = 24
 """Poses along the finished throw that set up the start's insertion record (entry and exit crossings)."""
 
@@ -65,3 +69,11 @@ def planned_regrasp(
     frame = insertion_frame(entry_point, exit_point, surface_normal, NEEDLE_TILT)
     drive = frame.exit_angle + 0.5 * sum(PROTRUSION_RANGE)
     return jaw_holding(frame.centre, frame.needle_rotation(drive), *grasp_transform(REGRASP_ANGLE, 0.0, 0.0))
+
+
+def turn_left(jaw_rot: np.ndarray, goal_rot: np.ndarray) -> float:
+    """How far (rad, in [0, 2 pi)) the jaw of rotation ``jaw_rot`` (3, 3) must still turn about its own axis, in
+    the positive sense (against the pull's), to reach the heading of ``goal_rot`` (3, 3)."""
+    x_goal = jaw_rot.T @ goal_rot[:, 0]
+    angle = math.atan2(x_goal[1], x_goal[0]) % (2.0 * math.pi)
+    return 0.0 if angle > 2.0 * math.pi - 1e-3 else angle
