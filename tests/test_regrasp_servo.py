@@ -49,7 +49,7 @@ def test_the_servo_takes_the_tip_from_what_the_robot_measures(source):
                 observation, _, terminated, truncated, _ = env.step(action)
                 if servo.done or terminated or truncated:
                     break
-            assert servo.done and servo.closings == 1
+            assert servo.done and servo.held and servo.closings == 1
             assert env.unwrapped.needle_grasped
             assert 0.5 < observation["agent_pos"][JAW_INDEX] < 0.95  # the wire stops the jaw short of closed
             with pytest.raises(RuntimeError, match="extract policy"):
@@ -73,7 +73,7 @@ def test_a_closing_on_nothing_opens_and_reaches_again_up_to_its_attempts():
         pose = np.concatenate([action[:9], [min(1.0, pose[JAW_INDEX] + 0.5) if action[9] > 0.5 else 0.0]])
         if servo.done:
             break
-    assert servo.done and servo.closings == 2
+    assert servo.done and not servo.held and servo.closings == 2
     first_close = phases.index("close")
     again = phases[first_close:]
     assert "back_off" in again and "advance" in again  # the miss: back off, advance onto the grasp again
@@ -117,7 +117,7 @@ def _conditioned_act(directory) -> str:
 def test_the_chain_scripts_the_regrasp_then_its_extract_policy_pulls(tmp_path):
     """`lerobot-suture chain --scripted_regrasp=true`: the chain asks the env for the planned regrasp; once the
     jaw lets go at the wound (the extract begins), the servo acts until the jaw holds the tip, on the real env;
-    then the extract policy, reset, acts."""
+    then the extract policy, reset, acts; a jaw that then reads empty gets a new servo."""
     policy = _conditioned_act(tmp_path / "policy")
     out = write_chain(ChainCommandConfig(output_dir=tmp_path / "chain", policy=policy, scripted_regrasp=True))
     chain, pre, post = load_policy(out)
@@ -152,6 +152,12 @@ def test_the_chain_scripts_the_regrasp_then_its_extract_policy_pulls(tmp_path):
         extract = torch.from_numpy(subtask_vector("extract", 0))[None]
         batch[OBS_ENV_STATE] = torch.cat([batch[OBS_ENV_STATE][:, :MARKS_DIM], extract], dim=-1)
         assert torch.allclose(action, ref_post(ref.select_action(ref_pre(batch))), atol=1e-5)
+
+        lost = {**observation, "agent_pos": observation["agent_pos"].copy()}
+        lost["agent_pos"][JAW_INDEX] = 1.0  # the encoder reads the jaw empty: the needle slipped out
+        action = post(chain.select_action(pre(preprocess_observation(lost))))
+        assert chain.readings[0][0] == "extract" and chain.servos[0] is not servo
+        assert action[0, JAW_INDEX] == 0.0  # a new regrasp: it lets go first
     finally:
         env.close()
 

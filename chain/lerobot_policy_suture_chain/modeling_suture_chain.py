@@ -15,7 +15,8 @@ throw's insert where its own rules would start again.
 
 A chain written with ``--scripted_regrasp=true`` scripts the extract subtask's regrasp: from the step an
 environment enters ``extract``, a :class:`~lerobot_suture.sim.regrasp_servo.RegraspServo` on its measured pose and
-planned regrasp acts until the jaw holds the tip; the extract policy, reset then, pulls.
+planned regrasp acts until the jaw holds the tip; the extract policy, reset then, pulls. A jaw that held the tip
+and then reads empty (its encoder fully closed: the needle slipped out) gets a new servo, which regrasps.
 
 Subtask policies keep their own observation and action queues, one row per environment. A policy that an
 environment enters is reset first, so its first action is predicted from the new subtask's observation and not
@@ -36,7 +37,7 @@ from torch import Tensor, nn
 
 from lerobot_suture.sim.regrasp_servo import RegraspServo, RegraspServoConfig
 from lerobot_suture.sim.state_layout import LAYOUTS, registered_parts, state_parts
-from lerobot_suture.sim.subtasks import SubtaskRules, subtask_reading, subtask_vector
+from lerobot_suture.sim.subtasks import JAW_INDEX, SubtaskRules, subtask_reading, subtask_vector
 
 from .configuration_suture_chain import POLICIES_DIR, SutureChainConfig, env_state_size
 
@@ -208,8 +209,9 @@ class SutureChainPolicy(PreTrainedPolicy):
         self, batch: dict[str, Tensor], parts: dict[str, Tensor], before: list
     ) -> dict[int, Tensor]:
         """The scripted regrasp's action of each environment it serves this step (``scripted_regrasp``): a servo
-        starts where an environment enters ``extract`` (or starts in it) and ends when the jaw holds the tip. The
-        extract policy is reset as a servo ends, so its first action comes from that step's observation on."""
+        starts where an environment enters ``extract`` (or starts in it), or where a jaw that held the tip reads
+        empty, and ends when the jaw holds the tip. The extract policy is reset as a servo ends, so its first
+        action comes from that step's observation on."""
         if not self.config.scripted_regrasp:
             return {}
         if len(self.servos) != len(self.readings):
@@ -222,7 +224,9 @@ class SutureChainPolicy(PreTrainedPolicy):
             if reading[0] != "extract":
                 self.servos[i] = None
                 continue
-            if old is None or old[0] != "extract":
+            servo = self.servos[i]
+            lost = servo is not None and servo.held and poses[i][JAW_INDEX] >= self.config.holding_below
+            if old is None or old[0] != "extract" or lost:
                 self.servos[i] = RegraspServo(
                     RegraspServoConfig(
                         closed_above=self.config.closed_above, holding_below=self.config.holding_below

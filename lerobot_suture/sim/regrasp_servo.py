@@ -19,8 +19,8 @@ measurements alone:
    encoder to stop.
 
 A jaw that stops short of closed holds the wire (0.80-0.88 of its travel, ``sim.subtasks``): the regrasp is
-done. One that closes fully closed on nothing: it opens, backs off and reaches again, up to ``attempts``
-closings. The needle's pose and the simulator's contact flags are never read.
+done (``held``). One that closes fully closed on nothing: it opens, backs off and reaches again, up to
+``attempts`` closings. The needle's pose and the simulator's contact flags are never read.
 """
 
 from __future__ import annotations
@@ -114,6 +114,8 @@ class RegraspServo:
         self._settled = 0
         self._closing_steps = 0
         self._last_closure: float | None = None
+        self.held = False
+        """Whether the regrasp ended with the jaw on the wire (its encoder stopped short of closed)."""
 
     @property
     def done(self) -> bool:
@@ -189,7 +191,8 @@ class RegraspServo:
         self._last_closure, self._closing_steps = closure, self._closing_steps + 1
         if not (closure > cfg.closed_above and stopped) and self._closing_steps <= _CLOSE_STEPS:
             return pose_vector(grasp_pos, grasp_rot, 1.0).astype(np.float32)
-        if (cfg.closed_above < closure < cfg.holding_below) or self.closings >= cfg.attempts:
+        self.held = cfg.closed_above < closure < cfg.holding_below
+        if self.held or self.closings >= cfg.attempts:
             self.phase = "done"
             return pose_vector(grasp_pos, grasp_rot, 1.0).astype(np.float32)
         self.phase = "release"  # closed on nothing: open, back off and reach again
