@@ -77,7 +77,10 @@ def test_a_closing_on_nothing_opens_and_reaches_again_up_to_its_attempts():
     first_close = phases.index("close")
     again = phases[first_close:]
     assert "back_off" in again and "advance" in again  # the miss: back off, advance onto the grasp again
-    assert np.allclose(pose[:3], grasp[:3], atol=1e-3)
+    deeper = measured_jaw(grasp)[1].T @ (
+        pose[:3] - grasp[:3]
+    )  # the second closing, 1 mm further along the jaw
+    np.testing.assert_allclose(deeper, [0.0, 0.0, 0.001], atol=5e-4)
     np.testing.assert_allclose(
         grasp_from_target(pose, relative_action(*measured_jaw(pose), grasp)[:9])[0], grasp[:3]
     )
@@ -91,6 +94,8 @@ def test_a_closing_on_nothing_opens_and_reaches_again_up_to_its_attempts():
         ("settle_steps", -1, "settle_steps"),
         ("attempts", 0, "attempts"),
         ("holding_below", 0.4, "closed_above < holding_below"),
+        ("search_depth", 0.003, "search_depth"),
+        ("attempts", 7, "inside the jaw"),
     ],
 )
 def test_the_servo_config_refuses_what_it_cannot_run(field, value, match):

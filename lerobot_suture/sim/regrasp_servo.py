@@ -20,7 +20,11 @@ measurements alone:
 
 A jaw that stops short of closed holds the wire (0.80-0.88 of its travel, ``sim.subtasks``): the regrasp is
 done (``held``). One that closes fully closed on nothing: it opens, backs off and reaches again, up to
-``attempts`` closings. The needle's pose and the simulator's contact flags are never read.
+``attempts`` closings, each ``search_depth`` further along the jaw's axis than the last. The plan puts the wire at
+the jaw's tip, the outer edge of where closing faces catch it (``sim.needle_capture``: up to 6 mm inside the jaw,
+a wire radius beyond its tip), so a plan that lies short of the wire misses by a fraction of a millimetre along
+that axis, and the next closing, deeper, catches it. The needle's pose and the simulator's contact flags are
+never read.
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ import numpy as np
 
 from lerobot_suture.sim.extraction import BACK_OFF, turn_left
 from lerobot_suture.sim.geometry import matrix_from_rot6, matrix_from_rotvec, pose_vector, step_towards
+from lerobot_suture.sim.needle_capture import JAW_GRIP_LENGTH
 from lerobot_suture.sim.relative_actions import measured_jaw
 from lerobot_suture.sim.subtasks import JAW_INDEX
 from lerobot_suture.sim.task import CONTROL_DT
@@ -54,6 +59,8 @@ class RegraspServoConfig:
     closed_above: jaw closure above which a closing counts as closed, in (0, 1) (the chain's rules').
     holding_below: closure below which a closed jaw holds the wire, in (closed_above, 1].
     attempts: closings before the servo hands over whatever it holds, >= 1.
+    search_depth: how much further along the jaw's axis each closing after a miss aims than the one before (m),
+        in [0, 0.002]: the wire then sits that much deeper between the faces.
     control_dt: the control period (s), > 0.
     """
 
@@ -65,7 +72,8 @@ class RegraspServoConfig:
     settle_steps: int = 3
     closed_above: float = 0.5
     holding_below: float = 0.95
-    attempts: int = 3
+    attempts: int = 5
+    search_depth: float = 0.001
     control_dt: float = CONTROL_DT
 
     def __post_init__(self):
@@ -84,6 +92,13 @@ class RegraspServoConfig:
             raise ValueError(f"`settle_steps` must be an integer >= 0. Got {self.settle_steps!r}.")
         if not isinstance(self.attempts, int) or self.attempts < 1:
             raise ValueError(f"`attempts` must be an integer >= 1. Got {self.attempts!r}.")
+        if not 0.0 <= self.search_depth <= 0.002:
+            raise ValueError(f"`search_depth` must be in [0, 0.002] m. Got {self.search_depth!r}.")
+        if (self.attempts - 1) * self.search_depth > JAW_GRIP_LENGTH - 0.001:
+            raise ValueError(
+                f"The last closing would aim {(self.attempts - 1) * self.search_depth * 1e3:.1f} mm inside the jaw, "
+                f"past its {JAW_GRIP_LENGTH * 1e3:.0f} mm faces less a millimetre: lower `attempts` or `search_depth`."
+            )
         if not 0.0 < self.closed_above < self.holding_below <= 1.0:
             raise ValueError(
                 "The jaw thresholds must satisfy 0 < closed_above < holding_below <= 1. Got "
@@ -110,6 +125,7 @@ class RegraspServo:
         self.config = config or RegraspServoConfig()
         self.phase = "release"
         self.closings = 0
+        self._misses = 0  # closings judged empty
         self._goal: np.ndarray | None = None
         self._settled = 0
         self._closing_steps = 0
@@ -135,6 +151,7 @@ class RegraspServo:
         pose = np.asarray(agent_pos, dtype=np.float64)
         jaw_pos, jaw_rot = measured_jaw(pose)
         grasp_pos, grasp_rot = grasp_from_target(pose, regrasp_target)
+        grasp_pos = grasp_pos + self._misses * cfg.search_depth * grasp_rot[:, 2]  # deeper after each miss
         if self.phase == "close":
             target = self._close(float(pose[JAW_INDEX]), grasp_pos, grasp_rot)
             if target is not None:
@@ -195,5 +212,8 @@ class RegraspServo:
         if self.held or self.closings >= cfg.attempts:
             self.phase = "done"
             return pose_vector(grasp_pos, grasp_rot, 1.0).astype(np.float32)
-        self.phase = "release"  # closed on nothing: open, back off and reach again
+        self.phase, self._misses = (
+            "release",
+            self._misses + 1,
+        )  # closed on nothing: open, back off, reach again
         return None
