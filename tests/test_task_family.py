@@ -84,6 +84,30 @@ def test_lerobot_s_env_type_runs_the_task_in_async_workers(task):
         vec.close()
 
 
+def test_a_vector_env_stacks_success_where_one_env_finishes_before_the_other():
+    """lerobot-eval stacks ``final_info["is_success"]`` of every env at the step one finishes: the env reports
+    Python bools, so the env still running reads False there, not None."""
+    from lerobot_suture.expert import ScriptedExpert
+    from lerobot_suture.sim.geometry import pose_vector
+
+    make = [lambda: gym.make(TASKS["extraction"].gym_id, image_size=32)] * 2
+    envs = gym.vector.SyncVectorEnv(make, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)  # as LeRobot's
+    try:
+        envs.reset(seed=[3, 4])
+        expert, first = ScriptedExpert(), envs.envs[0]
+        expert.reset(first)
+        for _ in range(TASKS["extraction"].max_episode_steps):
+            hold = pose_vector(*envs.envs[1].unwrapped.jaw_pose(), 1.0)  # the second arm holds still
+            _, _, terminated, _, info = envs.step(np.stack([expert.act(first), hold]))
+            if terminated.any():
+                break
+        assert terminated.tolist() == [True, False]
+        assert info["final_info"]["is_success"].dtype == bool
+        assert info["final_info"]["is_success"].tolist() == [True, False]
+    finally:
+        envs.close()
+
+
 @pytest.mark.parametrize(
     "task", [pytest.param(t, marks=[] if t == "running_suture" else pytest.mark.slow) for t in NEW_TASKS]
 )

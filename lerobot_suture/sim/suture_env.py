@@ -480,18 +480,20 @@ class SutureEnv(TaskScenes, PrivilegedState, gym.Env):
         return obs
 
     def _info(self, success: bool, v_nominal: np.ndarray, v_command: np.ndarray) -> dict:
+        # Python bools: a vector env fills an env that has not finished with False only for those (a NumPy
+        # bool gets an object array with None, which lerobot-eval cannot stack).
         return {
-            "is_success": success,
+            "is_success": bool(success),
             "reward_success": 1.0 if success else 0.0,
             "entry_error_m": self._progress.entry_error,
             "exit_error_m": self._progress.exit_error,
             "protrusion_m": self._progress.protrusion,
             "tissue_strain": self._progress.strain,
             "needle_tip_pos": self._progress.tip_world.copy(),
-            "needle_in_tissue": self._progress.in_tissue,
-            "needle_grasped": self._grasp.held,
+            "needle_in_tissue": bool(self._progress.in_tissue),
+            "needle_grasped": bool(self._grasp.held),
             "grasp_parameters": np.array(self._grasp.parameters, dtype=np.float64),
-            "perturbed": self.scenario.perturbed,
+            "perturbed": bool(self.scenario.perturbed),
             "tip_velocity_nominal": np.asarray(v_nominal, dtype=np.float64).copy(),
             "tip_velocity_command": np.asarray(v_command, dtype=np.float64).copy(),
         }
