@@ -8,7 +8,8 @@ on), a ``suture_chain`` runs, and at every step of the first throw's extract (th
 reads the simulator: the distance from the planned grasp's jaw point to the needle's wire (across it, the one a
 closing cannot absorb), the closest the jaw came to the plan and to the wire, and how often the jaw closed; how
 long the insert held on after the throw was over (``steps_to_release``) and how far it strained the tissue
-meanwhile (``strain_before_release_mm``, against the extraction's 2 mm bound); which rule of the capture let the
+meanwhile (``strain_before_release_mm``, against the extraction's 2 mm bound), and the strain the bound counts at
+the extract's last step (``extraction_strain_mm``: when the throw is extracted, or the episode ends); which rule of the capture let the
 needle go at each closing (``grasp.CaptureVerdict``: not between the faces, the jaw too closed, lodged, into the
 pad; with how far the seat would move the needle, mm), whether a closing caught it and how far the jaw then
 travelled (``pulled_mm``). The same for the regrasp planned from the release
@@ -87,6 +88,7 @@ def main() -> None:
             "pulled_mm": None,
             "steps_to_release": None,
             "strain_before_release_mm": None,
+            "extraction_strain_mm": None,
             "_closure": None,
             "_verdict": None,
             "_strain_over": None,
@@ -103,6 +105,7 @@ def main() -> None:
         strain = 1e3 * float(info["tissue_strain"])
         if ep["_strain_over"] is None:  # the throw is over; the insert has yet to let go
             ep["_strain_over"] = strain
+        ep["extraction_strain_mm"] = strain - ep["_strain_over"]  # the bound's count, insert's last steps in
         if ep["steps_to_release"] is None and u.needle_grasped:
             ep["strain_before_release_mm"] = strain - ep["_strain_over"]
         elif ep["steps_to_release"] is None:
