@@ -9,8 +9,8 @@ reads the simulator: the distance from the planned grasp's jaw point to the need
 closing cannot absorb), the closest the jaw came to the plan and to the wire, and how often the jaw closed; how
 long the insert held on after the throw was over (``steps_to_release``) and how far it strained the tissue
 meanwhile (``strain_before_release_mm``, against the extraction's 2 mm bound), and the strain the bound counts at
-the extract's last step (``extraction_strain_mm``: when the throw is extracted, or the episode ends); which rule of the capture let the
-needle go at each closing (``grasp.CaptureVerdict``: not between the faces, the jaw too closed, lodged, into the
+the extract's last step (``extraction_strain_mm``: when the throw is extracted, or the episode ends); which rule
+of the capture let the needle go at each closing (``grasp.CaptureVerdict``: not between the faces, the jaw too closed, lodged, into the
 pad; with how far the seat would move the needle, mm), whether a closing caught it and how far the jaw then
 travelled (``pulled_mm``). The same for the regrasp planned from the release
 (``sim.regrasp_target.released_regrasp`` of the jaw's pose at the extract's first step, the needle still held):
