@@ -3,7 +3,7 @@
 
 A learned extract policy places the regrasp half a millimetre across the jaw's faces from the grasp and closes
 there (``studies/benchmarks/extraction_failures.py``), where the wire must lie between the faces. Once it holds
-the tip, it pulls the needle out in nearly every episode. The planned regrasp is itself an observation
+the tip, it pulls the needle out in nearly every extraction episode. The planned regrasp is itself an observation
 (``regrasp_target``, :mod:`lerobot_suture.sim.regrasp_target`): the motion from the jaw's measured pose to the
 grasp, planned from the registered marks or from where the jaw let go. A servo on it needs only what a real
 system has: the arm's kinematics, the registration and the jaw's encoder.
@@ -23,8 +23,8 @@ done (``held``). One that closes fully closed on nothing: it opens, backs off an
 ``attempts`` closings, each ``search_depth`` further along the jaw's axis than the last. The plan puts the wire at
 the jaw's tip, the outer edge of where closing faces catch it (``sim.needle_capture``: up to 6 mm inside the jaw,
 a wire radius beyond its tip), so a plan that lies short of the wire misses by a fraction of a millimetre along
-that axis, and the next closing, deeper, catches it. The needle's pose and the simulator's contact flags are
-never read.
+that axis, and a deeper closing can catch it (the running suture's throws: ``docs/results.md``). The needle's
+pose and the simulator's contact flags are never read.
 """
 
 from __future__ import annotations
@@ -40,7 +40,6 @@ from lerobot_suture.sim.relative_actions import measured_jaw
 from lerobot_suture.sim.subtasks import JAW_INDEX
 from lerobot_suture.sim.task import CONTROL_DT
 
-SERVO_PHASES = ("release", "back_off", "reach", "advance", "settle", "close", "done")
 _STOPPED = 0.01
 """Change of the jaw's closure over a control step below which the closing jaw has stopped."""
 _CLOSE_STEPS = 10
