@@ -32,11 +32,16 @@ import math
 import numpy as np
 
 from lerobot_suture.expert_plans import episode_stream
-from lerobot_suture.sim.extraction import BACK_OFF, REGRASP_ANGLE, planned_regrasp, turn_left
+from lerobot_suture.sim.extraction import (
+    BACK_OFF,
+    REGRASP_ANGLE,
+    planned_regrasp,
+    reach_step,
+    turn_left,
+)
 from lerobot_suture.sim.geometry import (
     grasp_transform,
     jaw_holding,
-    matrix_from_rotvec,
     pose_vector,
     step_towards,
 )
@@ -141,19 +146,16 @@ class ExtractionPlan:
                 if np.linalg.norm(short - jaw_pos) < cfg.position_tolerance and left < cfg.angle_tolerance:
                     self.phase = "advance"
                 else:
-                    max_turn = cfg.approach_turn_rate * dt
-                    if math.pi / 2 < left < 2.0 * math.pi - 0.5:
-                        # Turn about the jaw's axis in the sense that leaves the pull the instrument's roll;
-                        # the last quarter turn (the shortest way now) aligns every axis.
-                        position, _ = step_towards(
-                            jaw_pos, jaw_rot, short, jaw_rot, cfg.approach_speed * dt, 0.0
-                        )
-                        rotation = matrix_from_rotvec(max_turn * jaw_rot[:, 2]) @ jaw_rot
-                        return pose_vector(position, rotation, 0.0).astype(np.float32)
-                    target = step_towards(
-                        jaw_pos, jaw_rot, short, grasp_rot, cfg.approach_speed * dt, max_turn
+                    step = reach_step(
+                        jaw_pos,
+                        jaw_rot,
+                        short,
+                        grasp_rot,
+                        left,
+                        cfg.approach_speed * dt,
+                        cfg.approach_turn_rate * dt,
                     )
-                    return pose_vector(*target, 0.0).astype(np.float32)
+                    return pose_vector(*step, 0.0).astype(np.float32)
             if self.phase == "settle" or np.linalg.norm(grasp_pos - jaw_pos) < cfg.position_tolerance:
                 if self._settled < cfg.regrasp_settle:
                     self.phase, self._settled = "settle", self._settled + 1

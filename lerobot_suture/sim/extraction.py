@@ -21,7 +21,13 @@ import math
 
 import numpy as np
 
-from lerobot_suture.sim.geometry import grasp_transform, insertion_frame, jaw_holding
+from lerobot_suture.sim.geometry import (
+    grasp_transform,
+    insertion_frame,
+    jaw_holding,
+    matrix_from_rotvec,
+    step_towards,
+)
 from lerobot_suture.sim.task import EXIT_TOLERANCE, NEEDLE_TILT
 
 PROTRUSION_RANGE = (0.5, 0.7)
@@ -77,3 +83,22 @@ def turn_left(jaw_rot: np.ndarray, goal_rot: np.ndarray) -> float:
     x_goal = jaw_rot.T @ goal_rot[:, 0]
     angle = math.atan2(x_goal[1], x_goal[0]) % (2.0 * math.pi)
     return 0.0 if angle > 2.0 * math.pi - 1e-3 else angle
+
+
+def reach_step(
+    jaw_pos: np.ndarray,
+    jaw_rot: np.ndarray,
+    short: np.ndarray,
+    grasp_rot: np.ndarray,
+    left: float,
+    max_distance: float,
+    max_turn: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """One bounded step (position (3,) m, rotation (3, 3)) of a regrasp's reach from the jaw at ``jaw_pos``,
+    ``jaw_rot`` towards ``short`` (m) and the grasp's heading ``grasp_rot``, ``left`` (:func:`turn_left`) still to
+    turn. While more than a quarter turn is left, the jaw turns about its own axis in the sense that leaves the
+    pull the instrument's roll; the last quarter turn (the shortest way now) aligns every axis."""
+    if math.pi / 2 < left < 2.0 * math.pi - 0.5:
+        position, _ = step_towards(jaw_pos, jaw_rot, short, jaw_rot, max_distance, 0.0)
+        return position, matrix_from_rotvec(max_turn * jaw_rot[:, 2]) @ jaw_rot
+    return step_towards(jaw_pos, jaw_rot, short, grasp_rot, max_distance, max_turn)

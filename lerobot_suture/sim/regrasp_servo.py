@@ -14,7 +14,7 @@ measurements alone:
 1. ``release``: open the jaw where it is;
 2. ``back_off``: draw it :data:`~lerobot_suture.sim.extraction.BACK_OFF` back along its axis;
 3. ``reach``: to that distance short of the grasp, turning about the jaw's axis against the pull's sense
-   (:func:`~lerobot_suture.sim.extraction.turn_left`), then ``advance`` onto the grasp;
+   (:func:`~lerobot_suture.sim.extraction.reach_step`), then ``advance`` onto the grasp;
 4. ``settle``: hold the open jaw there ``settle_steps`` control steps; ``close``: close it, and wait for the
    encoder to stop.
 
@@ -33,8 +33,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lerobot_suture.sim.extraction import BACK_OFF, turn_left
-from lerobot_suture.sim.geometry import matrix_from_rot6, matrix_from_rotvec, pose_vector, step_towards
+from lerobot_suture.sim.extraction import BACK_OFF, reach_step, turn_left
+from lerobot_suture.sim.geometry import matrix_from_rot6, pose_vector, step_towards
 from lerobot_suture.sim.needle_capture import JAW_GRIP_LENGTH
 from lerobot_suture.sim.relative_actions import measured_jaw
 from lerobot_suture.sim.subtasks import JAW_INDEX
@@ -172,15 +172,8 @@ class RegraspServo:
             short = grasp_pos - BACK_OFF * grasp_rot[:, 2]
             left = turn_left(jaw_rot, grasp_rot)
             if np.linalg.norm(short - jaw_pos) >= cfg.position_tolerance or left >= cfg.angle_tolerance:
-                if np.pi / 2 < left < 2.0 * np.pi - 0.5:
-                    # The long way round about the jaw's axis, as the expert turns: the pull keeps the roll.
-                    position, _ = step_towards(
-                        jaw_pos, jaw_rot, short, jaw_rot, cfg.approach_speed * cfg.control_dt, 0.0
-                    )
-                    rotation = matrix_from_rotvec(max_turn * jaw_rot[:, 2]) @ jaw_rot
-                    return pose_vector(position, rotation, 0.0).astype(np.float32)
-                step = step_towards(
-                    jaw_pos, jaw_rot, short, grasp_rot, cfg.approach_speed * cfg.control_dt, max_turn
+                step = reach_step(
+                    jaw_pos, jaw_rot, short, grasp_rot, left, cfg.approach_speed * cfg.control_dt, max_turn
                 )
                 return pose_vector(*step, 0.0).astype(np.float32)
             self.phase = "advance"
