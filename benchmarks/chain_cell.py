@@ -12,8 +12,10 @@ A policy that reads the planned regrasp gets it from the env; ``--regrasp-from r
 jaw let go of the needle instead of through the marks (``sim.regrasp_target``); ``--arc-guard`` holds a needle
 in tissue to its arc (``safety.arc_guard``); ``--scripted-regrasp`` scripts the extract's regrasp (a servo on the
 measured pose and the planned regrasp, ``sim.regrasp_servo``), the extract policy pulling once the jaw holds the
-tip. The chain and the finished cell
-are kept in ``--work-dir``: a rerun reads them back.
+tip; ``--scripted-pull`` scripts the pull too (a turn about the needle's centre estimated from the jaw's pose at the
+hold, ``sim.pull_servo``). ``--task extraction --scenarios`` runs the chain on the extraction task's board cells
+instead, every scenario included. The chain and the finished cells are kept in ``--work-dir``: a rerun reads them
+back.
 """
 
 from __future__ import annotations
@@ -32,6 +34,8 @@ SUBTASK_FLAGS = ("insert", "extract", "lay_down", "pick_up")
 
 def main() -> None:
     from lerobot_policy_suture_chain.assemble import ChainCommandConfig, write_chain
+
+    from lerobot_suture.sim.tasks import task_spec
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--policy", type=Path, help="the policy of every subtask not given its own")
@@ -54,35 +58,52 @@ def main() -> None:
     parser.add_argument(
         "--scripted-regrasp", action="store_true", help="script the extract's regrasp (sim.regrasp_servo)"
     )
+    parser.add_argument(
+        "--scripted-pull", action="store_true", help="script the extract's pull too (sim.pull_servo)"
+    )
+    parser.add_argument("--task", choices=("running_suture", "extraction"), default="running_suture")
+    parser.add_argument("--scenarios", action="store_true", help="the task's perturbation scenarios too")
     args = parser.parse_args()
 
     policies = {"policy": args.policy, **{name: getattr(args, name) for name in SUBTASK_FLAGS}}
-    chain_dir, cell_path = args.work_dir / "chain", args.work_dir / "cell.json"
+    chain_dir = args.work_dir / "chain"
     if not (chain_dir / "config.json").is_file():  # the config refuses a subtask without a policy
         write_chain(
-            ChainCommandConfig(output_dir=chain_dir, scripted_regrasp=args.scripted_regrasp, **policies)
+            ChainCommandConfig(
+                output_dir=chain_dir,
+                scripted_regrasp=args.scripted_regrasp,
+                scripted_pull=args.scripted_pull,
+                **policies,
+            )
         )
-    if cell_path.is_file():
-        cell = json.loads(cell_path.read_text())
-    else:
-        start = time.perf_counter()
-        print(f"evaluating the chain on {args.episodes} test episodes ...", flush=True)
-        overrides = {} if args.regrasp_from == "marks" else {"regrasp_from": args.regrasp_from}
-        if args.arc_guard:
-            overrides["arc_guard"] = True
-        cell = evaluate(
-            "running_suture", chain_dir, args.episodes, args.seed, args.batch_envs, env_overrides=overrides
-        )
-        cell["evaluation_s"] = round(time.perf_counter() - start, 1)
-        cell_path.write_text(json.dumps(cell))
+    overrides = {} if args.regrasp_from == "marks" else {"regrasp_from": args.regrasp_from}
+    if args.arc_guard:
+        overrides["arc_guard"] = True
+    conditions = task_spec(args.task).scenarios if args.scenarios else ("nominal",)
+    cells = {}
+    for condition in conditions:
+        suffix = "" if args.task == "running_suture" else f".{args.task}"
+        cell_path = args.work_dir / f"cell{suffix}{'' if condition == 'nominal' else '.' + condition}.json"
+        if not cell_path.is_file():
+            start = time.perf_counter()
+            print(f"evaluating the chain on {args.episodes} test episodes, {condition} ...", flush=True)
+            cell = evaluate(
+                args.task, chain_dir, args.episodes, args.seed, args.batch_envs, condition, overrides
+            )
+            cell["evaluation_s"] = round(time.perf_counter() - start, 1)
+            cell_path.write_text(json.dumps(cell))
+        cells[condition] = json.loads(cell_path.read_text())
+        print(f"{condition}: {cells[condition]['successes']}/{cells[condition]['episodes']}", flush=True)
     report = {
-        "task": "running_suture",
+        "task": args.task,
         "policies": {name: str(path) for name, path in policies.items() if path is not None},
         "chain": str(chain_dir),
         "regrasp_from": args.regrasp_from,
         "arc_guard": args.arc_guard,
         "scripted_regrasp": args.scripted_regrasp,
-        "nominal": cell,
+        "scripted_pull": args.scripted_pull,
+        "nominal": cells["nominal"],
+        **({"scenarios": {c: cell for c, cell in cells.items() if c != "nominal"}} if len(cells) > 1 else {}),
         "machine": machine(),
     }
     emit(report, args.output)

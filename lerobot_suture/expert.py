@@ -35,6 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lerobot_suture.checks import check_positive
 from lerobot_suture.expert_plans import episode_stream
 from lerobot_suture.expert_plans.extraction import ExtractionPlan
 from lerobot_suture.expert_plans.pickup import PickupPlan
@@ -116,19 +117,19 @@ class ExpertConfig:
     assume_nominal_grasp: bool = False
 
     def __post_init__(self):
-        for name in (
-            "approach_height",
-            "approach_speed",
-            "approach_turn_rate",
-            "descend_speed",
-            "drive_rate",
-            "protrusion_angle",
-            "position_tolerance",
-            "angle_tolerance",
-        ):
-            value = getattr(self, name)
-            if not (value > 0 and math.isfinite(value)):
-                raise ValueError(f"`{name}` must be a finite number > 0. Got {value}.")
+        check_positive(
+            self,
+            (
+                "approach_height",
+                "approach_speed",
+                "approach_turn_rate",
+                "descend_speed",
+                "drive_rate",
+                "protrusion_angle",
+                "position_tolerance",
+                "angle_tolerance",
+            ),
+        )
         if not (0.0 <= self.approach_detour <= 0.03 and math.isfinite(self.approach_detour)):
             raise ValueError(
                 f"`approach_detour` must be in [0, 0.03] m (0: a straight approach). Got {self.approach_detour}."

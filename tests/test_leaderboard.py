@@ -2,6 +2,7 @@
 
 import json
 import math
+from pathlib import Path
 
 import pytest
 from PIL import Image
@@ -23,7 +24,7 @@ from lerobot_suture.leaderboard.pipeline import (
     default_shifts,
     parse_checkpoints,
 )
-from lerobot_suture.leaderboard.run import seeded_rows
+from lerobot_suture.leaderboard.run import rounded, seeded_rows
 from lerobot_suture.runtime.config import PolicyPathConfig
 from lerobot_suture.runtime.rollout import EpisodeLog, StepLog
 from lerobot_suture.sim.shifts import SHIFTS
@@ -474,3 +475,15 @@ def test_toy_tuning_trains_each_configuration_and_writes_the_chosen_preset(tmp_p
         assert str(preset["policy"][name]) == str(float(value) if "e-" in value else int(value)), flag
     assert report["validation_seed"] == 7_000_000 + 500_000
     assert "| act | half_encoder |" in (results / "tuning.md").read_text()
+
+
+def test_the_board_file_keeps_six_significant_digits_of_every_float_of_its_cells_and_the_rest_as_it_was():
+    board = {
+        "a": [0.07134759913335872, 6.938893903907228e-18, 3, True, None],
+        "b": {"c": 1234567.891, "d": "x"},
+    }
+    assert rounded(board) == {"a": [0.0713476, 6.93889e-18, 3, True, None], "b": {"c": 1234570.0, "d": "x"}}
+    committed = json.loads(
+        (Path(__file__).parents[1] / "docs/results/leaderboard/leaderboard.json").read_text()
+    )
+    assert rounded(committed["tasks"]) == committed["tasks"]  # written by the board as it writes now

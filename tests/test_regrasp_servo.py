@@ -143,14 +143,14 @@ def test_the_chain_scripts_the_regrasp_then_its_extract_policy_pulls(tmp_path):
         for _ in range(120):
             action = post(chain.select_action(pre(preprocess_observation(observation))))
             assert chain.readings[0][0] == "extract"
-            servo = chain.servos[0]
+            servo = chain.extracts[0].servo
             servo_steps += 1
             observation, *_ = env.step(action[0].numpy())
             if servo.done:
                 break
         assert servo.done and env.unwrapped.needle_grasped and servo_steps > 20
         action = post(chain.select_action(pre(preprocess_observation(observation))))
-        assert chain.servos[0] is servo  # done: the extract policy acts, no new servo
+        assert chain.extracts[0].servo is servo  # done: the extract policy acts, no new servo
         ref, ref_pre, ref_post = load_policy(out / "policies" / "all")
         ref.reset()
         batch = preprocess_observation(observation)
@@ -161,7 +161,7 @@ def test_the_chain_scripts_the_regrasp_then_its_extract_policy_pulls(tmp_path):
         lost = {**observation, "agent_pos": observation["agent_pos"].copy()}
         lost["agent_pos"][JAW_INDEX] = 1.0  # the encoder reads the jaw empty: the needle slipped out
         action = post(chain.select_action(pre(preprocess_observation(lost))))
-        assert chain.readings[0][0] == "extract" and chain.servos[0] is not servo
+        assert chain.readings[0][0] == "extract" and chain.extracts[0].servo is not servo
         assert action[0, JAW_INDEX] == 0.0  # a new regrasp: it lets go first
     finally:
         env.close()

@@ -47,6 +47,8 @@ class ChainCommandConfig:
         the rules' default thresholds.
     scripted_regrasp: script the extract subtask's regrasp (a servo on the measured pose and the planned regrasp,
         ``lerobot_suture.sim.regrasp_servo``); the extract policy pulls once the jaw holds the tip.
+    scripted_pull: script the extract's pull too (a turn about the needle's centre estimated from the jaw's pose at
+        the hold, ``lerobot_suture.sim.pull_servo``); needs ``scripted_regrasp``.
     """
 
     output_dir: Path | None = None
@@ -62,6 +64,7 @@ class ChainCommandConfig:
     device: str = "cpu"
     subtask_from_env: bool = False
     scripted_regrasp: bool = False
+    scripted_pull: bool = False
 
     def __post_init__(self):
         if self.output_dir is None:
@@ -159,6 +162,7 @@ def write_chain(cfg: ChainCommandConfig) -> Path:
         release_radius=cfg.release_radius,
         holding_below=cfg.holding_below,
         scripted_regrasp=cfg.scripted_regrasp,
+        scripted_pull=cfg.scripted_pull,
         input_features=chain_input_features(
             list(configs.values()), cfg.subtask_from_env, cfg.scripted_regrasp
         ),
@@ -182,7 +186,7 @@ def main(argv: list[str] | None = None) -> None:
     config = PreTrainedConfig.from_pretrained(out)
     served = ", ".join(f"{subtask}: {name}" for subtask, name in config.subtask_policies.items())
     if config.scripted_regrasp:
-        served += "; the extract's regrasp scripted"
+        served += "; the extract's regrasp" + (" and pull" if config.scripted_pull else "") + " scripted"
     print(f"Chain written to {out} ({served}).")
     flags = " ".join(f"--env.{name}=true" for name in state_parts(env_state_size(config)))
     print(f"Run it: lerobot-eval --policy.path={out} --env.type=suture --env.task=running_suture {flags}")

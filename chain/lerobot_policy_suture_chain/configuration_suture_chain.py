@@ -44,6 +44,9 @@ class SutureChainConfig(PreTrainedConfig):
         scripted_regrasp: the extract subtask's regrasp is scripted, not learned: a servo on the measured pose and
             the planned regrasp (``lerobot_suture.sim.regrasp_servo``) takes the tip, then the extract policy
             pulls. The chain then reads the planned regrasp from the env (``--env.regrasp_target=true``).
+        scripted_pull: the extract subtask's pull is scripted too (needs ``scripted_regrasp``): from the step the
+            jaw holds the tip, a turn about the needle's centre estimated from that measured pose
+            (``lerobot_suture.sim.pull_servo``) pulls it out, and the extract policy never acts.
     """
 
     subtask_policies: dict[str, str] = field(default_factory=dict)
@@ -52,6 +55,7 @@ class SutureChainConfig(PreTrainedConfig):
     release_radius: float = 0.010
     holding_below: float = 0.95
     scripted_regrasp: bool = False
+    scripted_pull: bool = False
     n_obs_steps: int = 1
 
     def __post_init__(self):
@@ -71,6 +75,10 @@ class SutureChainConfig(PreTrainedConfig):
                     f"'_', '.', '-'). Got {name!r}."
                 )
         _ = self.rules  # SubtaskRulesConfig checks the thresholds
+        if self.scripted_pull and not self.scripted_regrasp:
+            raise ValueError(
+                "`scripted_pull` pulls from the hold the scripted regrasp makes: pass `scripted_regrasp=true` too."
+            )
         if self.n_obs_steps != 1:
             raise ValueError(
                 f"`n_obs_steps` must be 1 (each subtask policy keeps its own). Got {self.n_obs_steps}."

@@ -16,7 +16,10 @@ throw's insert where its own rules would start again.
 A chain written with ``--scripted_regrasp=true`` scripts the extract subtask's regrasp: from the step an
 environment enters ``extract``, a :class:`~lerobot_suture.sim.regrasp_servo.RegraspServo` on its measured pose and
 planned regrasp acts until the jaw holds the tip; the extract policy, reset then, pulls. A jaw that held the tip
-and then reads empty (its encoder fully closed: the needle slipped out) gets a new servo, which regrasps.
+and then reads empty (its encoder fully closed: the needle slipped out) gets a new servo, which regrasps. Written
+with ``--scripted_pull=true`` too, the pull is scripted as well: a
+:class:`~lerobot_suture.sim.pull_servo.PullServo` turns the held needle out about its centre, estimated from the
+jaw's measured pose at the hold, and the extract policy never acts.
 
 Subtask policies keep their own observation and action queues, one row per environment. A policy that an
 environment enters is reset first, so its first action is predicted from the new subtask's observation and not
@@ -35,9 +38,10 @@ from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import OBS_ENV_STATE, OBS_STATE
 from torch import Tensor, nn
 
-from lerobot_suture.sim.regrasp_servo import RegraspServo, RegraspServoConfig
+from lerobot_suture.sim.regrasp_servo import RegraspServoConfig
+from lerobot_suture.sim.scripted_extract import ScriptedExtract
 from lerobot_suture.sim.state_layout import LAYOUTS, registered_parts, state_parts
-from lerobot_suture.sim.subtasks import JAW_INDEX, SubtaskRules, subtask_reading, subtask_vector
+from lerobot_suture.sim.subtasks import SubtaskRules, subtask_reading, subtask_vector
 
 from .configuration_suture_chain import POLICIES_DIR, SutureChainConfig, env_state_size
 
@@ -118,8 +122,8 @@ class SutureChainPolicy(PreTrainedPolicy):
         self._rules: list[SubtaskRules] = []
         self.readings: list[tuple[str, int]] = []
         """Each environment's (subtask, throw) at the last step."""
-        self.servos: list[RegraspServo | None] = []
-        """Each environment's scripted regrasp while it runs (``scripted_regrasp``), else None."""
+        self.extracts: list[ScriptedExtract | None] = []
+        """Each environment's scripted extract while it serves the throw (``scripted_regrasp``), else None."""
 
     @classmethod
     def from_pretrained(cls, pretrained_name_or_path, *, config: SutureChainConfig | None = None, **kwargs):
@@ -160,7 +164,7 @@ class SutureChainPolicy(PreTrainedPolicy):
         raise NotImplementedError(self.config._not_trained())
 
     def reset(self):
-        self._rules, self.readings, self.servos = [], [], []
+        self._rules, self.readings, self.extracts = [], [], []
         for policy in self.policies.values():
             policy.reset()
 
@@ -208,37 +212,38 @@ class SutureChainPolicy(PreTrainedPolicy):
     def _servo_actions(
         self, batch: dict[str, Tensor], parts: dict[str, Tensor], before: list
     ) -> dict[int, Tensor]:
-        """The scripted regrasp's action of each environment it serves this step (``scripted_regrasp``): a servo
-        starts where an environment enters ``extract`` (or starts in it), or where a jaw that held the tip reads
-        empty, and ends when the jaw holds the tip. The extract policy is reset as a servo ends, so its first
-        action comes from that step's observation on."""
+        """The scripted actions of each environment they serve this step (``scripted_regrasp``): a scripted extract
+        starts where an environment enters ``extract`` (or starts in it) and acts until the jaw holds the tip, with
+        ``scripted_pull`` until the needle is turned out, whatever the rules read meanwhile (they end the extract
+        on the jaw's travel, short of the whole turn). The policy the arm goes back to is reset as the scripted
+        part ends, so its first action comes from the next step's observation."""
         if not self.config.scripted_regrasp:
             return {}
-        if len(self.servos) != len(self.readings):
-            self.servos = [None] * len(self.readings)
+        if len(self.extracts) != len(self.readings):
+            self.extracts = [None] * len(self.readings)
             before = [None] * len(self.readings)
         poses = batch[OBS_STATE].detach().double().cpu().numpy()
         targets = parts["regrasp_target"].detach().double().cpu().numpy()
-        actions, ended = {}, False
+        actions, handed_back = {}, set()
         for i, (reading, old) in enumerate(zip(self.readings, before, strict=True)):
-            if reading[0] != "extract":
-                self.servos[i] = None
-                continue
-            servo = self.servos[i]
-            lost = servo is not None and servo.held and poses[i][JAW_INDEX] >= self.config.holding_below
-            if old is None or old[0] != "extract" or lost:
-                self.servos[i] = RegraspServo(
+            extract = self.extracts[i]
+            if reading[0] == "extract" and (old is None or old[0] != "extract"):
+                extract = ScriptedExtract(
+                    self.config.scripted_pull,
                     RegraspServoConfig(
                         closed_above=self.config.closed_above, holding_below=self.config.holding_below
-                    )
+                    ),
                 )
-            servo = self.servos[i]
-            if servo is None or servo.done:
-                continue
-            actions[i] = torch.from_numpy(servo.act(poses[i], targets[i]))
-            ended |= servo.done
-        if ended:
-            self.policies[self.config.subtask_policies["extract"]].reset()
+            elif reading[0] != "extract" and not (extract is not None and extract.pulling):
+                extract = None
+            self.extracts[i] = extract
+            action = None if extract is None else extract.act(poses[i], targets[i])
+            if action is not None:
+                actions[i] = torch.from_numpy(action)
+                if extract.handed_back:
+                    handed_back.add(reading[0])
+        for subtask in handed_back:
+            self.policies[self.config.subtask_policies[subtask]].reset()
         return actions
 
     @torch.no_grad()

@@ -34,6 +34,7 @@ import numpy as np
 from lerobot_suture.expert_plans import episode_stream
 from lerobot_suture.sim.extraction import (
     BACK_OFF,
+    PULL_MARGIN,
     REGRASP_ANGLE,
     planned_regrasp,
     reach_step,
@@ -50,8 +51,6 @@ from lerobot_suture.sim.regrasp_target import released_regrasp
 EXTRACTION_PHASES = ("release", "back_off", "reach", "advance", "settle", "close", "pull", "hold")
 _MISS_STREAM = 0x3155  # mixed with the env's seed: the miss side's own stream, apart from the env's draws
 _REACH_STREAM = 0x3156  # the reach offsets' own stream
-PULL_MARGIN = 0.3
-"""How far past the exit point the expert drives the tail (rad of arc)."""
 
 
 class ExtractionPlan:

@@ -149,6 +149,21 @@ def raise_failures(failures: dict[str, str], output_dir) -> None:
         )
 
 
+SIGNIFICANT_DIGITS = 6
+"""Digits a float of a cell in ``leaderboard.json`` keeps: every figure a cell reports, in less room."""
+
+
+def rounded(value, digits: int = SIGNIFICANT_DIGITS):
+    """``value`` (JSON-like: dicts, lists, numbers) with every float rounded to ``digits`` significant digits."""
+    if isinstance(value, float):
+        return float(f"{value:.{digits}g}")
+    if isinstance(value, dict):
+        return {k: rounded(v, digits) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [rounded(v, digits) for v in value]
+    return value
+
+
 def _rollout_seconds(row: dict) -> float:
     """A row's evaluation time: its cells' rollout seconds, whichever runs they were made in."""
     return sum(cell["seconds"] for cell in row.values())
@@ -227,6 +242,9 @@ def run_leaderboard(cfg: LeaderboardConfig) -> dict:
     }
     # The rows already on the board keep their times; this run's stages add or update theirs.
     board["timings"] = {**board.get("timings", {}), **{k: round(v, 1) for k, v in timings.seconds.items()}}
+    for key in ("tasks", "seeds"):  # the cells; the summary keeps its floats as computed
+        if key in board:
+            board[key] = rounded(board[key])
     board_file.write_text(json.dumps(board, separators=(",", ":")))
     (results / "leaderboard.md").write_text(render(board))
     plot(board, results / "leaderboard.png")

@@ -40,6 +40,8 @@ STRAIN_BOUND = 0.002
 """Largest accumulated off-arc motion of the needle in tissue over an extraction (m)."""
 BACK_OFF = 0.006
 """How far a regrasping jaw draws back along its axis from the wire before and after a grasp (m)."""
+PULL_MARGIN = 0.3
+"""How far past the exit point a pull drives the needle's tail (rad of arc)."""
 SWEEP_STEPS = 24
 """Poses along the finished throw that set up the start's insertion record (entry and exit crossings)."""
 

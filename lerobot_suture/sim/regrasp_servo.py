@@ -33,6 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lerobot_suture.checks import check_positive
 from lerobot_suture.sim.extraction import BACK_OFF, reach_step, turn_left
 from lerobot_suture.sim.geometry import matrix_from_rot6, pose_vector, step_towards
 from lerobot_suture.sim.needle_capture import JAW_GRIP_LENGTH
@@ -76,17 +77,17 @@ class RegraspServoConfig:
     control_dt: float = CONTROL_DT
 
     def __post_init__(self):
-        for name in (
-            "approach_speed",
-            "descend_speed",
-            "turn_rate",
-            "position_tolerance",
-            "angle_tolerance",
-            "control_dt",
-        ):
-            value = getattr(self, name)
-            if not np.isfinite(value) or value <= 0:
-                raise ValueError(f"`{name}` must be a finite number > 0. Got {value!r}.")
+        check_positive(
+            self,
+            (
+                "approach_speed",
+                "descend_speed",
+                "turn_rate",
+                "position_tolerance",
+                "angle_tolerance",
+                "control_dt",
+            ),
+        )
         if not isinstance(self.settle_steps, int) or self.settle_steps < 0:
             raise ValueError(f"`settle_steps` must be an integer >= 0. Got {self.settle_steps!r}.")
         if not isinstance(self.attempts, int) or self.attempts < 1:

@@ -42,6 +42,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from lerobot_suture.checks import check_positive
 from lerobot_suture.sim.wound_marks import MARKS_DIM
 
 SUBTASKS = ("insert", "extract", "lay_down", "pick_up")
@@ -78,10 +79,7 @@ class SubtaskRulesConfig:
             raise ValueError(
                 f"`holding_below` must be above `closed_above` ({self.closed_above}). Got {self.holding_below!r}."
             )
-        for name in ("pulled_out_travel", "release_radius"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"`{name}` must be a finite distance > 0 (m). Got {value!r}.")
+        check_positive(self, ("pulled_out_travel", "release_radius"), unit="m")
 
 
 class SubtaskRules:
