@@ -165,22 +165,20 @@ def test_no_import_circles():
     assert not circles, "import circles:\n" + "\n".join(sorted(circles)[:20])
 
 
+_LEAVES = {"lerobot_suture.plotting", "lerobot_suture.checks"}
 FLOORS = {
-    "lerobot_suture.sim": {"lerobot_suture.sim", "lerobot_suture.plotting"},
-    "lerobot_suture.expert_plans": {
-        "lerobot_suture.sim",
-        "lerobot_suture.expert_plans",
-        "lerobot_suture.plotting",
-    },
-    "lerobot_suture.safety": {"lerobot_suture.sim", "lerobot_suture.safety", "lerobot_suture.plotting"},
+    "lerobot_suture.sim": {"lerobot_suture.sim", *_LEAVES},
+    "lerobot_suture.expert_plans": {"lerobot_suture.sim", "lerobot_suture.expert_plans", *_LEAVES},
+    "lerobot_suture.safety": {"lerobot_suture.sim", "lerobot_suture.safety", *_LEAVES},
     "lerobot_suture.plotting": set(),
+    "lerobot_suture.checks": set(),
     "lerobot_suture.lerobot_shim": set(),
     "lerobot_suture.datasets": {
         "lerobot_suture.sim",
         "lerobot_suture.expert",
         "lerobot_suture.expert_plans",
         "lerobot_suture.datasets",
-        "lerobot_suture.plotting",
+        *_LEAVES,
     },
 }
 """The bottom floors and what each may import of the package: nothing above it."""
