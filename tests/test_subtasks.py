@@ -21,10 +21,12 @@ def test_a_throw_runs_through_its_four_subtasks_and_the_next_throw_counts():
         (pose(0.001, 0.1), ("extract", 0)),  # lets go of the needle
         (pose(0.005, 0.0), ("extract", 0)),  # reaches the tip, open
         (pose(0.005, 0.8), ("extract", 0)),  # closes on it
+        (pose(0.005, 0.8), ("extract", 0)),  # the jaw stops on the wire: the hold starts here
         (pose(0.010, 0.88), ("extract", 0)),  # pulls 5 mm
         (pose(0.016, 0.88), ("lay_down", 0)),  # 11 mm: the needle is out
         (pose(0.020, 0.1), ("pick_up", 1)),  # lets go on the phantom: the next throw's pick-up
-        (pose(0.020, 0.85), ("insert", 1)),  # grasps it again
+        (pose(0.020, 0.85), ("pick_up", 1)),  # closes on it
+        (pose(0.020, 0.85), ("insert", 1)),  # stopped on the wire: grasped again
     ]
     for measured, expected in steps:
         assert rules.update(measured) == expected
@@ -35,7 +37,8 @@ def test_with_the_wound_s_marks_a_needle_lost_on_the_way_is_picked_up_again_in_t
     marks = np.array([0.0, 0.0, 0.02, 0.016, 0.0, 0.02])  # entry and exit at the poses' height, 16 mm apart
     rules.reset(pose(0.03, 0.88))
     assert rules.update(pose(0.03, 0.1), marks) == ("pick_up", 0)  # 30 mm from the entry: dropped
-    assert rules.update(pose(0.03, 0.9), marks) == ("insert", 0)  # grasped again: the same throw
+    assert rules.update(pose(0.03, 0.9), marks) == ("pick_up", 0)  # closing
+    assert rules.update(pose(0.03, 0.9), marks) == ("insert", 0)  # stopped on the wire: the same throw
     assert rules.update(pose(0.005, 0.1), marks) == (
         "extract",
         0,
@@ -51,16 +54,34 @@ def test_a_jaw_closed_beside_the_needle_neither_pulls_it_out_nor_picks_it_up():
     assert rules.update(pose(0.005, 1.0)) == ("extract", 0)  # closed on nothing
     assert rules.update(pose(0.030, 1.0)) == ("extract", 0)  # 25 mm of travel, no needle in the jaw
     assert rules.update(pose(0.030, 0.0)) == ("extract", 0)  # opens to try again
-    assert rules.update(pose(0.030, 0.86)) == ("extract", 0)  # catches the tip: the pull starts here
+    assert rules.update(pose(0.030, 0.86)) == ("extract", 0)  # closing on the tip
+    assert rules.update(pose(0.030, 0.86)) == ("extract", 0)  # stopped on the wire: the pull starts here
     assert rules.update(pose(0.041, 0.86)) == ("lay_down", 0)
     assert rules.update(pose(0.041, 0.0)) == ("pick_up", 1)
     assert rules.update(pose(0.041, 1.0)) == ("pick_up", 1)  # missed the needle on the phantom
     assert rules.update(pose(0.041, 0.0)) == ("pick_up", 1)
+    assert rules.update(pose(0.041, 0.88)) == ("pick_up", 1)
     assert rules.update(pose(0.041, 0.88)) == ("insert", 1)
     assert SubtaskRules().reset(pose(0.0, 1.0)) == ("pick_up", 0)  # an empty jaw holds no needle to insert
     every_closing = SubtaskRules(SubtaskRulesConfig(holding_below=1.5))
     every_closing.reset(pose(0.0, 1.0))
     assert every_closing.subtask == "insert"
+
+
+def test_a_jaw_closing_on_nothing_is_no_grasp_on_its_way_through_the_wire_s_readings():
+    """An empty jaw closes fully over a few control steps and reads 0.5-0.95 on the way, as a jaw on the wire does;
+    the rules judge a closing once the jaw has stopped, so it neither ends a pick-up nor starts a pull."""
+    rules = SubtaskRules(SubtaskRulesConfig(pulled_out_travel=0.01))
+    rules.reset(pose(0.0, 0.0))
+    for jaw in (0.3, 0.51, 0.82, 1.0, 1.0):
+        assert rules.update(pose(0.0, jaw)) == ("pick_up", 0)
+    assert rules.update(pose(0.0, 0.0)) == ("pick_up", 0)
+    for jaw, expected in ((0.6, "pick_up"), (0.86, "pick_up"), (0.86, "insert")):
+        assert rules.update(pose(0.0, jaw)) == (expected, 0)
+    assert rules.update(pose(0.0, 0.0)) == ("extract", 0)
+    for jaw in (0.51, 0.9, 1.0):  # a regrasp's closing beside the tip, then 15 mm of travel
+        assert rules.update(pose(0.0, jaw)) == ("extract", 0)
+    assert rules.update(pose(0.015, 1.0)) == ("extract", 0)
 
 
 def test_a_reading_is_the_vector_it_was_made_into():
@@ -77,6 +98,7 @@ def test_a_reading_is_the_vector_it_was_made_into():
 def test_a_suture_from_a_needle_on_the_phantom_starts_with_its_pick_up():
     rules = SubtaskRules()
     assert rules.reset(pose(0.0, 0.0)) == ("pick_up", 0)
+    assert rules.update(pose(0.0, 0.9)) == ("pick_up", 0)  # closing
     assert rules.update(pose(0.0, 0.9)) == ("insert", 0)  # the first grasp leads into throw 0
 
 
@@ -360,5 +382,6 @@ def test_a_stage_that_outlasts_its_time_budget_is_flagged_and_the_next_starts_af
         True,
     ]  # the extract's fourth step is one too many
     assert gates.context(0) == {"subtask": "extract", "throw": 0}
+    gates.observe(0, {"agent_pos": pose(0.0, 0.86)})  # the jaw stops on the wire: the hold starts
     gates.observe(0, {"agent_pos": pose(0.03, 0.86)})  # pulled out: lay down, which has no budget
     assert not gates.status(0)["released"]

@@ -38,11 +38,9 @@ from lerobot_suture.sim.extraction import BACK_OFF, reach_step, turn_left
 from lerobot_suture.sim.geometry import matrix_from_rot6, pose_vector, step_towards
 from lerobot_suture.sim.needle_capture import JAW_GRIP_LENGTH
 from lerobot_suture.sim.relative_actions import measured_jaw
-from lerobot_suture.sim.subtasks import JAW_INDEX
+from lerobot_suture.sim.subtasks import JAW_INDEX, STOPPED_CHANGE
 from lerobot_suture.sim.task import CONTROL_DT
 
-_STOPPED = 0.01
-"""Change of the jaw's closure over a control step below which the closing jaw has stopped."""
 _CLOSE_STEPS = 10
 """Control steps a closing jaw is given to stop before it is judged where it is."""
 
@@ -197,7 +195,7 @@ class RegraspServo:
         """The closing step's target, or None when the closing is judged and the servo moved on (``done``, or a
         back-off for another reach)."""
         cfg = self.config
-        stopped = self._last_closure is not None and abs(closure - self._last_closure) < _STOPPED
+        stopped = self._last_closure is not None and abs(closure - self._last_closure) < STOPPED_CHANGE
         self._last_closure, self._closing_steps = closure, self._closing_steps + 1
         if not (closure > cfg.closed_above and stopped) and self._closing_steps <= _CLOSE_STEPS:
             return pose_vector(grasp_pos, grasp_rot, 1.0).astype(np.float32)

@@ -23,8 +23,9 @@ the arm's kinematics, so a real arm has both. Rules rather than a learned classi
 fixed, and each boundary but one is a jaw event that a threshold on one encoder reads without error; the one that
 is not (the end of the pull) is a distance. A jaw closed on the needle is told from one closed on nothing by the
 same encoder: the wire between its faces stops it short (0.80-0.88 of its travel in all 72,081 closed frames of the
-running-suture recipe's 133 sutures), where an empty jaw closes fully (1). So a closing beside the needle neither
-starts the pull's travel nor ends a pick-up, and the stage goes on. A learned classifier would need labelled
+running-suture recipe's 133 sutures), where an empty jaw closes fully (1); the rules judge a closing once the jaw
+has stopped (:data:`STOPPED_CHANGE`), since one closing on nothing passes through the wire's readings on its way.
+So a closing beside the needle neither starts the pull's travel nor ends a pick-up, and the stage goes on. A learned classifier would need labelled
 rollouts of every policy it serves and could misfire where the rules cannot. The order is also their limit: a jaw
 event the plan does not have (the needle dropped and grasped again) would read as the next subtask. Given the
 registered wound's marks (the current throw's entry and exit points, as the ``marks`` observation and the robot
@@ -49,6 +50,10 @@ SUBTASKS = ("insert", "extract", "lay_down", "pick_up")
 """A throw's subtasks in their order; ``pick_up`` leads into the next throw's ``insert``."""
 JAW_INDEX = 9
 """Index of the jaw's closure (0 open, 1 closed) in the measured pose."""
+STOPPED_CHANGE = 0.01
+"""Change of the jaw's closure over a control step below which a closing jaw has stopped. A jaw is judged to hold
+the needle only once it has stopped: one closing on nothing passes through the wire's readings on its way to fully
+closed."""
 SUBTASK_KEY = "environment_state"
 SUBTASK_DIM = len(SUBTASKS) + 1
 SUBTASK_NAMES = tuple(f"subtask_{name}" for name in SUBTASKS) + ("throw",)
@@ -95,12 +100,14 @@ class SubtaskRules:
         self.config = config or SubtaskRulesConfig()
         self.subtask, self.throw = SUBTASKS[0], 0
         self._closed = self._holding = True
+        self._closure: float | None = None
         self._tip_grasped_at: np.ndarray | None = None
 
     def reset(self, pose: np.ndarray) -> tuple[str, int]:
         """A new suture: with the needle held it starts at ``insert``, from a needle on the phantom at ``pick_up``."""
         self._closed = self._is_closed(pose)
-        self._holding = self._closed and self._holds(pose)
+        self._holding = self._closed and self._holds(pose)  # the jaw at rest at the start
+        self._closure = float(pose[JAW_INDEX])
         self.subtask, self.throw = ("insert" if self._holding else "pick_up"), 0
         self._tip_grasped_at = None
         return self.subtask, self.throw
@@ -109,9 +116,12 @@ class SubtaskRules:
         """The subtask and the throw (0-based) at the control step whose measured pose is ``pose``, (10,);
         ``marks``: the current throw's entry and exit points (6,) m, or None without a registered wound."""
         closed = self._is_closed(pose)
-        holding = closed and self._holds(pose)
+        closure = float(pose[JAW_INDEX])
+        stopped = self._closure is not None and abs(closure - self._closure) < STOPPED_CHANGE
+        # A hold starts once the closing jaw has stopped short of closed, and lasts while the jaw stays so.
+        holding = closed and self._holds(pose) and (self._holding or stopped)
         opened, grasped = self._closed and not closed, holding and not self._holding
-        self._closed, self._holding = closed, holding
+        self._closed, self._holding, self._closure = closed, holding, closure
         position = np.asarray(pose[:3], dtype=np.float64)
         if self.subtask == "insert" and opened:
             at_wound = (
