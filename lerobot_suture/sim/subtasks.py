@@ -25,8 +25,9 @@ is not (the end of the pull) is a distance. A jaw closed on the needle is told f
 same encoder: the wire between its faces stops it short (0.80-0.88 of its travel in all 72,081 closed frames of the
 running-suture recipe's 133 sutures), where an empty jaw closes fully (1); the rules judge a closing once the jaw
 has stopped (:data:`STOPPED_CHANGE`), since one closing on nothing passes through the wire's readings on its way.
-So a closing beside the needle neither starts the pull's travel nor ends a pick-up, and the stage goes on. A learned classifier would need labelled
-rollouts of every policy it serves and could misfire where the rules cannot. The order is also their limit: a jaw
+So a closing beside the needle neither starts the pull's travel nor ends a pick-up, and the stage goes on. A
+learned classifier would need labelled rollouts of every policy it serves and could misfire where the rules
+cannot. The order is also their limit: a jaw
 event the plan does not have (the needle dropped and grasped again) would read as the next subtask. Given the
 registered wound's marks (the current throw's entry and exit points, as the ``marks`` observation and the robot
 path's registration give them), the rules tell a release at the wound from a needle lost on the way. The throw
