@@ -80,11 +80,14 @@ def main() -> None:
     if args.arc_guard:
         overrides["arc_guard"] = True
     conditions = task_spec(args.task).scenarios if args.scenarios else ("nominal",)
-    cells = {}
+    cells, task_suffix = {}, "" if args.task == "running_suture" else f".{args.task}"
     for condition in conditions:
-        suffix = "" if args.task == "running_suture" else f".{args.task}"
-        cell_path = args.work_dir / f"cell{suffix}{'' if condition == 'nominal' else '.' + condition}.json"
-        if not cell_path.is_file():
+        cell_path = (
+            args.work_dir / f"cell{task_suffix}{'' if condition == 'nominal' else '.' + condition}.json"
+        )
+        if cell_path.is_file():
+            cells[condition] = json.loads(cell_path.read_text())
+        else:
             start = time.perf_counter()
             print(f"evaluating the chain on {args.episodes} test episodes, {condition} ...", flush=True)
             cell = evaluate(
@@ -92,7 +95,7 @@ def main() -> None:
             )
             cell["evaluation_s"] = round(time.perf_counter() - start, 1)
             cell_path.write_text(json.dumps(cell))
-        cells[condition] = json.loads(cell_path.read_text())
+            cells[condition] = cell
         print(f"{condition}: {cells[condition]['successes']}/{cells[condition]['episodes']}", flush=True)
     report = {
         "task": args.task,

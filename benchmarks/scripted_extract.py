@@ -27,15 +27,12 @@ def episode(env, seed: int) -> dict:
     from lerobot_suture.sim.wound_marks import MARKS_DIM
 
     observation, _ = env.reset(seed=seed)
-    extract, info, steps, closings = ScriptedExtract(pull=True), {}, 0, 0
+    extract, info, steps = ScriptedExtract(pull=True), {}, 0
     while steps < env.spec.max_episode_steps:
         steps += 1
         pose = observation["agent_pos"]
         regrasp = observation["environment_state"][MARKS_DIM : MARKS_DIM + REGRASP_TARGET_DIM]
-        servo = extract.servo
         action = extract.act(pose, regrasp)
-        if extract.servo is not servo:  # the needle slipped out: a new regrasp
-            closings += servo.closings
         if action is None:  # every closing missed, or the turn is over: hold still, the jaw closed
             action = np.asarray(pose, dtype=np.float32).copy()
             action[-1] = 1.0
@@ -49,7 +46,7 @@ def episode(env, seed: int) -> dict:
         steps,
         strain_mm,
         extract.regrasps,
-        closings + extract.servo.closings,
+        extract.closings,
     )
     return dict(zip(EPISODE_FIELDS, (seed, *outcome, pulled), strict=True))
 

@@ -147,6 +147,7 @@ def test_the_scripted_extract_pulls_after_the_hold_hands_back_and_regrasps_a_nee
         kinds.append("pull" if extract.pulling or extract.handed_back else "regrasp")
         pose = np.concatenate([action[:9], [0.85 if action[9] > 0.5 else 0.0]])  # the wire stops the jaw
     assert action is None and extract.servo.held and extract.pull.done and extract.regrasps == 1
+    assert extract.closings == 1
     first_pull = kinds.index("pull")
     assert set(kinds[first_pull:]) == {"pull"}
     assert len(kinds) - first_pull == math.ceil(PULL_ANGLE / (0.6 * 0.1))
@@ -154,3 +155,4 @@ def test_the_scripted_extract_pulls_after_the_hold_hands_back_and_regrasps_a_nee
     slipped[JAW_INDEX] = 1.0
     action = extract.act(slipped, relative_action(*measured_jaw(slipped), grasp)[:9])
     assert extract.regrasps == 2 and extract.pull is None and action[JAW_INDEX] == 0.0
+    assert extract.closings == 1  # the first servo's closing, counted across the regrasp

@@ -209,7 +209,7 @@ class SutureChainPolicy(PreTrainedPolicy):
         }
         return entered
 
-    def _servo_actions(
+    def _scripted_actions(
         self, batch: dict[str, Tensor], parts: dict[str, Tensor], before: list
     ) -> dict[int, Tensor]:
         """The scripted actions of each environment they serve this step (``scripted_regrasp``): a scripted extract
@@ -254,7 +254,7 @@ class SutureChainPolicy(PreTrainedPolicy):
         entered = self._read_subtasks(batch, parts)
         for name in entered:
             self.policies[name].reset()
-        scripted = self._servo_actions(batch, parts, before)
+        scripted = self._scripted_actions(batch, parts, before)
         parts["subtask"] = torch.from_numpy(np.stack([subtask_vector(*reading) for reading in self.readings]))
         serving = [
             None if i in scripted else self.config.subtask_policies[subtask]

@@ -37,8 +37,14 @@ class ScriptedExtract:
         self.pull: PullServo | None = None
         self.regrasps = 1
         """Regrasp servos started so far (1 + the times the needle slipped out after a hold)."""
+        self._earlier_closings = 0  # of the regrasp servos before the current one
         self.handed_back = False
         """Whether the last :meth:`act` was the scripted part's last action: a policy acts from the next step on."""
+
+    @property
+    def closings(self) -> int:
+        """Closings of the jaw so far, over every regrasp servo."""
+        return self._earlier_closings + self.servo.closings
 
     @property
     def pulling(self) -> bool:
@@ -51,6 +57,7 @@ class ScriptedExtract:
         over)."""
         empty = agent_pos[JAW_INDEX] >= self.regrasp_config.holding_below
         if self.servo.held and empty:  # the needle slipped out of the jaw: take the tip again
+            self._earlier_closings += self.servo.closings
             self.servo, self.pull, self.regrasps = RegraspServo(self.regrasp_config), None, self.regrasps + 1
         if self.servo.done and self.servo.held and self.scripts_pull and self.pull is None:
             self.pull = PullServo(agent_pos, self.pull_config)

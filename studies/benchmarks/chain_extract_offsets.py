@@ -10,8 +10,8 @@ closing cannot absorb), the closest the jaw came to the plan and to the wire, an
 long the insert held on after the throw was over (``steps_to_release``) and how far it strained the tissue
 meanwhile (``strain_before_release_mm``, against the extraction's 2 mm bound), and the strain the bound counts at
 the extract's last step (``extraction_strain_mm``: when the throw is extracted, or the episode ends); which rule
-of the capture let the needle go at each closing (``grasp.CaptureVerdict``: not between the faces, the jaw too closed, lodged, into the
-pad; with how far the seat would move the needle, mm), whether a closing caught it and how far the jaw then
+of the capture let the needle go at each closing (``grasp.CaptureVerdict``: not between the faces, the jaw too
+closed, lodged, into the pad; with how far the seat would move the needle, mm), whether a closing caught it and how far the jaw then
 travelled (``pulled_mm``). The same for the regrasp planned from the release
 (``sim.regrasp_target.released_regrasp`` of the jaw's pose at the extract's first step, the needle still held):
 ``release_plan_to_wire_mm``, ``closest_jaw_to_release_plan_mm``. ``--regrasp-from release`` gives a chain that
