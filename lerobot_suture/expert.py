@@ -48,6 +48,14 @@ from lerobot_suture.sim.geometry import (
     step_towards,
 )
 from lerobot_suture.sim.relative_actions import env_action
+from lerobot_suture.sim.task import (
+    ANGLE_TOLERANCE,
+    APPROACH_SPEED,
+    DESCEND_SPEED,
+    DRIVE_RATE,
+    POSITION_TOLERANCE,
+    TURN_RATE,
+)
 
 PHASES = ("detour", "approach", "descend", "drive", "hold")
 REGRASP_AIMS = ("needle", "marks", "release")
@@ -101,13 +109,13 @@ class ExpertConfig:
     """
 
     approach_height: float = 0.012
-    approach_speed: float = 0.02
-    approach_turn_rate: float = 0.8
-    descend_speed: float = 0.01
-    drive_rate: float = 0.6
+    approach_speed: float = APPROACH_SPEED
+    approach_turn_rate: float = TURN_RATE
+    descend_speed: float = DESCEND_SPEED
+    drive_rate: float = DRIVE_RATE
     protrusion_angle: float = 0.5
-    position_tolerance: float = 0.0005
-    angle_tolerance: float = 0.03
+    position_tolerance: float = POSITION_TOLERANCE
+    angle_tolerance: float = ANGLE_TOLERANCE
     approach_detour: float = 0.0
     regrasp_miss: float = 0.0
     regrasp_noise: float = 0.0

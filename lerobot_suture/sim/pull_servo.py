@@ -27,7 +27,7 @@ from lerobot_suture.checks import check_positive
 from lerobot_suture.sim.extraction import PROTRUSION_RANGE, PULL_MARGIN
 from lerobot_suture.sim.geometry import NEEDLE_RADIUS, matrix_from_rotvec, pose_vector
 from lerobot_suture.sim.relative_actions import measured_jaw
-from lerobot_suture.sim.task import CONTROL_DT
+from lerobot_suture.sim.task import CONTROL_DT, DRIVE_RATE
 
 PULL_ANGLE = math.pi - PROTRUSION_RANGE[0] + PULL_MARGIN
 """How far the pull turns the needle about its centre (rad): the tail of a needle protruding at least
@@ -42,7 +42,7 @@ class PullServoConfig:
     control_dt: the control period (s), > 0.
     """
 
-    drive_rate: float = 0.6
+    drive_rate: float = DRIVE_RATE
     pull_angle: float = PULL_ANGLE
     control_dt: float = CONTROL_DT
 

@@ -39,7 +39,14 @@ from lerobot_suture.sim.geometry import matrix_from_rot6, pose_vector, step_towa
 from lerobot_suture.sim.needle_capture import JAW_GRIP_LENGTH
 from lerobot_suture.sim.relative_actions import measured_jaw
 from lerobot_suture.sim.subtasks import JAW_INDEX, STOPPED_CHANGE
-from lerobot_suture.sim.task import CONTROL_DT
+from lerobot_suture.sim.task import (
+    ANGLE_TOLERANCE,
+    APPROACH_SPEED,
+    CONTROL_DT,
+    DESCEND_SPEED,
+    POSITION_TOLERANCE,
+    TURN_RATE,
+)
 
 _CLOSE_STEPS = 10
 """Control steps a closing jaw is given to stop before it is judged where it is."""
@@ -62,11 +69,11 @@ class RegraspServoConfig:
     control_dt: the control period (s), > 0.
     """
 
-    approach_speed: float = 0.02
-    descend_speed: float = 0.01
-    turn_rate: float = 0.8
-    position_tolerance: float = 0.0005
-    angle_tolerance: float = 0.03
+    approach_speed: float = APPROACH_SPEED
+    descend_speed: float = DESCEND_SPEED
+    turn_rate: float = TURN_RATE
+    position_tolerance: float = POSITION_TOLERANCE
+    angle_tolerance: float = ANGLE_TOLERANCE
     settle_steps: int = 3
     closed_above: float = 0.5
     holding_below: float = 0.95

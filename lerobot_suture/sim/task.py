@@ -13,6 +13,18 @@ TASK = "Insert the curved suture needle at the entry point and drive it out thro
 """The task string of the dataset's frames and of policy inputs."""
 CONTROL_DT = 0.1
 """Control period (s): 10 Hz, the dataset's fps."""
+APPROACH_SPEED = 0.02
+"""Speed of the scripted motions' approaches (m/s): the expert's (the needle's centre) and the regrasp servo's."""
+DESCEND_SPEED = 0.01
+"""Speed of the scripted motions' last approach onto a target (m/s): the expert's and the regrasp servo's."""
+TURN_RATE = 0.8
+"""Largest turn rate of the scripted approaches (rad/s): the expert's and the regrasp servo's."""
+DRIVE_RATE = 0.6
+"""Turn rate of the needle about its centre when the scripted motions drive or pull it (rad/s)."""
+POSITION_TOLERANCE = 0.0005
+"""Distance to a scripted waypoint that counts as reached (m)."""
+ANGLE_TOLERANCE = 0.03
+"""Turn left to a scripted waypoint's heading that counts as reached (rad)."""
 
 # Workspace of the jaw tip (m, world): the action-space bounds of the position.
 WORKSPACE_LOW = np.array([-0.05, -0.06, 0.0])
