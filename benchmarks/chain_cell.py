@@ -13,7 +13,8 @@ jaw let go of the needle instead of through the marks (``sim.regrasp_target``); 
 in tissue to its arc (``safety.arc_guard``); ``--scripted-regrasp`` scripts the extract's regrasp (a servo on the
 measured pose and the planned regrasp, ``sim.regrasp_servo``), the extract policy pulling once the jaw holds the
 tip; ``--scripted-pull`` scripts the pull too (a turn about the needle's centre estimated from the jaw's pose at the
-hold, ``sim.pull_servo``). ``--task extraction --scenarios`` runs the chain on the extraction task's board cells
+hold, ``sim.pull_servo``); ``--scripted-pick-up`` scripts the pick-up (a servo planned from where the jaw last held
+the needle and the marks' height, ``sim.pickup_servo``). ``--task extraction --scenarios`` runs the chain on the extraction task's board cells
 instead, every scenario included. The chain and the finished cells are kept in ``--work-dir``: a rerun reads them
 back.
 """
@@ -61,6 +62,9 @@ def main() -> None:
     parser.add_argument(
         "--scripted-pull", action="store_true", help="script the extract's pull too (sim.pull_servo)"
     )
+    parser.add_argument(
+        "--scripted-pick-up", action="store_true", help="script the pick-up (sim.pickup_servo)"
+    )
     parser.add_argument("--task", choices=("running_suture", "extraction"), default="running_suture")
     parser.add_argument("--scenarios", action="store_true", help="the task's perturbation scenarios too")
     args = parser.parse_args()
@@ -73,6 +77,7 @@ def main() -> None:
                 output_dir=chain_dir,
                 scripted_regrasp=args.scripted_regrasp,
                 scripted_pull=args.scripted_pull,
+                scripted_pick_up=args.scripted_pick_up,
                 **policies,
             )
         )
@@ -105,6 +110,7 @@ def main() -> None:
         "arc_guard": args.arc_guard,
         "scripted_regrasp": args.scripted_regrasp,
         "scripted_pull": args.scripted_pull,
+        "scripted_pick_up": args.scripted_pick_up,
         "nominal": cells["nominal"],
         **({"scenarios": {c: cell for c, cell in cells.items() if c != "nominal"}} if len(cells) > 1 else {}),
         "machine": machine(),

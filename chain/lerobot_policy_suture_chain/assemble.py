@@ -49,6 +49,8 @@ class ChainCommandConfig:
         ``lerobot_suture.sim.regrasp_servo``); the extract policy pulls once the jaw holds the tip.
     scripted_pull: script the extract's pull too (a turn about the needle's centre estimated from the jaw's pose at
         the hold, ``lerobot_suture.sim.pull_servo``); needs ``scripted_regrasp``.
+    scripted_pick_up: script the pick-up (a servo planned from where the jaw last held the needle and the marks'
+        height, ``lerobot_suture.sim.pickup_servo``); the pick-up policy acts only where every closing missed.
     """
 
     output_dir: Path | None = None
@@ -65,6 +67,7 @@ class ChainCommandConfig:
     subtask_from_env: bool = False
     scripted_regrasp: bool = False
     scripted_pull: bool = False
+    scripted_pick_up: bool = False
 
     def __post_init__(self):
         if self.output_dir is None:
@@ -163,6 +166,7 @@ def write_chain(cfg: ChainCommandConfig) -> Path:
         holding_below=cfg.holding_below,
         scripted_regrasp=cfg.scripted_regrasp,
         scripted_pull=cfg.scripted_pull,
+        scripted_pick_up=cfg.scripted_pick_up,
         input_features=chain_input_features(
             list(configs.values()), cfg.subtask_from_env, cfg.scripted_regrasp
         ),
@@ -187,6 +191,8 @@ def main(argv: list[str] | None = None) -> None:
     served = ", ".join(f"{subtask}: {name}" for subtask, name in config.subtask_policies.items())
     if config.scripted_regrasp:
         served += "; the extract's regrasp" + (" and pull" if config.scripted_pull else "") + " scripted"
+    if config.scripted_pick_up:
+        served += "; the pick-up scripted"
     print(f"Chain written to {out} ({served}).")
     flags = " ".join(f"--env.{name}=true" for name in state_parts(env_state_size(config)))
     print(f"Run it: lerobot-eval --policy.path={out} --env.type=suture --env.task=running_suture {flags}")

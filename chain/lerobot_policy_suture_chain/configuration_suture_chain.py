@@ -47,6 +47,9 @@ class SutureChainConfig(PreTrainedConfig):
         scripted_pull: the extract subtask's pull is scripted too (needs ``scripted_regrasp``): from the step the
             jaw holds the tip, a turn about the needle's centre estimated from that measured pose
             (``lerobot_suture.sim.pull_servo``) pulls it out, and the extract policy never acts.
+        scripted_pick_up: the pick-up is scripted, not learned: a servo plans the grasp from where the jaw last held
+            the needle and the marks' height (``lerobot_suture.sim.pickup_servo``) and acts until the jaw holds it;
+            the pick-up policy acts only where every closing missed.
     """
 
     subtask_policies: dict[str, str] = field(default_factory=dict)
@@ -56,6 +59,7 @@ class SutureChainConfig(PreTrainedConfig):
     holding_below: float = 0.95
     scripted_regrasp: bool = False
     scripted_pull: bool = False
+    scripted_pick_up: bool = False
     n_obs_steps: int = 1
 
     def __post_init__(self):

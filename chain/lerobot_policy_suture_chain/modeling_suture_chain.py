@@ -21,6 +21,12 @@ with ``--scripted_pull=true`` too, the pull is scripted as well: a
 :class:`~lerobot_suture.sim.pull_servo.PullServo` turns the held needle out about its centre, estimated from the
 jaw's measured pose at the hold, and the extract policy never acts.
 
+A chain written with ``--scripted_pick_up=true`` scripts the pick-up: from the step an environment enters
+``pick_up``, a :class:`~lerobot_suture.sim.pickup_servo.PickupServo` plans the grasp from where the jaw last held
+the needle (its measured pose then, :class:`~lerobot_suture.sim.pickup_servo.NeedleRelease`) and the registered
+surface (the marks' height), and acts until the jaw holds the needle; the next throw's insert acts then. A servo
+whose every closing missed hands the arm to the pick-up policy, reset.
+
 Subtask policies keep their own observation and action queues, one row per environment. A policy that an
 environment enters is reset first, so its first action is predicted from the new subtask's observation and not
 taken from a chunk queued before the switch; the other environments it serves then predict afresh too (a
@@ -38,6 +44,7 @@ from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import OBS_ENV_STATE, OBS_STATE
 from torch import Tensor, nn
 
+from lerobot_suture.sim.pickup_servo import NeedleRelease, PickupServo, PickupServoConfig, resting_needle
 from lerobot_suture.sim.regrasp_servo import RegraspServoConfig
 from lerobot_suture.sim.scripted_extract import ScriptedExtract
 from lerobot_suture.sim.state_layout import LAYOUTS, registered_parts, state_parts
@@ -124,6 +131,10 @@ class SutureChainPolicy(PreTrainedPolicy):
         """Each environment's (subtask, throw) at the last step."""
         self.extracts: list[ScriptedExtract | None] = []
         """Each environment's scripted extract while it serves the throw (``scripted_regrasp``), else None."""
+        self.releases: list[NeedleRelease] = []
+        """Where each environment's jaw last held the needle (``scripted_pick_up``)."""
+        self.pickups: list[PickupServo | None] = []
+        """Each environment's scripted pick-up while it acts (``scripted_pick_up``), else None."""
 
     @classmethod
     def from_pretrained(cls, pretrained_name_or_path, *, config: SutureChainConfig | None = None, **kwargs):
@@ -164,7 +175,7 @@ class SutureChainPolicy(PreTrainedPolicy):
         raise NotImplementedError(self.config._not_trained())
 
     def reset(self):
-        self._rules, self.readings, self.extracts = [], [], []
+        self._rules, self.readings, self.extracts, self.releases, self.pickups = [], [], [], [], []
         for policy in self.policies.values():
             policy.reset()
 
@@ -212,19 +223,28 @@ class SutureChainPolicy(PreTrainedPolicy):
     def _scripted_actions(
         self, batch: dict[str, Tensor], parts: dict[str, Tensor], before: list
     ) -> dict[int, Tensor]:
-        """The scripted actions of each environment they serve this step (``scripted_regrasp``): a scripted extract
-        starts where an environment enters ``extract`` (or starts in it) and acts until the jaw holds the tip, with
-        ``scripted_pull`` until the needle is turned out, whatever the rules read meanwhile (they end the extract
-        on the jaw's travel, short of the whole turn). The policy the arm goes back to is reset as the scripted
-        part ends, so its first action comes from the next step's observation."""
-        if not self.config.scripted_regrasp:
-            return {}
-        if len(self.extracts) != len(self.readings):
-            self.extracts = [None] * len(self.readings)
+        """The scripted actions of each environment they serve this step (``scripted_regrasp``,
+        ``scripted_pick_up``). The policy the arm goes back to is reset as a scripted part ends, so its first action
+        comes from the next step's observation."""
+        if len(before) != len(self.readings):  # the episode's first step
             before = [None] * len(self.readings)
         poses = batch[OBS_STATE].detach().double().cpu().numpy()
-        targets = parts["regrasp_target"].detach().double().cpu().numpy()
         actions, handed_back = {}, set()
+        if self.config.scripted_regrasp:
+            self._extract_actions(poses, parts["regrasp_target"], before, actions, handed_back)
+        if self.config.scripted_pick_up:
+            self._pick_up_actions(poses, parts["marks"], before, actions, handed_back)
+        for subtask in handed_back:
+            self.policies[self.config.subtask_policies[subtask]].reset()
+        return actions
+
+    def _extract_actions(self, poses, regrasp_target: Tensor, before: list, actions: dict, handed_back: set):
+        """A scripted extract starts where an environment enters ``extract`` (or starts in it) and acts until the
+        jaw holds the tip, with ``scripted_pull`` until the needle is turned out, whatever the rules read meanwhile
+        (they end the extract on the jaw's travel, short of the whole turn)."""
+        if len(self.extracts) != len(self.readings):
+            self.extracts = [None] * len(self.readings)
+        targets = regrasp_target.detach().double().cpu().numpy()
         for i, (reading, old) in enumerate(zip(self.readings, before, strict=True)):
             extract = self.extracts[i]
             if reading[0] == "extract" and (old is None or old[0] != "extract"):
@@ -242,9 +262,37 @@ class SutureChainPolicy(PreTrainedPolicy):
                 actions[i] = torch.from_numpy(action)
                 if extract.handed_back:
                     handed_back.add(reading[0])
-        for subtask in handed_back:
-            self.policies[self.config.subtask_policies[subtask]].reset()
-        return actions
+
+    def _pick_up_actions(self, poses, marks: Tensor, before: list, actions: dict, handed_back: set):
+        """A scripted pick-up starts where an environment enters ``pick_up`` after its jaw held the needle, planned
+        from where it last held it and the marks' height, and acts until it is done; one whose every closing
+        missed hands the arm back to the pick-up policy."""
+        if len(self.pickups) != len(self.readings):
+            self.pickups = [None] * len(self.readings)
+            self.releases = [
+                NeedleRelease(self.config.closed_above, self.config.holding_below) for _ in self.readings
+            ]
+        marks_np = marks.detach().double().cpu().numpy()
+        for i, (reading, old) in enumerate(zip(self.readings, before, strict=True)):
+            release, pickup = self.releases[i], self.pickups[i]
+            if reading[0] != "pick_up":
+                release.update(poses[i], reading[0])
+                self.pickups[i] = None
+                continue
+            if (old is None or old[0] != "pick_up") and release.pose is not None:
+                surface = float(marks_np[i, [2, 5]].mean())
+                pickup = self.pickups[i] = PickupServo(
+                    resting_needle(*release.pose, release.held_angle, surface),
+                    marks_np[i],
+                    PickupServoConfig(
+                        closed_above=self.config.closed_above, holding_below=self.config.holding_below
+                    ),
+                )
+            if pickup is None or pickup.done:
+                continue
+            actions[i] = torch.from_numpy(pickup.act(poses[i], marks_np[i]))
+            if pickup.done and not pickup.held:
+                handed_back.add("pick_up")
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], **kwargs) -> Tensor:

@@ -111,6 +111,19 @@ class RegraspServoConfig:
             )
 
 
+def closing_verdict(
+    closure: float, last_closure: float | None, steps: int, closed_above: float, holding_below: float
+) -> str | None:
+    """How a closing stands at its ``steps``-th step (0 the first after the command), the jaw reading ``closure``
+    now and ``last_closure`` a step before (None: none yet): None while it still moves and has steps left
+    (:data:`_CLOSE_STEPS`), else ``"held"`` where it stopped short of closed (between ``closed_above`` and
+    ``holding_below``: the wire stops it), ``"empty"`` where not."""
+    stopped = last_closure is not None and abs(closure - last_closure) < STOPPED_CHANGE
+    if not (closure > closed_above and stopped) and steps < _CLOSE_STEPS:
+        return None
+    return "held" if closed_above < closure < holding_below else "empty"
+
+
 def grasp_from_target(agent_pos: np.ndarray, regrasp_target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The planned grasp in the arm's frame (position (3,) m, rotation (3, 3)) that ``regrasp_target`` (9,), the
     motion from the measured pose ``agent_pos`` (10,) in the jaw frame, names."""
@@ -202,11 +215,13 @@ class RegraspServo:
         """The closing step's target, or None when the closing is judged and the servo moved on (``done``, or a
         back-off for another reach)."""
         cfg = self.config
-        stopped = self._last_closure is not None and abs(closure - self._last_closure) < STOPPED_CHANGE
+        verdict = closing_verdict(
+            closure, self._last_closure, self._closing_steps, cfg.closed_above, cfg.holding_below
+        )
         self._last_closure, self._closing_steps = closure, self._closing_steps + 1
-        if not (closure > cfg.closed_above and stopped) and self._closing_steps <= _CLOSE_STEPS:
+        if verdict is None:
             return pose_vector(grasp_pos, grasp_rot, 1.0).astype(np.float32)
-        self.held = cfg.closed_above < closure < cfg.holding_below
+        self.held = verdict == "held"
         if self.held or self.closings >= cfg.attempts:
             self.phase = "done"
             return pose_vector(grasp_pos, grasp_rot, 1.0).astype(np.float32)
