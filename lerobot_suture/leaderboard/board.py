@@ -176,5 +176,5 @@ def plot(board: dict, path: Path) -> Path:
             ax.set_ylabel("throws on the marks")
             ax.set_title(f"{task}: throws on the marks per episode, mean (of {n_throws})")
     path = Path(path)
-    save_figure(fig, path, dpi=110)
+    save_figure(fig, path, dpi=90)
     return path
