@@ -93,7 +93,7 @@ def test_the_search_alternates_across_the_faces_by_growing_steps():
     ("field", "value", "match"),
     [
         ("approach_height", 0.0, "approach_height"),
-        ("wire_radius", float("nan"), "wire_radius"),
+        ("descend_speed", float("nan"), "descend_speed"),
         ("settle_steps", -1, "settle_steps"),
         ("attempts", 0, "attempts"),
         ("search_step", 0.0025, "search_step"),

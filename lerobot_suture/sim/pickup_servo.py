@@ -19,7 +19,7 @@ tail. A learned pick-up has to find the needle in the images, and on the phantom
 open jaw to ``approach_height`` above the grasp an insertion starts from (``task.GRASP_ANGLE``), turned into it;
 ``lower`` onto it, ``settle``, ``close``, and wait for the encoder to stop. A jaw that stops short of closed holds
 the wire (``sim.subtasks``): done, and the next throw's insert acts. One that closes fully closed on nothing: it
-``open``\\ s, rises, and tries again beside the last aim, across the jaw's faces, where the estimate's error lies
+opens, rises, and tries again beside the last aim, across the jaw's faces, where the estimate's error lies
 (:func:`search_offset`), up to ``attempts`` closings. The needle's pose and the simulator's contact flags are never
 read.
 """
@@ -77,7 +77,6 @@ class PickupServoConfig:
     search_step: how far across the jaw's faces each closing after a miss aims beside the ones before (m), in
         (0, 2 * CAPTURE_HALF_GAP]: the faces catch a wire within ``CAPTURE_HALF_GAP`` of their mid-plane, so
         steps up to twice that leave no gap between the closings.
-    wire_radius: the needle wire's radius (m), > 0.
     control_dt: the control period (s), > 0.
     """
 
@@ -92,7 +91,6 @@ class PickupServoConfig:
     holding_below: float = 0.95
     attempts: int = 5
     search_step: float = 0.0015
-    wire_radius: float = WIRE_RADIUS
     control_dt: float = CONTROL_DT
 
     def __post_init__(self):
@@ -105,7 +103,6 @@ class PickupServoConfig:
                 "position_tolerance",
                 "angle_tolerance",
                 "approach_height",
-                "wire_radius",
                 "control_dt",
             ),
         )
