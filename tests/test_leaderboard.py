@@ -8,7 +8,7 @@ import pytest
 from PIL import Image
 
 from lerobot_suture.cli import main as cli_main
-from lerobot_suture.leaderboard.board import plot, render
+from lerobot_suture.leaderboard.board import BOARD_DPI, plot, render
 from lerobot_suture.leaderboard.cells import (
     best_rows,
     condition_seeds,
@@ -104,7 +104,7 @@ def test_a_running_suture_cell_says_how_far_into_the_suture_its_episodes_got(tmp
         "tasks": {"running_suture": {"older": {"nominal": older}, "ensemble": {"nominal": cell}}},
     }
     with Image.open(plot(board, tmp_path / "board.png")) as image:
-        assert image.size == (12 * 110, int(2 * 3.2 * 110))
+        assert image.size == (12 * BOARD_DPI, int(2 * 3.2 * BOARD_DPI))
     # A task of one throw or none has no throw figures.
     assert "per_throw" not in summarize_cell(logs, 1.0)
     assert row_summary({"nominal": summarize_cell(logs, 1.0)})["nominal_throws_on_marks"] is None

@@ -21,6 +21,9 @@ from lerobot_suture.leaderboard.cells import (
 )
 from lerobot_suture.plotting import save_figure
 
+BOARD_DPI = 90
+"""Resolution of ``leaderboard.png`` (dots per inch): readable, and small enough for the results' size budget."""
+
 
 def _percent(x: float) -> str:
     return "n/a" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{100 * x:.0f}"
@@ -176,5 +179,5 @@ def plot(board: dict, path: Path) -> Path:
             ax.set_ylabel("throws on the marks")
             ax.set_title(f"{task}: throws on the marks per episode, mean (of {n_throws})")
     path = Path(path)
-    save_figure(fig, path, dpi=90)
+    save_figure(fig, path, dpi=BOARD_DPI)
     return path
