@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lerobot_suture.checks import check_positive
+from lerobot_suture.checks import check_count, check_jaw_thresholds, check_positive
 from lerobot_suture.sim.extraction import REGRASP_ANGLE
 from lerobot_suture.sim.geometry import (
     cross3,
@@ -106,20 +106,14 @@ class PickupServoConfig:
                 "control_dt",
             ),
         )
-        if not isinstance(self.settle_steps, int) or self.settle_steps < 0:
-            raise ValueError(f"`settle_steps` must be an integer >= 0. Got {self.settle_steps!r}.")
-        if not isinstance(self.attempts, int) or self.attempts < 1:
-            raise ValueError(f"`attempts` must be an integer >= 1. Got {self.attempts!r}.")
+        check_count(self, "settle_steps", 0)
+        check_count(self, "attempts", 1)
         if not 0.0 < self.search_step <= 2.0 * CAPTURE_HALF_GAP:
             raise ValueError(
                 f"`search_step` must be in (0, {2.0 * CAPTURE_HALF_GAP}] m: the faces catch a wire within "
                 f"{CAPTURE_HALF_GAP * 1e3:.0f} mm of their mid-plane. Got {self.search_step!r}."
             )
-        if not 0.0 < self.closed_above < self.holding_below <= 1.0:
-            raise ValueError(
-                "The jaw thresholds must satisfy 0 < closed_above < holding_below <= 1. Got "
-                f"closed_above={self.closed_above}, holding_below={self.holding_below}."
-            )
+        check_jaw_thresholds(self.closed_above, self.holding_below)
 
 
 def resting_needle(

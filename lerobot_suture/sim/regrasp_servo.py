@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lerobot_suture.checks import check_positive
+from lerobot_suture.checks import check_count, check_jaw_thresholds, check_positive
 from lerobot_suture.sim.extraction import BACK_OFF, reach_step, turn_left
 from lerobot_suture.sim.geometry import matrix_from_rot6, pose_vector, step_towards
 from lerobot_suture.sim.needle_capture import JAW_GRIP_LENGTH
@@ -93,10 +93,8 @@ class RegraspServoConfig:
                 "control_dt",
             ),
         )
-        if not isinstance(self.settle_steps, int) or self.settle_steps < 0:
-            raise ValueError(f"`settle_steps` must be an integer >= 0. Got {self.settle_steps!r}.")
-        if not isinstance(self.attempts, int) or self.attempts < 1:
-            raise ValueError(f"`attempts` must be an integer >= 1. Got {self.attempts!r}.")
+        check_count(self, "settle_steps", 0)
+        check_count(self, "attempts", 1)
         if not 0.0 <= self.search_depth <= 0.002:
             raise ValueError(f"`search_depth` must be in [0, 0.002] m. Got {self.search_depth!r}.")
         if (self.attempts - 1) * self.search_depth > JAW_GRIP_LENGTH - 0.001:
@@ -104,11 +102,7 @@ class RegraspServoConfig:
                 f"The last closing would aim {(self.attempts - 1) * self.search_depth * 1e3:.1f} mm inside the jaw, "
                 f"past its {JAW_GRIP_LENGTH * 1e3:.0f} mm faces less a millimetre: lower `attempts` or `search_depth`."
             )
-        if not 0.0 < self.closed_above < self.holding_below <= 1.0:
-            raise ValueError(
-                "The jaw thresholds must satisfy 0 < closed_above < holding_below <= 1. Got "
-                f"closed_above={self.closed_above}, holding_below={self.holding_below}."
-            )
+        check_jaw_thresholds(self.closed_above, self.holding_below)
 
 
 def closing_verdict(
