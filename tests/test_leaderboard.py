@@ -66,6 +66,29 @@ def test_cell_summary_counts_success_gate_and_cbf():
     assert summarize_cell([EpisodeLog(seed=3, scenario="nominal", steps=[_step()])], 1.0)["gate"] is None
 
 
+def test_a_cells_episodes_are_packed_as_columns_on_the_board_and_unpack_to_the_same_rows():
+    from lerobot_suture.leaderboard.cells import packed_episodes, unpacked_episodes
+
+    rows = [[7000000, True, 60, None], [7000001, False, 58, 12], [7000002, True, 59, None]]
+    packed = packed_episodes(rows)
+    assert packed == {
+        "first_seed": 7000000,
+        "success": "101",
+        "steps": [60, 58, 59],
+        "first_alarm": {"1": 12},
+    }
+    assert unpacked_episodes(packed) == rows
+    gapped = [[3, False, 2, 0], [9, True, 4, None]]  # seeds that do not run on are kept whole
+    assert packed_episodes(gapped)["seeds"] == [3, 9] and unpacked_episodes(packed_episodes(gapped)) == gapped
+    assert unpacked_episodes(packed_episodes([])) == []
+    committed = json.loads(
+        (Path(__file__).parents[1] / "docs/results/leaderboard/leaderboard.json").read_text()
+    )
+    cell = committed["tasks"]["insertion"]["ensemble_diffusion"]["nominal"]
+    episodes = unpacked_episodes(cell["per_episode"])
+    assert len(episodes) == cell["episodes"] and sum(e[1] for e in episodes) == cell["successes"]
+
+
 def test_a_running_suture_cell_says_how_far_into_the_suture_its_episodes_got(tmp_path):
     def suture(seed, on_marks):
         # Every throw on the marks but the last was extracted: the episode went on to the next one.

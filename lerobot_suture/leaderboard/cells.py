@@ -70,9 +70,11 @@ def cell_episodes(
     seeds: Sequence[int],
     batch_envs: int,
     workers: int = 1,
+    gates=None,
 ) -> tuple[list[EpisodeLog], float]:
     """Roll ``runner`` out on ``seeds`` under ``condition`` of ``task`` (``batch_envs`` in lockstep, in
-    ``workers`` processes), the CBF on; returns the episodes and their wall time (s)."""
+    ``workers`` processes), the CBF on; returns the episodes and their wall time (s). ``gates``: the gates to log
+    (``runtime.gates``; one worker), else the policy's own."""
     shift = condition_shift(condition)
     scenario = condition if shift is None else "nominal"
     kwargs = {**env_kwargs, "task": task}
@@ -84,8 +86,33 @@ def cell_episodes(
         batch_envs,
         desc=f"{task}, {condition}",
         workers=workers,
+        gates=gates,
     )
     return logs, time.perf_counter() - start
+
+
+def packed_episodes(rows: Sequence[Sequence]) -> dict:
+    """A cell's ``per_episode`` rows (seed, success, steps, first alarm step or None) as columns, in about a fifth
+    of the room on the board: the first seed (and every seed only where they do not run on, as a cell's do), each
+    success as ``1`` or ``0``, the steps, and the alarms by row. :func:`unpacked_episodes` gives the rows back."""
+    seeds = [int(row[0]) for row in rows]
+    packed = {
+        "first_seed": seeds[0] if seeds else None,
+        "success": "".join("1" if row[1] else "0" for row in rows),
+        "steps": [int(row[2]) for row in rows],
+        "first_alarm": {str(i): int(row[3]) for i, row in enumerate(rows) if row[3] is not None},
+    }
+    if seeds and seeds != list(range(seeds[0], seeds[0] + len(seeds))):
+        packed["seeds"] = seeds
+    return packed
+
+
+def unpacked_episodes(packed: dict) -> list[list]:
+    """The rows :func:`packed_episodes` packed."""
+    n = len(packed["steps"])
+    seeds = packed.get("seeds") or [packed["first_seed"] + i for i in range(n)]
+    alarms = packed["first_alarm"]
+    return [[seeds[i], packed["success"][i] == "1", packed["steps"][i], alarms.get(str(i))] for i in range(n)]
 
 
 def summarize_cell(logs: Sequence[EpisodeLog], seconds: float, throws: int = 1) -> dict:

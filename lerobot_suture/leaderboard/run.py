@@ -164,6 +164,18 @@ def rounded(value, digits: int = SIGNIFICANT_DIGITS):
     return value
 
 
+def board_cells(board: dict) -> list[dict]:
+    """Every cell of ``board``: its rows' and its further training seeds' rows'."""
+    rows = [row for by_task in board.get("tasks", {}).values() for row in by_task.values()]
+    rows += [
+        row
+        for by_task in board.get("seeds", {}).values()
+        for by_seed in by_task.values()
+        for row in by_seed.values()
+    ]
+    return [cell for row in rows for cell in row.values()]
+
+
 def _rollout_seconds(row: dict) -> float:
     """A row's evaluation time: its cells' rollout seconds, whichever runs they were made in."""
     return sum(cell["seconds"] for cell in row.values())
@@ -245,6 +257,9 @@ def run_leaderboard(cfg: LeaderboardConfig) -> dict:
     for key in ("tasks", "seeds"):  # the cells; the summary keeps its floats as computed
         if key in board:
             board[key] = rounded(board[key])
+    for cell in board_cells(board):
+        if isinstance(cell.get("per_episode"), list):
+            cell["per_episode"] = cells.packed_episodes(cell["per_episode"])
     board_file.write_text(json.dumps(board, separators=(",", ":")))
     (results / "leaderboard.md").write_text(render(board))
     plot(board, results / "leaderboard.png")
