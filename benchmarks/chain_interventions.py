@@ -2,8 +2,10 @@
 
 The chain runs the leaderboard's nominal test seeds of the running suture, the CBF on, one suture at a time. A gate
 per stage (``runtime.gates.StageGates``) gives each subtask a time budget: the conformal quantile (at ``--alpha``)
-of that subtask's durations in the recording's training sutures (``datasets.segment.subtask_durations``,
-``safety.ood.stage_gate.fit_stage_budgets``), times ``--slack``. A segment that outlasts its budget is flagged and
+of that subtask's durations in the recording's training sutures (``--dataset``; ``datasets.segment.subtask_durations``,
+``safety.ood.stage_gate.fit_stage_budgets``), times ``--slack``; or, with ``--stage-dir``, the budgets and the
+score thresholds that ``benchmarks/stage_gate.py`` fitted on the chain's own closed sutures (a segment is flagged too
+when its policy's score passes its subtask's threshold). A segment that outlasts its budget is flagged and
 the scripted surgeon (``expert_per_subtask``) takes that subtask over and hands back for the next, so a stage that
 stalls (an extract that closed beside the needle and holds its jaw shut) costs one intervention instead of the
 suture. The chain must read the subtask from the env (``lerobot-suture chain --subtask_from_env=true``): a
@@ -14,7 +16,8 @@ Prints one JSON object: the budgets, per suture the outcome, the throws on the m
 step, and the subtask the flag fell in), and the sutures closed with at most k interventions; ``--plot`` draws that
 curve::
 
-    .venv/bin/python benchmarks/chain_interventions.py --policy-path CHAIN --dataset DIR [--episodes 50]
+    .venv/bin/python benchmarks/chain_interventions.py --policy-path CHAIN (--dataset DIR | --stage-dir DIR) \
+        [--episodes 50] [--regrasp-from release] [--arc-guard]
 """
 
 from __future__ import annotations
@@ -28,7 +31,7 @@ from pathlib import Path
 
 from _report import emit, machine
 
-NEEDS = "a chain written with --subtask_from_env=true (--policy-path) and its marks-and-subtask recording (--dataset)"
+NEEDS = "a chain written with --subtask_from_env=true (--policy-path), and --dataset DIR or --stage-dir DIR"
 TASK = "running_suture"
 
 
@@ -61,7 +64,7 @@ def figure(report: dict, path: Path) -> None:
     ax.set_ylim(0, report["episodes"])
     ax.axvline(2, color="grey", linestyle=":", label="STITCH 2.0: every wound within 2")
     ax.legend(loc="lower right")
-    ax.set_title("A chained policy with a time budget per stage, the surgeon taking flagged stages over")
+    ax.set_title("A chained policy with a gate per stage, the surgeon taking flagged stages over")
     save_figure(fig, path)
     plt.close(fig)
 
@@ -69,8 +72,12 @@ def figure(report: dict, path: Path) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--policy-path", type=Path, required=True)
-    parser.add_argument(
-        "--dataset", type=Path, required=True, help="the recording whose training sutures set the budgets"
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--dataset", type=Path, help="the recording whose training sutures set the budgets")
+    source.add_argument(
+        "--stage-dir",
+        type=Path,
+        help="stage_calibration.json and stage_budgets.json (benchmarks/stage_gate.py)",
     )
     parser.add_argument("--episodes", type=int, default=50)
     parser.add_argument("--seed", type=int, default=7_000_000, help="the leaderboard's base of test seeds")
@@ -78,25 +85,35 @@ def main() -> None:
     parser.add_argument("--slack", type=float, default=1.0, help="each budget times this (>= 1)")
     parser.add_argument("--output", type=Path)
     parser.add_argument("--plot", type=Path)
+    parser.add_argument("--regrasp-from", choices=("marks", "release"), default="marks")
+    parser.add_argument("--arc-guard", action="store_true", help="hold the needle in tissue to its arc")
     args = parser.parse_args()
     if not args.slack >= 1.0:
         parser.error(f"--slack must be >= 1 (a budget shorter than the expert's). Got {args.slack}.")
 
     from lerobot_suture.datasets.segment import subtask_durations
     from lerobot_suture.leaderboard import cells
-    from lerobot_suture.runtime.gates import SilentGates, StageGates
+    from lerobot_suture.runtime.gates import ReportingGates, SilentGates, StageGates
     from lerobot_suture.runtime.policy import GateMode, PolicyRunner, env_kwargs_for_policy
     from lerobot_suture.runtime.rollout import make_scenario_env, rollout_seeds
     from lerobot_suture.safety.cbf_config import CBFConfig
-    from lerobot_suture.safety.ood.stage_gate import fit_stage_budgets
+    from lerobot_suture.safety.ood.stage_gate import StageBudgets, StageThresholds, fit_stage_budgets
     from lerobot_suture.sim.tasks import task_spec
 
-    fitted = fit_stage_budgets(subtask_durations(args.dataset), args.alpha, source=str(args.dataset))
+    if args.stage_dir is not None:
+        fitted, thresholds = StageBudgets.load(args.stage_dir), StageThresholds.load(args.stage_dir)
+    else:
+        fitted = fit_stage_budgets(subtask_durations(args.dataset), args.alpha, source=str(args.dataset))
+        thresholds = None
     budgets = dataclasses.replace(
         fitted, budgets={stage: int(round(args.slack * steps)) for stage, steps in fitted.budgets.items()}
     )
     runner = PolicyRunner.from_pretrained(args.policy_path, GateMode.REPORT, "cpu", {})
     env_kwargs = env_kwargs_for_policy(runner.policy.config)
+    if args.regrasp_from != "marks":
+        env_kwargs["regrasp_from"] = args.regrasp_from
+    if args.arc_guard:
+        env_kwargs["arc_guard"] = True
     if not env_kwargs.get("subtask"):
         raise SystemExit(
             f"{args.policy_path} runs its own rules, which a hand-back resets to the first throw: write the chain "
@@ -114,7 +131,12 @@ def main() -> None:
         batch_envs=1,  # a hand-back resets the policy
         surgeon="expert_per_subtask",
         desc="sutures",
-        gates=StageGates(SilentGates(), None, budgets=budgets),
+        gates=StageGates(
+            SilentGates() if thresholds is None else ReportingGates(runner.policy),
+            thresholds,
+            rules=getattr(runner.policy.config, "rules", None),
+            budgets=budgets,
+        ),
     )
     seconds = time.perf_counter() - start
     episodes = [
@@ -138,11 +160,15 @@ def main() -> None:
             "alpha": budgets.alpha,
             "segments": budgets.segments,
         },
+        "thresholds": None if thresholds is None else {**thresholds.thresholds, "alpha": thresholds.alpha},
+        "env": {k: v for k, v in env_kwargs.items() if k in ("regrasp_from", "arc_guard")},
         "episodes": len(episodes),
         "successes": summary["successes"],
         "success_interval": summary["success_interval"],
         "per_throw": summary.get("per_throw"),
         "interventions_per_subtask": dict(taken),
+        "interventions_per_suture_mean": sum(len(ep["interventions"]) for ep in episodes)
+        / max(len(episodes), 1),
         "closed_within": closed_within(episodes, 12),
         "per_episode": episodes,
         "seconds": round(seconds, 1),

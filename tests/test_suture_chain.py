@@ -397,3 +397,27 @@ def test_a_chain_that_reads_the_subtask_from_the_env_resumes_where_the_arm_is_af
     bad = dict(batch, **{OBS_ENV_STATE: torch.cat([marks, torch.zeros(1, 5)], dim=-1)})
     with pytest.raises(ValueError, match="one-hot"):
         chain.select_action(pre(bad))
+
+
+def test_the_chain_reports_the_gate_of_the_policy_that_acted_for_each_env(
+    tmp_path, subtask_policies, tiny_policy_dir
+):
+    """A stage gate reads the chain's scores per env: the ensemble's where the ensemble gave that env's action,
+    silent where a policy without a gate (ACT) did."""
+    conditioned, _ = subtask_policies
+    out = write_chain(
+        ChainCommandConfig(output_dir=tmp_path / "chain", policy=conditioned, extract=tiny_policy_dir)
+    )
+    chain, pre, post = load_policy(out)
+    rng = np.random.default_rng(0)
+    entry = np.array([-0.008, -0.009, 0.0], dtype=np.float32)
+    chain.reset()
+    post(chain.select_action(pre(_batch([HELD, HELD], entry, rng))))
+    assert all(np.isnan(chain.ood_status(i)["score"]) for i in (0, 1))
+    post(chain.select_action(pre(_batch([0.0, HELD], entry, rng))))  # env 0 lets go: the ensemble extracts
+    assert chain.serving == ["extract", "insert"]
+    status = chain.ood_status(0)
+    assert status["new_prediction"] and np.isfinite(status["score"]) and status["score"] >= 0
+    assert status == chain.policies["extract"].ood_status(0)
+    assert np.isnan(chain.ood_status(1)["score"]) and not chain.ood_status(1)["new_prediction"]
+    assert np.isnan(chain.ood_status(5)["score"])  # an env the chain has not seen

@@ -44,6 +44,7 @@ from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import OBS_ENV_STATE, OBS_STATE
 from torch import Tensor, nn
 
+from lerobot_suture.safety.ood.gate import silent_status
 from lerobot_suture.sim.pickup_servo import NeedleRelease, PickupServo, PickupServoConfig, resting_needle
 from lerobot_suture.sim.regrasp_servo import RegraspServoConfig
 from lerobot_suture.sim.scripted_extract import ScriptedExtract
@@ -135,6 +136,8 @@ class SutureChainPolicy(PreTrainedPolicy):
         """Where each environment's jaw last held the needle (``scripted_pick_up``)."""
         self.pickups: list[PickupServo | None] = []
         """Each environment's scripted pick-up while it acts (``scripted_pick_up``), else None."""
+        self.serving: list[str | None] = []
+        """The policy that gave each environment's action at the last step (None: a scripted part)."""
 
     @classmethod
     def from_pretrained(cls, pretrained_name_or_path, *, config: SutureChainConfig | None = None, **kwargs):
@@ -176,6 +179,7 @@ class SutureChainPolicy(PreTrainedPolicy):
 
     def reset(self):
         self._rules, self.readings, self.extracts, self.releases, self.pickups = [], [], [], [], []
+        self.serving = []
         for policy in self.policies.values():
             policy.reset()
 
@@ -308,7 +312,7 @@ class SutureChainPolicy(PreTrainedPolicy):
             None if i in scripted else self.config.subtask_policies[subtask]
             for i, (subtask, _) in enumerate(self.readings)
         ]
-        actions = None
+        self.serving, actions = serving, None
         for name in dict.fromkeys(s for s in serving if s is not None):
             policy = self.policies[name]
             preprocessor, postprocessor = self._processors[name]
@@ -327,3 +331,12 @@ class SutureChainPolicy(PreTrainedPolicy):
             for i, action in scripted.items():
                 actions[i] = action.to(actions)
         return actions
+
+    def ood_status(self, index: int = 0) -> dict:
+        """The gate status (the keys of ``silent_status``) of the policy that gave environment ``index``'s action at
+        the last step: an ensemble's members' score, so that a gate per stage (``runtime.gates.StageGates``) tests
+        each subtask's policy against that subtask's threshold. Silent where a scripted part acted or the policy
+        holds no gate."""
+        name = self.serving[index] if index < len(self.serving) else None
+        status = None if name is None else getattr(self.policies[name], "ood_status", None)
+        return status(index) if callable(status) else silent_status()

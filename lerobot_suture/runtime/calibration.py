@@ -28,6 +28,7 @@ import functools
 import json
 import logging
 import math
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import ClassVar
@@ -240,22 +241,26 @@ def collect_scores(
     return np.asarray(scores), np.asarray(episode_ids), logs
 
 
-def stage_thresholds(logs: list[EpisodeLog], alpha: float) -> StageThresholds:
+def stage_thresholds(
+    logs: list[EpisodeLog], alpha: float, subtasks: Sequence[str] | None = None
+) -> StageThresholds:
     """A gate per stage fitted on ``logs`` (rolled out with :class:`StageGates`, so each step names its subtask):
-    each subtask's segments in the episodes that succeeded (FAIL-Detect's convention)."""
-    scores, subtasks, segments, successful = [], [], [], []
+    each subtask's segments in the episodes that succeeded (FAIL-Detect's convention). ``subtasks``: only these
+    (a chain's learned subtasks, where a scripted one scores only when it falls back to a policy), else all."""
+    scores, stages, segments, successful = [], [], [], []
     segment = -1
     for log in logs:
         previous = None
         for step in log.steps:
             if step.subtask != previous:  # a new segment: the subtask changed
                 segment, previous = segment + 1, step.subtask
-            if step.new_prediction and step.consulted and step.subtask:
+            wanted = step.subtask and (subtasks is None or step.subtask in subtasks)
+            if step.new_prediction and step.consulted and wanted:
                 scores.append(step.score)
-                subtasks.append(step.subtask)
+                stages.append(step.subtask)
                 segments.append(segment)
                 successful.append(log.success)
-    return fit_stage_thresholds(scores, subtasks, segments, successful, alpha)
+    return fit_stage_thresholds(scores, stages, segments, successful, alpha)
 
 
 def episode_maxima(scores: np.ndarray, episode_ids: np.ndarray, episodes: int) -> np.ndarray:
