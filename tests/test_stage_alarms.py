@@ -119,3 +119,22 @@ def test_a_failing_suture_is_caught_only_before_its_failing_throw_ends():
     )  # 1 step before the off-marks throw, 7 before the stalled one's end
     low, high = table["failing_caught"]["wilson_95"]
     assert low < 0.5 < high
+
+
+def test_a_hand_back_inside_a_flagged_segment_gives_it_a_fresh_gate_and_budget():
+    """The surgeon's part of a flagged extract is done while the high level still reads extract: the policy gets
+    the segment's budget again instead of being flagged back at once, and each flag stays on record."""
+    from lerobot_suture.safety.ood.stage_gate import StageGate
+
+    gate = StageGate(THRESHOLDS, BUDGETS)
+    gate.enter("extract", 0)
+    assert not any(gate.tick() for _ in range(6)) and gate.tick()  # the 7th step outlasts the budget of 6
+    assert gate.tick() and gate.flags == [("extract", 0)]  # latched, recorded once
+    gate.rearm()  # handed back inside the segment
+    assert not gate.flagged_here and not any(gate.tick() for _ in range(6)) and gate.tick()
+    assert gate.flags == [("extract", 0), ("extract", 0)]
+    gate.enter("extract", 0)  # the same segment read again: nothing changes
+    assert gate.flagged_here
+    gate.enter("insert", 1)
+    assert not gate.flagged_here and not gate.update(4.0) and gate.update(6.0)
+    assert gate.flags[-1] == ("insert", 1)

@@ -194,6 +194,7 @@ class StageGates(SilentGates):
 
     def rearm(self, row: int) -> None:
         self.base.rearm(row)
+        self.gates[row].rearm()
 
     def context(self, row: int) -> dict:
         subtask, throw = self.gates[row].segment

@@ -218,8 +218,10 @@ def fit_stage_thresholds(
 
 class StageGate:
     """The one gate per segment: a new segment (subtask or throw changed) starts a fresh running maximum, tested
-    against its subtask's threshold. Every flagged segment is kept (a surgeon takes it over and hands back for
-    the next, whose gate starts afresh).
+    against its subtask's threshold. Every flag is kept in ``flags`` (a surgeon takes that segment over and hands
+    back for the next, whose gate starts afresh). A hand-back inside the flagged segment (:meth:`rearm`: the
+    surgeon's part of the subtask is done while the high level still reads it) starts its gate and its budget
+    afresh too, so the policy is not flagged again at once for the steps the surgeon took.
 
     Args:
         thresholds: the fitted :class:`StageThresholds`, or None to record scores only (while calibrating); a
@@ -238,7 +240,8 @@ class StageGate:
         self.flags: list[tuple[str, int]] = []
         self.gate = OODGate()
         self.steps = 0
-        """Control steps of the current segment so far."""
+        """Control steps of the current segment so far (since the last hand-back in it)."""
+        self._flagged = False
 
     def threshold(self, subtask: str) -> float:
         """``subtask``'s threshold (NaN without one)."""
@@ -249,9 +252,20 @@ class StageGate:
         """The arm is in ``subtask`` of ``throw`` (the high level's reading); a new segment re-arms the gate."""
         segment = (subtask, int(throw))
         if segment != self.segment:
-            threshold = self.threshold(subtask)
-            self.gate = OODGate(calibration=None if math.isnan(threshold) else SegmentThreshold(threshold))
-            self.segment, self.steps = segment, 0
+            self.segment = segment
+            self.rearm()
+
+    def rearm(self) -> None:
+        """A fresh gate and time budget for the current segment (a new one, or a hand-back inside it); its flags
+        so far stay in ``flags``."""
+        threshold = math.nan if self.segment is None else self.threshold(self.segment[0])
+        self.gate = OODGate(calibration=None if math.isnan(threshold) else SegmentThreshold(threshold))
+        self.steps, self._flagged = 0, False
+
+    def _flag(self) -> None:
+        if not self._flagged:
+            self.flags.append(self.segment)
+            self._flagged = True
 
     def tick(self) -> bool:
         """One control step of the current segment; returns whether the segment is flagged (over its budget now,
@@ -260,19 +274,19 @@ class StageGate:
             raise RuntimeError("`enter` a segment before its first step.")
         self.steps += 1
         budget = None if self.budgets is None else self.budgets.budgets.get(self.segment[0])
-        if budget is not None and self.steps > budget and self.segment not in self.flags:
-            self.flags.append(self.segment)
+        if budget is not None and self.steps > budget:
+            self._flag()
         return self.flagged_here
 
     def update(self, score: float) -> bool:
         """One prediction's score in the current segment; returns whether this segment is flagged."""
         if self.segment is None:
             raise RuntimeError("`enter` a segment before its first score.")
-        if self.gate.update(score) and self.segment not in self.flags:
-            self.flags.append(self.segment)
+        if self.gate.update(score):
+            self._flag()
         return self.flagged_here
 
     @property
     def flagged_here(self) -> bool:
-        """The current segment is flagged."""
-        return self.segment in self.flags
+        """The current segment is flagged (since it began, or since the last hand-back in it)."""
+        return self._flagged
