@@ -63,7 +63,7 @@ def figure(report: dict, path: Path) -> None:
     from lerobot_suture.plotting import save_figure
 
     names = list(report["conditions"])
-    fig, ax = plt.subplots(figsize=(7, 3.5))
+    fig, ax = plt.subplots(figsize=(8, 4))
     x = np.arange(len(names))
     for offset, key, label in (
         (-0.2, "failing_caught", "failing sutures caught before the failing throw ends"),
@@ -71,12 +71,13 @@ def figure(report: dict, path: Path) -> None:
     ):
         rates = [report["conditions"][n][key] for n in names]
         values = [r["rate"] if r["rate"] is not None else np.nan for r in rates]
-        low = [v - r["wilson_95"][0] if r["of"] else 0 for v, r in zip(values, rates, strict=True)]
-        high = [r["wilson_95"][1] - v if r["of"] else 0 for v, r in zip(values, rates, strict=True)]
+        low = [max(v - r["wilson_95"][0], 0) if r["of"] else 0 for v, r in zip(values, rates, strict=True)]
+        high = [max(r["wilson_95"][1] - v, 0) if r["of"] else 0 for v, r in zip(values, rates, strict=True)]
         ax.bar(x + offset, values, 0.4, yerr=[low, high], capsize=3, label=label)
     ax.axhline(CATCH_BAR, color="C0", linestyle=":")
     ax.axhline(FALSE_ALARM_BAR, color="C1", linestyle=":")
-    ax.set_xticks(x, [f"{n}\n({report['conditions'][n]['episodes']})" for n in names])
+    labels = [n.replace("_after_insertion", " after\ninsertion").replace("_", " ") for n in names]
+    ax.set_xticks(x, [f"{label}\n({report['conditions'][n]['episodes']})" for label, n in zip(labels, names)])
     ax.set_ylim(0, 1.05)
     ax.set_ylabel("share of sutures")
     ax.legend(loc="upper right", fontsize=8)
