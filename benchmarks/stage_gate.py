@@ -77,7 +77,10 @@ def figure(report: dict, path: Path) -> None:
     ax.axhline(CATCH_BAR, color="C0", linestyle=":")
     ax.axhline(FALSE_ALARM_BAR, color="C1", linestyle=":")
     labels = [n.replace("_after_insertion", " after\ninsertion").replace("_", " ") for n in names]
-    ax.set_xticks(x, [f"{label}\n({report['conditions'][n]['episodes']})" for label, n in zip(labels, names)])
+    ax.set_xticks(
+        x,
+        [f"{label}\n({report['conditions'][n]['episodes']})" for label, n in zip(labels, names, strict=True)],
+    )
     ax.set_ylim(0, 1.05)
     ax.set_ylabel("share of sutures")
     ax.legend(loc="upper right", fontsize=8)
