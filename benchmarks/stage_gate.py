@@ -7,8 +7,8 @@ subtask and every prediction's score logged (``runtime.gates.StageGates``, recor
    Of the sutures that closed (FAIL-Detect's convention), each scored subtask's segments give its threshold, the
    split-conformal quantile at ``--alpha`` of their largest scores (``runtime.calibration.stage_thresholds``), and
    every subtask's segment lengths give its time budget at the same ``alpha`` (``fit_stage_budgets``). Both are
-   written to ``--work-dir`` (``stage_calibration.json``, ``stage_budgets.json``), which a policy directory takes
-   as they are.
+   written to ``--work-dir`` (``stage_calibration.json``, ``stage_budgets.json``), where
+   ``benchmarks/chain_interventions.py --stage-dir`` reads them to enforce the gate.
 2. on the leaderboard's test seeds of the running suture: ``--episodes`` nominal (the policy's own failures) and
    ``--scenario-episodes`` in each perturbation scenario. Each suture is replayed through the gate
    (``experiments.stage_alarms``): a failing suture is caught when a flag falls before its failing throw ends, and a
