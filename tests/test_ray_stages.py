@@ -104,8 +104,12 @@ def _leaderboard(policy_dir: Path, work: Path, *extra: str, env: dict | None = N
 
 
 def _per_episode(work: Path) -> dict:
+    from lerobot_suture.leaderboard.cells import unpacked_episodes
+
     board = json.loads((work / "results" / "leaderboard.json").read_text())
-    return {c: cell["per_episode"] for c, cell in board["tasks"]["insertion"]["tiny"].items()}
+    return {
+        c: unpacked_episodes(cell["per_episode"]) for c, cell in board["tasks"]["insertion"]["tiny"].items()
+    }
 
 
 @pytest.mark.slow
