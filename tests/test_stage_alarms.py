@@ -10,13 +10,12 @@ import pytest
 from lerobot_suture.experiments.stage_alarms import (
     failing_throw_end,
     first_flag,
-    segment_runs,
     stage_alarm_table,
     stage_durations,
 )
 from lerobot_suture.runtime.calibration import stage_thresholds
 from lerobot_suture.runtime.rollout import EpisodeLog, StepLog
-from lerobot_suture.safety.ood.stage_gate import StageBudgets, StageThresholds
+from lerobot_suture.safety.ood.stage_gate import StageBudgets, StageThresholds, segment_runs
 
 THROW = ["insert"] * 8 + ["extract"] * 4 + ["lay_down"] * 3 + ["pick_up"] * 3
 

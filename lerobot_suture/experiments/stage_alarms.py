@@ -18,23 +18,10 @@ from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 from lerobot_suture.experiments.metrics import wilson_interval
-from lerobot_suture.safety.ood.stage_gate import StageBudgets, StageGate, StageThresholds
+from lerobot_suture.safety.ood.stage_gate import StageBudgets, StageGate, StageThresholds, segment_runs
 
 if TYPE_CHECKING:
     from lerobot_suture.runtime.rollout import EpisodeLog
-
-
-def segment_runs(subtasks: Sequence[str]) -> list[tuple[str, int, int, int]]:
-    """The segments of one episode's per-step subtasks: (subtask, throw, start, stop) with ``stop`` exclusive; the
-    throw counts the insert segments begun so far (0-based; 0 before the first)."""
-    runs, throw = [], -1
-    for step, subtask in enumerate(subtasks):
-        if not runs or subtask != runs[-1][0]:
-            throw += subtask == "insert"
-            runs.append([subtask, max(throw, 0), step, step + 1])
-        else:
-            runs[-1][3] = step + 1
-    return [tuple(run) for run in runs]
 
 
 def stage_durations(logs: Sequence[EpisodeLog]) -> dict[str, list[int]]:
@@ -57,16 +44,15 @@ def first_flag(
     """The first flag a gate per stage would have raised on ``log`` (see the module docstring), or None:
     ``{"step", "subtask", "throw", "cause"}``."""
     gate = StageGate(thresholds, budgets)
-    throw = -1
-    for step, entry in enumerate(log.steps):
-        if gate.segment is None or entry.subtask != gate.segment[0]:
-            throw += entry.subtask == "insert"
-        gate.enter(entry.subtask, max(throw, 0))
-        cause = "budget" if gate.tick() else None
-        if cause is None and entry.new_prediction and entry.consulted and gate.update(entry.score):
-            cause = "score"
-        if cause is not None:
-            return {"step": step, "subtask": entry.subtask, "throw": max(throw, 0) + 1, "cause": cause}
+    for subtask, throw, start, stop in segment_runs([s.subtask for s in log.steps]):
+        gate.enter(subtask, throw)
+        for step in range(start, stop):
+            entry = log.steps[step]
+            cause = "budget" if gate.tick() else None
+            if cause is None and entry.new_prediction and entry.consulted and gate.update(entry.score):
+                cause = "score"
+            if cause is not None:
+                return {"step": step, "subtask": subtask, "throw": throw + 1, "cause": cause}
     return None
 
 

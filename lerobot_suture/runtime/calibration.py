@@ -54,7 +54,7 @@ from lerobot_suture.safety.ood.calibration_file import (
     save_calibration,
 )
 from lerobot_suture.safety.ood.likelihood_ratio import false_alarm_rates
-from lerobot_suture.safety.ood.stage_gate import StageThresholds, fit_stage_thresholds
+from lerobot_suture.safety.ood.stage_gate import StageThresholds, fit_stage_thresholds, segment_runs
 
 logger = logging.getLogger(__name__)
 
@@ -250,16 +250,16 @@ def stage_thresholds(
     scores, stages, segments, successful = [], [], [], []
     segment = -1
     for log in logs:
-        previous = None
-        for step in log.steps:
-            if step.subtask != previous:  # a new segment: the subtask changed
-                segment, previous = segment + 1, step.subtask
-            wanted = step.subtask and (subtasks is None or step.subtask in subtasks)
-            if step.new_prediction and step.consulted and wanted:
-                scores.append(step.score)
-                stages.append(step.subtask)
-                segments.append(segment)
-                successful.append(log.success)
+        for subtask, _, start, stop in segment_runs([s.subtask for s in log.steps]):
+            segment += 1
+            if not subtask or (subtasks is not None and subtask not in subtasks):
+                continue
+            for step in log.steps[start:stop]:
+                if step.new_prediction and step.consulted:
+                    scores.append(step.score)
+                    stages.append(subtask)
+                    segments.append(segment)
+                    successful.append(log.success)
     return fit_stage_thresholds(scores, stages, segments, successful, alpha)
 
 

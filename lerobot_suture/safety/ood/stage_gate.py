@@ -162,6 +162,19 @@ def fit_stage_budgets(
     )
 
 
+def segment_runs(subtasks: Sequence[str]) -> list[tuple[str, int, int, int]]:
+    """The segments of one episode's per-step subtasks: (subtask, throw, start, stop) with ``stop`` exclusive; the
+    throw counts the insert segments begun so far (0-based; 0 before the first)."""
+    runs, throw = [], -1
+    for step, subtask in enumerate(subtasks):
+        if not runs or subtask != runs[-1][0]:
+            throw += subtask == "insert"
+            runs.append([subtask, max(throw, 0), step, step + 1])
+        else:
+            runs[-1][3] = step + 1
+    return [tuple(run) for run in runs]
+
+
 def segment_maxima(
     scores: Sequence[float], stages: Sequence[str], segments: Sequence[int], successful: Sequence[bool]
 ) -> dict[str, np.ndarray]:
